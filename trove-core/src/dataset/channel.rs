@@ -1,0 +1,342 @@
+//! One channel of a dataset: a typed, endian-tagged byte array of exactly `dims` voxels.
+
+use std::fmt;
+use std::sync::Arc;
+
+use memmap2::Mmap;
+
+use super::Dims;
+
+/// How one voxel of a channel is stored (SPEC §1.1).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum VoxelType {
+    /// One bit per voxel, one LSB-first stream, x fastest, no row padding.
+    Bit,
+    /// Unsigned 8-bit.
+    U8,
+    /// Unsigned 16-bit.
+    U16,
+    /// Unsigned 32-bit.
+    U32,
+    /// IEEE single precision.
+    F32,
+}
+
+impl VoxelType {
+    /// Parses the scene's spelling (`bit`, `u8`, `u16`, `u32`, `f32`).
+    pub fn parse(s: &str) -> Option<VoxelType> {
+        Some(match s {
+            "bit" => VoxelType::Bit,
+            "u8" => VoxelType::U8,
+            "u16" => VoxelType::U16,
+            "u32" => VoxelType::U32,
+            "f32" => VoxelType::F32,
+            _ => return None,
+        })
+    }
+
+    /// The scene's spelling.
+    pub fn name(self) -> &'static str {
+        match self {
+            VoxelType::Bit => "bit",
+            VoxelType::U8 => "u8",
+            VoxelType::U16 => "u16",
+            VoxelType::U32 => "u32",
+            VoxelType::F32 => "f32",
+        }
+    }
+
+    /// Bytes needed for `voxels` voxels, or `None` on overflow.
+    pub fn byte_len(self, voxels: u64) -> Option<u64> {
+        match self {
+            VoxelType::Bit => Some(voxels.div_ceil(8)),
+            VoxelType::U8 => Some(voxels),
+            VoxelType::U16 => voxels.checked_mul(2),
+            VoxelType::U32 | VoxelType::F32 => voxels.checked_mul(4),
+        }
+    }
+}
+
+impl fmt::Display for VoxelType {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Byte order of multi-byte voxels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Default)]
+pub enum Endian {
+    /// Least significant byte first (the default).
+    #[default]
+    Little,
+    /// Most significant byte first.
+    Big,
+}
+
+impl Endian {
+    /// Parses `little` or `big`.
+    pub fn parse(s: &str) -> Option<Endian> {
+        match s {
+            "little" => Some(Endian::Little),
+            "big" => Some(Endian::Big),
+            _ => None,
+        }
+    }
+}
+
+/// The channels of SPEC §1.1 (paper §2.3.1).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum ChannelName {
+    /// Raw data the mapping functions read (bit, u8, u16, u32 or f32).
+    Voxel,
+    /// Colour as a binary field.
+    Bit,
+    /// 256 grey levels.
+    Grey,
+    /// Red (u8).
+    Red,
+    /// Green (u8).
+    Green,
+    /// Blue (u8).
+    Blue,
+    /// Raw opacity (u8).
+    Alpha,
+    /// 7-colour model: second red.
+    Red2,
+    /// 7-colour model: second green.
+    Green2,
+    /// 7-colour model: second blue.
+    Blue2,
+    /// 7-colour model: beta.
+    Beta,
+    /// Per-voxel choice of interpolation function.
+    Interp,
+    /// User channel 1..=4.
+    User(u8),
+}
+
+impl ChannelName {
+    /// Every channel name, in storage order.
+    pub const ALL: [ChannelName; 16] = [
+        ChannelName::Voxel,
+        ChannelName::Bit,
+        ChannelName::Grey,
+        ChannelName::Red,
+        ChannelName::Green,
+        ChannelName::Blue,
+        ChannelName::Alpha,
+        ChannelName::Red2,
+        ChannelName::Green2,
+        ChannelName::Blue2,
+        ChannelName::Beta,
+        ChannelName::Interp,
+        ChannelName::User(1),
+        ChannelName::User(2),
+        ChannelName::User(3),
+        ChannelName::User(4),
+    ];
+
+    /// Parses the scene's spelling (`voxel`, `red2`, `user3`, ...).
+    pub fn parse(s: &str) -> Option<ChannelName> {
+        ChannelName::ALL.into_iter().find(|c| c.name() == s)
+    }
+
+    /// The scene's spelling.
+    pub fn name(self) -> &'static str {
+        match self {
+            ChannelName::Voxel => "voxel",
+            ChannelName::Bit => "bit",
+            ChannelName::Grey => "grey",
+            ChannelName::Red => "red",
+            ChannelName::Green => "green",
+            ChannelName::Blue => "blue",
+            ChannelName::Alpha => "alpha",
+            ChannelName::Red2 => "red2",
+            ChannelName::Green2 => "green2",
+            ChannelName::Blue2 => "blue2",
+            ChannelName::Beta => "beta",
+            ChannelName::Interp => "interp",
+            ChannelName::User(1) => "user1",
+            ChannelName::User(2) => "user2",
+            ChannelName::User(3) => "user3",
+            ChannelName::User(_) => "user4",
+        }
+    }
+
+    /// The storage types this channel accepts.
+    pub fn allowed_types(self) -> &'static [VoxelType] {
+        use VoxelType::*;
+        match self {
+            ChannelName::Voxel | ChannelName::User(_) => &[Bit, U8, U16, U32, F32],
+            ChannelName::Bit => &[Bit],
+            _ => &[U8],
+        }
+    }
+
+    /// Whether raw use divides the stored value by 255 (SPEC §3.1).
+    pub fn is_colour_byte(self) -> bool {
+        matches!(
+            self,
+            ChannelName::Grey | ChannelName::Red | ChannelName::Green | ChannelName::Blue | ChannelName::Alpha
+        )
+    }
+}
+
+impl fmt::Display for ChannelName {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Where a channel's bytes live: a read-only file mapping (zero copy) or memory we own.
+#[derive(Clone)]
+pub enum VoxelBytes {
+    /// A window of a memory-mapped file.
+    Mapped {
+        /// The mapping, shared by every channel cut from the same file.
+        map: Arc<Mmap>,
+        /// First byte of the channel in the mapping.
+        offset: usize,
+        /// Length in bytes.
+        len: usize,
+    },
+    /// Decoded, converted or generated bytes.
+    Owned(Arc<Vec<u8>>),
+}
+
+impl VoxelBytes {
+    /// The bytes.
+    pub fn as_slice(&self) -> &[u8] {
+        match self {
+            VoxelBytes::Mapped { map, offset, len } => &map[*offset..*offset + *len],
+            VoxelBytes::Owned(v) => v,
+        }
+    }
+}
+
+impl fmt::Debug for VoxelBytes {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            VoxelBytes::Mapped { len, .. } => write!(f, "Mapped({len} bytes)"),
+            VoxelBytes::Owned(v) => write!(f, "Owned({} bytes)", v.len()),
+        }
+    }
+}
+
+/// A channel: exactly `dims` voxels of one type. The length is checked at construction, so
+/// every index below `dims.voxel_count()` is readable.
+#[derive(Clone, Debug)]
+pub struct Channel {
+    ty: VoxelType,
+    endian: Endian,
+    bytes: VoxelBytes,
+    voxels: usize,
+}
+
+impl Channel {
+    /// Wraps `bytes`; `Err((expected, actual))` byte counts when they do not hold exactly
+    /// `dims` voxels of `ty`.
+    pub fn new(ty: VoxelType, endian: Endian, bytes: VoxelBytes, dims: Dims) -> Result<Channel, (u64, u64)> {
+        let expected = ty.byte_len(dims.voxel_count()).unwrap_or(u64::MAX);
+        let actual = bytes.as_slice().len() as u64;
+        if expected != actual {
+            return Err((expected, actual));
+        }
+        Ok(Channel { ty, endian, bytes, voxels: dims.voxel_count() as usize })
+    }
+
+    /// An owned f32 channel (little-endian storage).
+    pub fn from_f32(values: &[f32], dims: Dims) -> Result<Channel, (u64, u64)> {
+        let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+        Channel::new(VoxelType::F32, Endian::Little, VoxelBytes::Owned(Arc::new(bytes)), dims)
+    }
+
+    /// An owned u8 channel.
+    pub fn from_u8(values: Vec<u8>, dims: Dims) -> Result<Channel, (u64, u64)> {
+        Channel::new(VoxelType::U8, Endian::Little, VoxelBytes::Owned(Arc::new(values)), dims)
+    }
+
+    /// Storage type.
+    pub fn ty(&self) -> VoxelType {
+        self.ty
+    }
+
+    /// Byte order.
+    pub fn endian(&self) -> Endian {
+        self.endian
+    }
+
+    /// Resident size in bytes.
+    pub fn byte_len(&self) -> usize {
+        self.bytes.as_slice().len()
+    }
+
+    /// Whether the bytes are a file mapping rather than a copy.
+    pub fn is_mapped(&self) -> bool {
+        matches!(self.bytes, VoxelBytes::Mapped { .. })
+    }
+
+    /// The stored number at linear index `i` as f32 (SPEC §3.1). Panics if `i` is out of
+    /// range; hot loops use [`Channel::reader`] instead.
+    pub fn value(&self, i: usize) -> f32 {
+        assert!(i < self.voxels, "voxel index {i} out of range");
+        self.reader().read(i)
+    }
+
+    /// A reader that decodes this channel's storage; dispatch once, then read many voxels.
+    pub fn reader(&self) -> ChannelReader<'_> {
+        let b = self.bytes.as_slice();
+        match (self.ty, self.endian) {
+            (VoxelType::Bit, _) => ChannelReader::Bit(b),
+            (VoxelType::U8, _) => ChannelReader::U8(b),
+            (VoxelType::U16, Endian::Little) => ChannelReader::U16Le(b),
+            (VoxelType::U16, Endian::Big) => ChannelReader::U16Be(b),
+            (VoxelType::U32, Endian::Little) => ChannelReader::U32Le(b),
+            (VoxelType::U32, Endian::Big) => ChannelReader::U32Be(b),
+            (VoxelType::F32, Endian::Little) => ChannelReader::F32Le(b),
+            (VoxelType::F32, Endian::Big) => ChannelReader::F32Be(b),
+        }
+    }
+}
+
+/// A borrowed, decoded view of a channel's bytes.
+#[derive(Clone, Copy, Debug)]
+pub enum ChannelReader<'a> {
+    /// Bits, LSB first.
+    Bit(&'a [u8]),
+    /// u8.
+    U8(&'a [u8]),
+    /// u16 little-endian.
+    U16Le(&'a [u8]),
+    /// u16 big-endian.
+    U16Be(&'a [u8]),
+    /// u32 little-endian.
+    U32Le(&'a [u8]),
+    /// u32 big-endian.
+    U32Be(&'a [u8]),
+    /// f32 little-endian.
+    F32Le(&'a [u8]),
+    /// f32 big-endian.
+    F32Be(&'a [u8]),
+}
+
+impl ChannelReader<'_> {
+    /// The value at linear index `i` (x fastest, then y, then z).
+    #[inline(always)]
+    pub fn read(&self, i: usize) -> f32 {
+        #[inline(always)]
+        fn w<const N: usize>(b: &[u8], i: usize) -> [u8; N] {
+            b[i * N..i * N + N].try_into().expect("slice of N bytes")
+        }
+        match *self {
+            ChannelReader::Bit(b) => ((b[i >> 3] >> (i & 7)) & 1) as f32,
+            ChannelReader::U8(b) => b[i] as f32,
+            ChannelReader::U16Le(b) => u16::from_le_bytes(w(b, i)) as f32,
+            ChannelReader::U16Be(b) => u16::from_be_bytes(w(b, i)) as f32,
+            ChannelReader::U32Le(b) => u32::from_le_bytes(w(b, i)) as f32,
+            ChannelReader::U32Be(b) => u32::from_be_bytes(w(b, i)) as f32,
+            ChannelReader::F32Le(b) => f32::from_le_bytes(w(b, i)),
+            ChannelReader::F32Be(b) => f32::from_be_bytes(w(b, i)),
+        }
+    }
+}

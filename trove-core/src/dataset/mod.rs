@@ -1,0 +1,22 @@
+//! The voxel level (paper §2.2, §2.3.1): raw datasets, each stored once and shared (via
+//! `Arc`) by every object that names it.
+//!
+//! A dataset is described at scene load by a [`DatasetInfo`] (name, dims, channel types and
+//! where the bytes come from), which is enough for the intersection phase and is validated
+//! in full: header, dims and byte counts agree before any ray is cast. Its voxels are a
+//! [`Volume`], produced by [`DatasetInfo::load`] when a renderer needs them, so a
+//! memory-budgeted store can drop and reload them.
+
+mod channel;
+pub mod generator;
+pub mod image_file;
+mod mmap;
+pub mod nifti_file;
+pub mod nrrd;
+pub mod raw;
+mod source;
+mod volume;
+
+pub use channel::{Channel, ChannelName, Endian, VoxelBytes, VoxelType};
+pub use source::{ChannelSource, DatasetInfo, Encoding};
+pub use volume::{Dims, Volume};

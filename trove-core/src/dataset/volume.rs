@@ -1,0 +1,94 @@
+//! Dataset dimensions and the resident voxels of one dataset.
+
+use std::collections::BTreeMap;
+use std::fmt;
+
+use super::{Channel, ChannelName};
+
+/// Voxels per axis, each ≥ 1, with a total that indexes safely in `usize` and whose bytes
+/// fit in `u64` for every channel type. Established once, in [`Dims::new`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct Dims([u32; 3]);
+
+impl Dims {
+    /// Largest voxel count accepted (2^40, one TiB of u8 voxels).
+    pub const MAX_VOXELS: u64 = 1 << 40;
+
+    /// Checked constructor; the message says what was expected.
+    pub fn new(d: [u64; 3]) -> Result<Dims, String> {
+        if d.iter().any(|&n| n == 0) {
+            return Err(format!("dims {d:?}: every axis must be at least 1"));
+        }
+        if d.iter().any(|&n| n > i32::MAX as u64) {
+            return Err(format!("dims {d:?}: an axis exceeds {}", i32::MAX));
+        }
+        let total = d[0].checked_mul(d[1]).and_then(|v| v.checked_mul(d[2]));
+        match total {
+            Some(t) if t <= Dims::MAX_VOXELS => Ok(Dims([d[0] as u32, d[1] as u32, d[2] as u32])),
+            _ => Err(format!("dims {d:?}: more than {} voxels", Dims::MAX_VOXELS)),
+        }
+    }
+
+    /// Voxels along `axis` (0 = x, 1 = y, 2 = z).
+    #[inline]
+    pub fn axis(&self, axis: usize) -> u32 {
+        self.0[axis]
+    }
+
+    /// The three sizes.
+    pub fn as_array(&self) -> [u32; 3] {
+        self.0
+    }
+
+    /// Total voxel count.
+    pub fn voxel_count(&self) -> u64 {
+        self.0.iter().map(|&n| n as u64).product()
+    }
+
+    /// Linear index of voxel (i, j, k): x fastest, then y, then z.
+    #[inline(always)]
+    pub fn index(&self, i: usize, j: usize, k: usize) -> usize {
+        i + self.0[0] as usize * (j + self.0[1] as usize * k)
+    }
+}
+
+impl fmt::Display for Dims {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "[{}, {}, {}]", self.0[0], self.0[1], self.0[2])
+    }
+}
+
+/// The resident voxels of one dataset: every channel it declares, each exactly `dims`.
+#[derive(Clone, Debug)]
+pub struct Volume {
+    dims: Dims,
+    channels: BTreeMap<ChannelName, Channel>,
+}
+
+impl Volume {
+    /// Assembles a volume; each channel was already checked against `dims` by
+    /// [`Channel::new`].
+    pub fn new(dims: Dims, channels: BTreeMap<ChannelName, Channel>) -> Volume {
+        Volume { dims, channels }
+    }
+
+    /// Dimensions.
+    pub fn dims(&self) -> Dims {
+        self.dims
+    }
+
+    /// A channel, if the dataset has it.
+    pub fn channel(&self, name: ChannelName) -> Option<&Channel> {
+        self.channels.get(&name)
+    }
+
+    /// All channels.
+    pub fn channels(&self) -> impl Iterator<Item = (ChannelName, &Channel)> {
+        self.channels.iter().map(|(n, c)| (*n, c))
+    }
+
+    /// Resident bytes (what a memory budget counts).
+    pub fn byte_len(&self) -> u64 {
+        self.channels.values().map(|c| c.byte_len() as u64).sum()
+    }
+}
