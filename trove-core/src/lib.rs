@@ -1,4 +1,23 @@
-//! TROVE core (partial, in progress).
+//! TROVE core: the two-level scene model of Leu & Chen (1997) and the ray casting that
+//! renders it, with no networking and no knowledge of any wire format.
+//!
+//! The data flow of one render is visible in the modules, in order:
+//! [`scene`] (TOML → validated model) → [`geometry`] (camera rays → per-object segments →
+//! pieces) → [`sampling`] (interpolate a dataset's channels, map to colour and opacity,
+//! composite one object over one piece) → [`composite`] (co-located media, front to back,
+//! background) → [`render`] (Algorithm 1 per ray, and the image and statistics it yields).
+//! [`dataset`] is the voxel level: channels stored once and shared by every object that
+//! names them.
+#![deny(missing_docs)]
+
+pub mod composite;
 pub mod dataset;
 pub mod error;
+pub mod geometry;
+pub mod interp;
+pub mod mapping;
+pub mod render;
+pub mod sampling;
+pub mod scene;
+
 pub use error::{DatasetError, RenderError, SceneError};

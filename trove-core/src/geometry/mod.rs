@@ -1,0 +1,12 @@
+//! Object-level geometry: camera rays (SPEC §4.1), object placement and ray segments
+//! (§2, §4.2), and the split of overlapping segments into pieces. Nothing here reads a
+//! voxel: the intersection phase needs only dims and placements (paper §3.3).
+
+mod camera;
+pub mod hexahedron;
+mod pieces;
+mod placement;
+
+pub use camera::{Camera, Ray};
+pub use pieces::{split_into_pieces, Piece, Segment};
+pub use placement::{Extent, Placement, Shape, VcLine};

@@ -1,0 +1,336 @@
+//! Where an object sits (paper §2.3.5, SPEC §2): its box in the world, the extent
+//! sub-box of its dataset that fills it, and the map from world points to volume
+//! coordinates (VC) that sampling needs.
+
+use glam::{DMat4, DVec3};
+
+use super::hexahedron::Hexahedron;
+use super::Ray;
+use crate::dataset::Dims;
+
+/// The NVC sub-box of a dataset that fills the object's box (clips and stretches).
+/// Invariant: 0 ≤ min < max ≤ 1 per axis, checked by the scene validator.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Extent {
+    /// Lower NVC corner.
+    pub min: DVec3,
+    /// Upper NVC corner.
+    pub max: DVec3,
+}
+
+impl Extent {
+    /// The whole dataset.
+    pub const FULL: Extent = Extent { min: DVec3::ZERO, max: DVec3::ONE };
+}
+
+/// The shape of an object's box.
+#[derive(Clone, Debug)]
+pub enum Shape {
+    /// A parallelepiped (from a matrix, or eight corners that form one).
+    Affine {
+        /// Box coordinates q ∈ [0,1]³ → world.
+        world_from_box: DMat4,
+        /// World → box coordinates.
+        box_from_world: DMat4,
+    },
+    /// A distorted hexahedron: trilinear corner blend, inverted per sample.
+    Distorted {
+        /// The validated (non-folding) hexahedron.
+        hex: Box<Hexahedron>,
+        /// Sample along the straight VC line between the mapped end points (the paper's
+        /// fast approximation, §3.1) instead of inverting the map at every sample.
+        straight: bool,
+    },
+}
+
+/// An object's placement: shape, extent and the dataset dims that fix VC.
+#[derive(Clone, Debug)]
+pub struct Placement {
+    shape: Shape,
+    extent: Extent,
+    /// VC = vc_scale * q + vc_offset (per axis).
+    vc_scale: DVec3,
+    vc_offset: DVec3,
+    /// World → VC, for affine shapes.
+    vc_from_world: DMat4,
+    /// Tolerance on box coordinates for the exact inversion: 1e-6 voxel.
+    tol_q: f64,
+}
+
+/// Relative slack when testing a point against the closed unit box, so a ray in a face
+/// plane stays inside despite rounding in the world → box transform (SPEC §4.5).
+const BOX_SLACK: f64 = 1e-12;
+
+impl Placement {
+    /// A placement; the shape and extent were validated by the scene loader.
+    pub fn new(shape: Shape, extent: Extent, dims: Dims) -> Placement {
+        let n = DVec3::new(dims.axis(0) as f64, dims.axis(1) as f64, dims.axis(2) as f64);
+        let vc_scale = (extent.max - extent.min) * n;
+        let vc_offset = extent.min * n - DVec3::splat(0.5);
+        let box_to_vc = DMat4::from_cols(
+            DVec3::new(vc_scale.x, 0.0, 0.0).extend(0.0),
+            DVec3::new(0.0, vc_scale.y, 0.0).extend(0.0),
+            DVec3::new(0.0, 0.0, vc_scale.z).extend(0.0),
+            vc_offset.extend(1.0),
+        );
+        let vc_from_world = match &shape {
+            Shape::Affine { box_from_world, .. } => box_to_vc * *box_from_world,
+            Shape::Distorted { .. } => DMat4::NAN,
+        };
+        let tol_q = 1e-6 / vc_scale.max_element();
+        Placement { shape, extent, vc_scale, vc_offset, vc_from_world, tol_q }
+    }
+
+    /// The shape.
+    pub fn shape(&self) -> &Shape {
+        &self.shape
+    }
+
+    /// The extent.
+    pub fn extent(&self) -> Extent {
+        self.extent
+    }
+
+    /// The eight world corners, index x + 2y + 4z.
+    pub fn corners(&self) -> [DVec3; 8] {
+        match &self.shape {
+            Shape::Affine { world_from_box, .. } => super::hexahedron::corners_of_affine(world_from_box),
+            Shape::Distorted { hex, .. } => *hex.corners(),
+        }
+    }
+
+    /// VC of box coordinates q.
+    #[inline]
+    pub fn vc_of_box(&self, q: DVec3) -> DVec3 {
+        self.vc_scale * q + self.vc_offset
+    }
+
+    /// The first and last t ≥ 0 at which the ray is inside the closed box (SPEC §4.2).
+    pub fn segment(&self, ray: &Ray) -> Option<(f64, f64)> {
+        match &self.shape {
+            Shape::Affine { box_from_world, .. } => {
+                let o = box_from_world.transform_point3(ray.origin);
+                let d = box_from_world.transform_vector3(ray.dir);
+                slab_segment(o, d)
+            }
+            Shape::Distorted { hex, .. } => hex.segment(ray.origin, ray.dir),
+        }
+    }
+
+    /// The world length of one VC step along the ray direction (for sampling-distance
+    /// sanity checks): the norm of d(VC)/dt for affine boxes.
+    pub fn vc_per_world(&self, dir: DVec3) -> f64 {
+        self.vc_from_world.transform_vector3(dir).length()
+    }
+
+    /// The samples of this object over the piece [t0, t1] of `ray` (SPEC §4.2–4.3):
+    /// `sampling_distance` 0 means one voxel per step.
+    pub fn walk(&self, ray: &Ray, t0: f64, t1: f64, sampling_distance: f64) -> SampleWalk<'_> {
+        let len = t1 - t0;
+        let (state, vc_len) = match &self.shape {
+            Shape::Affine { .. } => {
+                let vc0 = self.vc_from_world.transform_point3(ray.at(t0));
+                let vc1 = self.vc_from_world.transform_point3(ray.at(t1));
+                (WalkState::Line { vc0, delta: vc1 - vc0 }, (vc1 - vc0).length())
+            }
+            Shape::Distorted { hex, straight } => {
+                let q0 = hex.invert(ray.at(t0), None, self.tol_q);
+                let q1 = hex.invert(ray.at(t1), q0, self.tol_q);
+                match (q0, q1) {
+                    (Some(q0), Some(q1)) => {
+                        let (vc0, vc1) = (self.vc_of_box(q0), self.vc_of_box(q1));
+                        let state = if *straight {
+                            WalkState::Line { vc0, delta: vc1 - vc0 }
+                        } else {
+                            WalkState::Exact { hex, prev_q: q0, prev_vc: vc0 }
+                        };
+                        (state, (vc1 - vc0).length())
+                    }
+                    _ => (WalkState::Failed, 0.0),
+                }
+            }
+        };
+        let n = sample_count(len, sampling_distance, vc_len);
+        SampleWalk { placement: self, ray: *ray, t0, dt: len / n as f64, n, k: 0, state }
+    }
+}
+
+/// The number of samples over a piece (SPEC §4.2): round(L/Δ), or round(VC length) when Δ
+/// is 0, at least 1, with `round` half away from zero. The argument is snapped to the
+/// nearest half-integer within the SPEC §4.5 tolerance so rounding noise cannot flip n.
+#[inline]
+pub fn sample_count(world_len: f64, sampling_distance: f64, vc_len: f64) -> u64 {
+    let x = if sampling_distance > 0.0 { world_len / sampling_distance } else { vc_len };
+    let half = (x * 2.0).round() / 2.0;
+    let x = if (x - half).abs() <= 1e-9 * x.abs().max(1.0) { half } else { x };
+    (x.round() as u64).max(1)
+}
+
+/// The slab test against the closed unit box in box coordinates. A zero direction
+/// component (+0.0 or −0.0) is handled without dividing, so it never makes NaN.
+fn slab_segment(o: DVec3, d: DVec3) -> Option<(f64, f64)> {
+    let (mut t_near, mut t_far) = (0.0f64, f64::INFINITY);
+    let slack = BOX_SLACK * (1.0 + o.abs().max_element());
+    for a in 0..3 {
+        let (lo, hi) = (-slack, 1.0 + slack);
+        if d[a] == 0.0 {
+            if o[a] < lo || o[a] > hi {
+                return None;
+            }
+            continue;
+        }
+        let (ta, tb) = ((lo - o[a]) / d[a], (hi - o[a]) / d[a]);
+        t_near = t_near.max(ta.min(tb));
+        t_far = t_far.min(ta.max(tb));
+    }
+    (t_near <= t_far && t_far.is_finite()).then_some((t_near, t_far))
+}
+
+enum WalkState<'a> {
+    /// Sample the straight VC line vc0 + s·delta, s ∈ [0, 1].
+    Line { vc0: DVec3, delta: DVec3 },
+    /// Invert the world map exactly at each sample and sub-interval boundary.
+    Exact { hex: &'a Hexahedron, prev_q: DVec3, prev_vc: DVec3 },
+    /// The end points could not be inverted: the piece contributes nothing.
+    Failed,
+}
+
+/// The samples of one object over one piece, front to back: each is the VC point (or
+/// `None` where it maps outside a non-convex box) and ℓ, the VC length of its
+/// sub-interval, which opacity correction needs (SPEC §4.3).
+pub struct SampleWalk<'a> {
+    placement: &'a Placement,
+    ray: Ray,
+    t0: f64,
+    dt: f64,
+    n: u64,
+    k: u64,
+    state: WalkState<'a>,
+}
+
+impl SampleWalk<'_> {
+    /// The number of samples this walk yields.
+    pub fn len(&self) -> u64 {
+        self.n
+    }
+
+    /// Whether the walk yields nothing (never: n ≥ 1; provided for clippy's sake).
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
+    }
+}
+
+/// One sample: VC point (None when outside the box) and ℓ in voxels.
+pub type VcLine = (Option<[f64; 3]>, f64);
+
+impl Iterator for SampleWalk<'_> {
+    type Item = VcLine;
+
+    #[inline]
+    fn next(&mut self) -> Option<VcLine> {
+        if self.k >= self.n {
+            return None;
+        }
+        let k = self.k as f64;
+        self.k += 1;
+        let n = self.n as f64;
+        match &mut self.state {
+            WalkState::Line { vc0, delta } => {
+                let vc = *vc0 + *delta * ((k + 0.5) / n);
+                Some((Some(vc.to_array()), delta.length() / n))
+            }
+            WalkState::Exact { hex, prev_q, prev_vc } => {
+                let p = self.placement;
+                let t_mid = self.t0 + (k + 0.5) * self.dt;
+                let t_end = self.t0 + (k + 1.0) * self.dt;
+                let q_mid = hex.invert(self.ray.at(t_mid), Some(*prev_q), p.tol_q);
+                let q_end = hex.invert(self.ray.at(t_end), q_mid.or(Some(*prev_q)), p.tol_q);
+                let item = match (q_mid, q_end) {
+                    (Some(qm), Some(qe)) => {
+                        let vc_end = p.vc_of_box(qe);
+                        let ell = (vc_end - *prev_vc).length();
+                        *prev_q = qe;
+                        *prev_vc = vc_end;
+                        let inside = Hexahedron::contains_q(qm);
+                        (inside.then(|| p.vc_of_box(qm).to_array()), ell)
+                    }
+                    // Newton failed: never guess; this sample contributes nothing.
+                    _ => (None, 0.0),
+                };
+                Some(item)
+            }
+            WalkState::Failed => Some((None, 0.0)),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn unit_box(dims: [u64; 3]) -> Placement {
+        Placement::new(
+            Shape::Affine { world_from_box: DMat4::IDENTITY, box_from_world: DMat4::IDENTITY },
+            Extent::FULL,
+            Dims::new(dims).unwrap(),
+        )
+    }
+
+    #[test]
+    fn rays_parallel_to_faces_with_signed_zeros_do_not_miss_or_nan() {
+        let p = unit_box([4, 4, 4]);
+        for dz in [0.0, -0.0] {
+            for dy in [0.0, -0.0] {
+                // Along +x, in the face plane y = 0 and z = 1 (an edge), and through the interior.
+                for (oy, oz) in [(0.0, 1.0), (0.5, 0.5), (1.0, 0.0), (0.0, 0.0)] {
+                    let ray = Ray { origin: DVec3::new(-1.0, oy, oz), dir: DVec3::new(1.0, dy, dz) };
+                    let (a, b) = p.segment(&ray).expect("closed box: no miss");
+                    assert!((a - 1.0).abs() < 1e-9 && (b - 2.0).abs() < 1e-9, "{a} {b}");
+                }
+                let outside = Ray { origin: DVec3::new(-1.0, 1.5, 0.5), dir: DVec3::new(1.0, dy, dz) };
+                assert_eq!(p.segment(&outside), None);
+            }
+        }
+    }
+
+    #[test]
+    fn a_ray_through_a_corner_touches_the_box_and_the_camera_may_be_inside() {
+        let p = unit_box([2, 2, 2]);
+        let d = DVec3::new(1.0, 1.0, 1.0).normalize();
+        let (a, b) = p.segment(&Ray { origin: DVec3::splat(-1.0), dir: d }).unwrap();
+        assert!((a - 3f64.sqrt()).abs() < 1e-9 && (b - 2.0 * 3f64.sqrt()).abs() < 1e-9);
+        let (a, b) = p.segment(&Ray { origin: DVec3::splat(0.5), dir: DVec3::X }).unwrap();
+        assert_eq!(a, 0.0);
+        assert!((b - 0.5).abs() < 1e-9);
+        // Touching only the corner point gives a zero-length segment, dropped later.
+        let corner = Ray { origin: DVec3::new(2.0, 0.0, 0.0), dir: DVec3::new(-1.0, -1.0, 0.0).normalize() };
+        if let Some((a, b)) = p.segment(&corner) {
+            assert!(b - a < 1e-9);
+        }
+    }
+
+    #[test]
+    fn samples_sit_at_midpoints_with_one_voxel_steps() {
+        let p = unit_box([4, 1, 1]);
+        let ray = Ray { origin: DVec3::new(-1.0, 0.5, 0.5), dir: DVec3::X };
+        let (a, b) = p.segment(&ray).unwrap();
+        let s: Vec<_> = p.walk(&ray, a, b, 0.0).collect();
+        assert_eq!(s.len(), 4);
+        for (k, (vc, ell)) in s.iter().enumerate() {
+            let vc = vc.unwrap();
+            assert!((vc[0] - k as f64).abs() < 1e-9, "{vc:?}");
+            assert!((ell - 1.0).abs() < 1e-9);
+        }
+        // An explicit sampling distance: round(1.0 / 0.3) = 3 samples.
+        assert_eq!(p.walk(&ray, a, b, 0.3).len(), 3);
+    }
+
+    #[test]
+    fn sample_count_rounds_half_away_from_zero_despite_noise() {
+        assert_eq!(sample_count(2.5, 1.0, 0.0), 3);
+        assert_eq!(sample_count(2.5 - 1e-13, 1.0, 0.0), 3);
+        assert_eq!(sample_count(2.4, 1.0, 0.0), 2);
+        assert_eq!(sample_count(0.1, 1.0, 0.0), 1);
+        assert_eq!(sample_count(1.0, 0.0, 3.5), 4);
+    }
+}

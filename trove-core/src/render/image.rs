@@ -1,0 +1,168 @@
+//! The rendered image and its two file forms: an 8-bit PNG (SPEC §4.4's quantisation) and
+//! an unquantised Portable FloatMap.
+
+use std::io::Write;
+use std::path::Path;
+
+use crate::RenderError;
+
+/// Linear RGB pixels, row 0 at the top.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    width: u32,
+    height: u32,
+    pixels: Vec<[f64; 3]>,
+}
+
+impl Image {
+    /// An image from row-major pixels; `pixels.len()` must be `width · height`.
+    pub fn new(width: u32, height: u32, pixels: Vec<[f64; 3]>) -> Image {
+        assert_eq!(pixels.len(), width as usize * height as usize, "pixel count");
+        Image { width, height, pixels }
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    /// Pixel (col, row).
+    pub fn pixel(&self, col: u32, row: u32) -> [f64; 3] {
+        self.pixels[(row * self.width + col) as usize]
+    }
+
+    /// All pixels, row-major.
+    pub fn pixels(&self) -> &[[f64; 3]] {
+        &self.pixels
+    }
+
+    /// round(255 · clamp(C, 0, 1)) per channel, half away from zero, no gamma.
+    pub fn to_rgb8(&self) -> Vec<u8> {
+        self.pixels.iter().flat_map(|p| p.map(|c| (255.0 * c.clamp(0.0, 1.0)).round() as u8)).collect()
+    }
+
+    /// Writes a PNG, or a PFM when the path ends in `.pfm`.
+    pub fn save(&self, path: &Path) -> Result<(), RenderError> {
+        let is_pfm = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("pfm"));
+        let result = if is_pfm { self.write_pfm(path) } else { self.write_png(path) };
+        result.map_err(|message| RenderError::Output { path: path.to_path_buf(), message })
+    }
+
+    fn write_png(&self, path: &Path) -> Result<(), String> {
+        image::save_buffer(path, &self.to_rgb8(), self.width, self.height, image::ExtendedColorType::Rgb8)
+            .map_err(|e| e.to_string())
+    }
+
+    /// PFM: "PF", dimensions, a negative scale for little-endian, then rows bottom to top.
+    fn write_pfm(&self, path: &Path) -> Result<(), String> {
+        let mut out = Vec::with_capacity(self.pixels.len() * 12 + 32);
+        write!(out, "PF\n{} {}\n-1.0\n", self.width, self.height).map_err(|e| e.to_string())?;
+        for row in self.pixels.chunks(self.width as usize).rev() {
+            for p in row {
+                for c in p {
+                    out.extend_from_slice(&(*c as f32).to_le_bytes());
+                }
+            }
+        }
+        std::fs::write(path, out).map_err(|e| e.to_string())
+    }
+
+    /// Reads a PFM written by [`Image::save`] (or any RGB PFM), for tests and comparisons.
+    pub fn read_pfm(path: &Path) -> Result<Image, String> {
+        let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let mut fields = Vec::new();
+        let mut pos = 0;
+        while fields.len() < 4 {
+            while pos < bytes.len() && bytes[pos].is_ascii_whitespace() {
+                pos += 1;
+            }
+            let start = pos;
+            while pos < bytes.len() && !bytes[pos].is_ascii_whitespace() {
+                pos += 1;
+            }
+            if start == pos {
+                return Err(format!("{}: truncated PFM header", path.display()));
+            }
+            fields.push(String::from_utf8_lossy(&bytes[start..pos]).to_string());
+        }
+        pos += 1;
+        let bad = |what: &str| format!("{}: PFM {what}", path.display());
+        if fields[0] != "PF" {
+            return Err(bad("magic is not PF (only RGB PFM is read)"));
+        }
+        let w: u32 = fields[1].parse().map_err(|_| bad("width"))?;
+        let h: u32 = fields[2].parse().map_err(|_| bad("height"))?;
+        let scale: f64 = fields[3].parse().map_err(|_| bad("scale"))?;
+        let n = w as usize * h as usize;
+        let data = bytes.get(pos..pos + n * 12).ok_or_else(|| bad("data is truncated"))?;
+        let read = |i: usize| {
+            let b: [u8; 4] = data[i * 4..i * 4 + 4].try_into().expect("4 bytes");
+            (if scale < 0.0 { f32::from_le_bytes(b) } else { f32::from_be_bytes(b) }) as f64
+        };
+        let mut pixels = vec![[0.0; 3]; n];
+        for row in 0..h as usize {
+            for col in 0..w as usize {
+                let src = (h as usize - 1 - row) * w as usize + col;
+                pixels[row * w as usize + col] = [read(src * 3), read(src * 3 + 1), read(src * 3 + 2)];
+            }
+        }
+        Ok(Image::new(w, h, pixels))
+    }
+
+    /// Largest per-channel difference in 8-bit levels between two images' PNG bytes.
+    pub fn max_byte_difference(&self, other: &Image) -> u8 {
+        self.to_rgb8().iter().zip(other.to_rgb8()).map(|(a, b)| a.abs_diff(b)).max().unwrap_or(0)
+    }
+
+    /// Peak signal-to-noise ratio in dB on the linear values (peak 1), infinite when equal.
+    pub fn psnr(&self, other: &Image) -> f64 {
+        let n = (self.pixels.len() * 3) as f64;
+        let mse: f64 = self
+            .pixels
+            .iter()
+            .zip(&other.pixels)
+            .flat_map(|(a, b)| (0..3).map(move |i| (a[i] - b[i]).powi(2)))
+            .sum::<f64>()
+            / n;
+        if mse == 0.0 {
+            f64::INFINITY
+        } else {
+            -10.0 * mse.log10()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bytes_round_half_away_from_zero_and_clamp() {
+        let img = Image::new(2, 1, vec![[0.5 / 255.0, 1.5 / 255.0, 2.0], [-1.0, 254.5 / 255.0, 0.0]]);
+        assert_eq!(img.to_rgb8(), vec![1, 2, 255, 0, 255, 0]);
+    }
+
+    #[test]
+    fn pfm_round_trips_and_is_bottom_to_top() {
+        let img = Image::new(2, 2, vec![[0.1, 0.2, 0.3], [0.4, 0.5, 0.6], [0.7, 0.8, 0.9], [1.5, -0.5, 0.0]]);
+        let path = std::env::temp_dir().join(format!("trove-pfm-{}.pfm", std::process::id()));
+        img.save(&path).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        assert!(bytes.starts_with(b"PF\n2 2\n-1.0\n"));
+        let back = Image::read_pfm(&path).unwrap();
+        std::fs::remove_file(&path).ok();
+        for (a, b) in img.pixels().iter().zip(back.pixels()) {
+            for i in 0..3 {
+                assert!((a[i] - b[i]).abs() < 1e-7);
+            }
+        }
+        // The first stored row is the image's bottom row.
+        let first = f32::from_le_bytes(bytes[12..16].try_into().unwrap());
+        assert!((first - 0.7).abs() < 1e-7);
+    }
+}

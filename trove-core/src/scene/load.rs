@@ -1,0 +1,382 @@
+//! From TOML text to a validated [`Scene`]: every rule of SPEC §1–2 and §4.5 is checked
+//! here, once, and each failure names the file, the key path and what was expected.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+
+use glam::{DMat3, DMat4, DVec3, DVec4};
+
+use super::file::{ChannelFile, DatasetFile, ObjectFile, SceneFile, TransformFile};
+use super::mappings::{self, KeyError};
+use super::{ImageSettings, Object, RenderSettings, Scene, MAX_IMAGE_SIDE, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE};
+use crate::dataset::raw::StoredType;
+use crate::dataset::{image_file, nifti_file, nrrd, raw, ChannelName, ChannelSource, DatasetInfo, Dims, Endian, VoxelType};
+use crate::geometry::hexahedron::Hexahedron;
+use crate::geometry::{Camera, Extent, Placement, Shape};
+use crate::SceneError;
+
+/// Parses and validates a whole scene.
+pub(super) fn scene(text: &str, path: &Path) -> Result<Scene, SceneError> {
+    let fail = |(key, message): KeyError| SceneError::new(path, key, message);
+    let file = deserialize(text, path)?;
+    let folder = path.parent().map(Path::to_path_buf).unwrap_or_default();
+
+    let image = image_settings(&file).map_err(fail)?;
+    let c = &file.camera;
+    let camera = Camera::new(DVec3::from(c.eye), DVec3::from(c.target), DVec3::from(c.up), c.fov_y)
+        .map_err(|(k, m)| fail((k.to_string(), m)))?;
+    let render = render_settings(&file).map_err(fail)?;
+    let straight = match file.render.distorted_sampling.as_str() {
+        "exact" => false,
+        "straight" => true,
+        other => {
+            return Err(fail((
+                "render.distorted_sampling".into(),
+                format!("expected \"exact\" or \"straight\", got \"{other}\""),
+            )))
+        }
+    };
+
+    if file.datasets.len() > MAX_OBJECTS {
+        return Err(fail(("datasets".into(), format!("at most {MAX_OBJECTS} datasets, got {}", file.datasets.len()))));
+    }
+    if file.objects.len() > MAX_OBJECTS {
+        return Err(fail(("objects".into(), format!("at most {MAX_OBJECTS} objects, got {}", file.objects.len()))));
+    }
+    let mut datasets = Vec::with_capacity(file.datasets.len());
+    let mut by_name = HashMap::new();
+    for (i, d) in file.datasets.iter().enumerate() {
+        let key = format!("datasets[{i}]");
+        if let Some(j) = by_name.insert(d.name.clone(), i) {
+            return Err(fail((format!("{key}.name"), format!("duplicate dataset name \"{}\" (also datasets[{j}])", d.name))));
+        }
+        datasets.push(dataset(d, &key, &folder).map_err(fail)?);
+    }
+
+    let mut objects = Vec::with_capacity(file.objects.len());
+    let mut object_names = HashMap::new();
+    for (i, o) in file.objects.iter().enumerate() {
+        let key = format!("objects[{i}]");
+        if let Some(j) = object_names.insert(o.name.clone(), i) {
+            return Err(fail((format!("{key}.name"), format!("duplicate object name \"{}\" (also objects[{j}])", o.name))));
+        }
+        let Some(&ds) = by_name.get(&o.dataset) else {
+            let known: Vec<_> = file.datasets.iter().map(|d| d.name.as_str()).collect();
+            return Err(fail((
+                format!("{key}.dataset"),
+                format!("no dataset named \"{}\"; the scene defines {:?}", o.dataset, known),
+            )));
+        };
+        objects.push(object(o, &key, ds, &datasets[ds], straight).map_err(fail)?);
+    }
+    Ok(Scene { path: path.to_path_buf(), image, camera, render, datasets, objects })
+}
+
+/// TOML → plain structs, with serde's errors turned into key paths.
+fn deserialize(text: &str, path: &Path) -> Result<SceneFile, SceneError> {
+    let de = toml::Deserializer::parse(text).map_err(|e| {
+        SceneError::new(path, "(syntax)", format!("not valid TOML: {}", e.message().trim()))
+    })?;
+    serde_path_to_error::deserialize(de).map_err(|e| {
+        let mut key = e.path().to_string();
+        let inner = e.inner().message().trim().to_string();
+        // serde reports a missing or unknown field at its parent; name the field itself.
+        for prefix in ["missing field `", "unknown field `"] {
+            if let Some(rest) = inner.strip_prefix(prefix) {
+                if let Some(field) = rest.split('`').next() {
+                    key = if key == "." || key.is_empty() { field.to_string() } else { format!("{key}.{field}") };
+                }
+            }
+        }
+        if key == "." || key.is_empty() {
+            key = "(top level)".into();
+        }
+        let message = if inner.starts_with("missing field") {
+            format!("{inner} (required)")
+        } else {
+            inner
+        };
+        SceneError::new(path, key, message)
+    })
+}
+
+fn image_settings(f: &SceneFile) -> Result<ImageSettings, KeyError> {
+    let side = |v: i64, key: &str| -> Result<u32, KeyError> {
+        if v < 1 || v > MAX_IMAGE_SIDE as i64 {
+            return Err((key.into(), format!("expected a pixel count from 1 to {MAX_IMAGE_SIDE}, got {v}")));
+        }
+        Ok(v as u32)
+    };
+    let width = side(f.image.width, "image.width")?;
+    let height = side(f.image.height, "image.height")?;
+    let background = f.image.background;
+    if background.iter().any(|c| !(0.0..=1.0).contains(c)) {
+        return Err(("image.background".into(), format!("expected linear RGB in [0, 1], got {background:?}")));
+    }
+    Ok(ImageSettings { width, height, background })
+}
+
+fn render_settings(f: &SceneFile) -> Result<RenderSettings, KeyError> {
+    let t = f.render.termination;
+    if !(t > 0.0 && t <= 1.0) {
+        return Err(("render.termination".into(), format!("expected an opacity in (0, 1], got {t}")));
+    }
+    Ok(RenderSettings { termination: t, opacity_correction: f.render.opacity_correction })
+}
+
+fn resolve(folder: &Path, rel: &str) -> PathBuf {
+    folder.join(rel)
+}
+
+fn dims_of(d: [i64; 3], key: &str) -> Result<Dims, KeyError> {
+    if d.iter().any(|&n| n < 1) {
+        return Err((key.into(), format!("expected three voxel counts ≥ 1, got {d:?}")));
+    }
+    Dims::new(d.map(|n| n as u64)).map_err(|m| (key.to_string(), m))
+}
+
+fn stored_type(t: VoxelType) -> StoredType {
+    match t {
+        VoxelType::Bit => StoredType::Bit,
+        VoxelType::U8 => StoredType::U8,
+        VoxelType::U16 => StoredType::U16,
+        VoxelType::U32 => StoredType::U32,
+        VoxelType::F32 => StoredType::F32,
+    }
+}
+
+fn check_channel_type(name: ChannelName, ty: VoxelType, key: &str) -> Result<(), KeyError> {
+    if name.allowed_types().contains(&ty) {
+        return Ok(());
+    }
+    let allowed: Vec<_> = name.allowed_types().iter().map(|t| t.name()).collect();
+    Err((key.into(), format!("channel `{name}` must be {}, but its data is {ty}", allowed.join(" or "))))
+}
+
+/// Records dims found in a file, or refuses them when they differ from dims already fixed.
+fn agree(dims: &mut Option<Dims>, found: Dims, key: &str) -> Result<Dims, KeyError> {
+    match *dims {
+        Some(want) if want != found => {
+            Err((key.to_string(), format!("holds dims {found}, but the dataset's dims are {want}")))
+        }
+        _ => {
+            *dims = Some(found);
+            Ok(found)
+        }
+    }
+}
+
+fn dataset(d: &DatasetFile, key: &str, folder: &Path) -> Result<DatasetInfo, KeyError> {
+    let mut channels: BTreeMap<ChannelName, (VoxelType, ChannelSource)> = BTreeMap::new();
+    let declared = d.dims.map(|v| dims_of(v, &format!("{key}.dims"))).transpose()?;
+    let mut dims = declared;
+    match (&d.file, &d.image) {
+        (Some(_), Some(_)) => return Err((format!("{key}.image"), "give either `file` or `image`, not both".into())),
+        (Some(f), None) => {
+            let k = format!("{key}.file");
+            let path = resolve(folder, f);
+            let lower = f.to_ascii_lowercase();
+            let opened = if lower.ends_with(".nrrd") || lower.ends_with(".nhdr") {
+                nrrd::open(&path)
+            } else if lower.ends_with(".nii") || lower.ends_with(".nii.gz") {
+                nifti_file::open(&path)
+            } else {
+                return Err((k, format!("\"{f}\": expected a .nrrd, .nhdr, .nii or .nii.gz file")));
+            }
+            .map_err(|e| (k.clone(), e.to_string()))?;
+            agree(&mut dims, opened.dims, &k)?;
+            check_channel_type(ChannelName::Voxel, opened.ty, &k)?;
+            channels.insert(ChannelName::Voxel, (opened.ty, opened.source));
+        }
+        (None, Some(img)) => {
+            let k = format!("{key}.image");
+            let (found, chans) = image_file::open(&resolve(folder, img)).map_err(|e| (k.clone(), e.to_string()))?;
+            agree(&mut dims, found, &k)?;
+            for (name, ty, source) in chans {
+                channels.insert(name, (ty, source));
+            }
+        }
+        (None, None) => {
+            if d.channels.is_empty() {
+                return Err((key.into(), "a dataset needs `file`, `image`, or `dims` with `channels`".into()));
+            }
+            if declared.is_none() {
+                return Err((format!("{key}.dims"), "missing; explicit channels need the dataset's dims".into()));
+            }
+        }
+    }
+    for (cname, c) in &d.channels {
+        let ck = format!("{key}.channels.{cname}");
+        let Some(name) = ChannelName::parse(cname) else {
+            let all: Vec<_> = ChannelName::ALL.iter().map(|c| c.name()).collect();
+            return Err((ck, format!("unknown channel; expected one of {}", all.join(", "))));
+        };
+        if channels.contains_key(&name) {
+            return Err((ck, format!("channel `{name}` is already given by the dataset's file or image")));
+        }
+        let Some(dims) = dims else {
+            return Err((format!("{key}.dims"), "missing; explicit channels need the dataset's dims".into()));
+        };
+        let (ty, source) = channel(c, &ck, dims, folder)?;
+        check_channel_type(name, ty, &ck)?;
+        channels.insert(name, (ty, source));
+    }
+    let dims = dims.expect("every branch above fixes dims or returns");
+    for (ty, _) in channels.values() {
+        if ty.byte_len(dims.voxel_count()).is_none() {
+            return Err((format!("{key}.dims"), format!("dims {dims} of {ty} overflow the addressable size")));
+        }
+    }
+    Ok(DatasetInfo { name: d.name.clone(), dims, channels })
+}
+
+fn channel(
+    c: &ChannelFile,
+    key: &str,
+    dims: Dims,
+    folder: &Path,
+) -> Result<(VoxelType, ChannelSource), KeyError> {
+    let given = [c.raw.is_some(), c.nrrd.is_some(), c.generator.is_some()].iter().filter(|&&b| b).count();
+    if given != 1 {
+        return Err((key.into(), "expected exactly one of `raw`, `nrrd` or `generator`".into()));
+    }
+    let only_raw = |field: &str, present: bool| -> Result<(), KeyError> {
+        if present && c.raw.is_none() {
+            return Err((format!("{key}.{field}"), "only a `raw` channel takes this key".into()));
+        }
+        Ok(())
+    };
+    only_raw("type", c.ty.is_some())?;
+    only_raw("endian", c.endian.is_some())?;
+    only_raw("offset", c.offset.is_some())?;
+    if let Some(r) = &c.raw {
+        let tk = format!("{key}.type");
+        let Some(t) = &c.ty else {
+            return Err((tk, "missing; a raw channel needs its type: bit, u8, u16, u32 or f32".into()));
+        };
+        let ty = VoxelType::parse(t).ok_or_else(|| (tk, format!("expected bit, u8, u16, u32 or f32, got \"{t}\"")))?;
+        let endian = match c.endian.as_deref() {
+            None => Endian::Little,
+            Some(e) => Endian::parse(e)
+                .ok_or_else(|| (format!("{key}.endian"), format!("expected \"little\" or \"big\", got \"{e}\"")))?,
+        };
+        let rk = format!("{key}.raw");
+        let source = raw::open(&resolve(folder, r), c.offset.unwrap_or(0), stored_type(ty), endian, dims)
+            .map_err(|e| (rk, e.to_string()))?;
+        return Ok((ty, source));
+    }
+    if let Some(n) = &c.nrrd {
+        let nk = format!("{key}.nrrd");
+        let opened = nrrd::open(&resolve(folder, n)).map_err(|e| (nk.clone(), e.to_string()))?;
+        agree(&mut Some(dims), opened.dims, &nk)?;
+        return Ok((opened.ty, opened.source));
+    }
+    let g = c.generator.as_ref().expect("exactly one source is present");
+    g.check(dims).map_err(|m| (format!("{key}.generator"), m))?;
+    Ok((g.voxel_type(), ChannelSource::Generated(g.clone())))
+}
+
+fn object(o: &ObjectFile, key: &str, ds: usize, info: &DatasetInfo, straight: bool) -> Result<Object, KeyError> {
+    let has = |c: &str| ChannelName::parse(c).is_some_and(|c| info.has(c));
+    let colour = mappings::colour(&o.colour, &format!("{key}.colour"), has)?;
+    let opacity = mappings::opacity(&o.opacity, &format!("{key}.opacity"), has)?;
+    for (reads, k) in [(colour.reads_voxel(), "colour"), (opacity.reads_voxel(), "opacity")] {
+        if reads && !info.has(ChannelName::Voxel) {
+            return Err((
+                format!("{key}.{k}"),
+                format!("this map reads the `voxel` channel, which dataset \"{}\" does not have; use raw or constant", info.name),
+            ));
+        }
+    }
+    let interpolation = match &o.interpolation {
+        Some(v) => mappings::interpolation(v, &format!("{key}.interpolation"))?,
+        None => crate::interp::Interpolation::Trilinear,
+    };
+    let sampling_distance = o.sampling_distance.unwrap_or(0.0);
+    if !(sampling_distance.is_finite() && sampling_distance >= 0.0) {
+        return Err((
+            format!("{key}.sampling_distance"),
+            format!("expected a finite world distance ≥ 0 (0 = one voxel), got {sampling_distance}"),
+        ));
+    }
+    let extent = extent(o, key)?;
+    let shape = shape(o.transform.as_ref(), &format!("{key}.transform"), straight)?;
+    let placement = Placement::new(shape, extent, info.dims);
+    // Refuse sampling so fine that one ray would take millions of samples per object.
+    let diagonal = {
+        let c = placement.corners();
+        let (lo, hi) = c.iter().fold((c[0], c[0]), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
+        (hi - lo).length()
+    };
+    if sampling_distance > 0.0 && diagonal / sampling_distance > MAX_SAMPLES_PER_PIECE {
+        return Err((
+            format!("{key}.sampling_distance"),
+            format!(
+                "{sampling_distance} would take up to {:.3e} samples per ray through a box {diagonal:.3e} across; \
+                 at most {MAX_SAMPLES_PER_PIECE:.3e} are allowed",
+                diagonal / sampling_distance
+            ),
+        ));
+    }
+    Ok(Object { name: o.name.clone(), dataset: ds, colour, opacity, interpolation, sampling_distance, placement })
+}
+
+fn extent(o: &ObjectFile, key: &str) -> Result<Extent, KeyError> {
+    let Some(e) = &o.extent else { return Ok(Extent::FULL) };
+    let min = DVec3::from(e.min.unwrap_or([0.0; 3]));
+    let max = DVec3::from(e.max.unwrap_or([1.0; 3]));
+    for a in 0..3 {
+        if !(min[a] >= 0.0 && min[a] < max[a] && max[a] <= 1.0) {
+            return Err((
+                format!("{key}.extent"),
+                format!("expected 0 ≤ min < max ≤ 1 on every axis, got min {min:?}, max {max:?} (axis {a})"),
+            ));
+        }
+    }
+    Ok(Extent { min, max })
+}
+
+fn shape(t: Option<&TransformFile>, key: &str, straight: bool) -> Result<Shape, KeyError> {
+    let Some(t) = t else {
+        return Ok(Shape::Affine { world_from_box: DMat4::IDENTITY, box_from_world: DMat4::IDENTITY });
+    };
+    match (&t.matrix, &t.corners) {
+        (Some(m), None) => affine(m, &format!("{key}.matrix")),
+        (None, Some(c)) => {
+            let k = format!("{key}.corners");
+            if c.len() != 8 || c.iter().any(|p| p.len() != 3) {
+                return Err((k, "expected eight [x, y, z] corners, index x + 2y + 4z".into()));
+            }
+            let corners: [DVec3; 8] = std::array::from_fn(|i| DVec3::new(c[i][0], c[i][1], c[i][2]));
+            let hex = Hexahedron::new(corners).map_err(|m| (k.clone(), m))?;
+            match hex.as_affine() {
+                Some(m) => affine_from(m, &k),
+                None => Ok(Shape::Distorted { hex: Box::new(hex), straight }),
+            }
+        }
+        _ => Err((key.into(), "expected exactly one of `matrix` or `corners`".into())),
+    }
+}
+
+fn affine(rows: &[Vec<f64>], key: &str) -> Result<Shape, KeyError> {
+    if rows.len() != 4 || rows.iter().any(|r| r.len() != 4) {
+        return Err((key.into(), "expected a 4×4 matrix, as four rows of four numbers".into()));
+    }
+    if rows[3] != [0.0, 0.0, 0.0, 1.0] {
+        return Err((key.into(), format!("expected an affine matrix (last row 0 0 0 1), got last row {:?}", rows[3])));
+    }
+    let col = |j: usize| DVec4::new(rows[0][j], rows[1][j], rows[2][j], rows[3][j]);
+    affine_from(DMat4::from_cols(col(0), col(1), col(2), col(3)), key)
+}
+
+fn affine_from(m: DMat4, key: &str) -> Result<Shape, KeyError> {
+    if !m.is_finite() {
+        return Err((key.into(), "expected finite numbers".into()));
+    }
+    let lin = DMat3::from_mat4(m);
+    let scale = lin.x_axis.length() * lin.y_axis.length() * lin.z_axis.length();
+    if scale == 0.0 || lin.determinant().abs() <= 1e-12 * scale {
+        return Err((key.into(), "the matrix is singular: the box has no volume".into()));
+    }
+    Ok(Shape::Affine { world_from_box: m, box_from_world: m.inverse() })
+}

@@ -1,0 +1,111 @@
+//! The scene: a TOML file (SPEC §1) turned into a validated model.
+//!
+//! Loading happens in two steps. [`file`] deserialises the TOML into plain structs that
+//! mirror the format, refusing unknown keys and wrong types with the key's path. [`load`]
+//! then checks everything a user can get wrong and builds the model below, in which every
+//! invariant holds: a [`Scene`] is never half-valid, so renderers do not re-check.
+
+mod file;
+mod load;
+mod mappings;
+
+use std::path::{Path, PathBuf};
+
+use crate::dataset::DatasetInfo;
+use crate::geometry::{Camera, Placement};
+use crate::interp::Interpolation;
+use crate::mapping::{ColourMap, OpacityMap};
+use crate::SceneError;
+
+/// Largest image side accepted, in pixels.
+pub const MAX_IMAGE_SIDE: u32 = 16_384;
+/// Largest number of objects (and of datasets) in one scene.
+pub const MAX_OBJECTS: usize = 4_096;
+/// Largest number of samples one object may take over one piece of one ray; a scene whose
+/// sampling distance could exceed it is refused at load rather than rendering for hours.
+pub const MAX_SAMPLES_PER_PIECE: f64 = (1u64 << 24) as f64;
+
+/// `[image]`: the output raster.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ImageSettings {
+    /// Pixels across.
+    pub width: u32,
+    /// Pixels down.
+    pub height: u32,
+    /// Linear RGB in [0, 1], shown where rays are not fully opaque.
+    pub background: [f64; 3],
+}
+
+/// `[render]`: scene-wide rendering settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RenderSettings {
+    /// A ray stops once its accumulated opacity reaches this; 1.0 never stops early.
+    pub termination: f64,
+    /// Whether sample opacity is corrected for the step length (SPEC §4.3).
+    pub opacity_correction: bool,
+}
+
+/// One volumetric object ⟨V, 𝒞, 𝒪, ℐ, 𝒯⟩ (paper §2.1).
+#[derive(Clone, Debug)]
+pub struct Object {
+    /// Unique name.
+    pub name: String,
+    /// Index into [`Scene::datasets`].
+    pub dataset: usize,
+    /// Colour mapping.
+    pub colour: ColourMap,
+    /// Opacity mapping.
+    pub opacity: OpacityMap,
+    /// Interpolation function.
+    pub interpolation: Interpolation,
+    /// World distance between samples; 0 means one voxel (paper §3.2.2).
+    pub sampling_distance: f64,
+    /// Box, extent and the world → VC map.
+    pub placement: Placement,
+}
+
+/// A validated scene.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    /// The scene file (for messages and relative paths).
+    pub path: PathBuf,
+    /// Output raster.
+    pub image: ImageSettings,
+    /// The camera.
+    pub camera: Camera,
+    /// Rendering settings.
+    pub render: RenderSettings,
+    /// The voxel level: each dataset once.
+    pub datasets: Vec<DatasetInfo>,
+    /// The object level.
+    pub objects: Vec<Object>,
+}
+
+impl Scene {
+    /// Reads and validates a scene file, opening every dataset's headers so that size
+    /// mismatches are reported before anything renders.
+    pub fn load(path: impl AsRef<Path>) -> Result<Scene, SceneError> {
+        let path = path.as_ref();
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| SceneError::new(path, "(file)", format!("cannot read the scene file: {e}")))?;
+        Scene::parse(&text, path)
+    }
+
+    /// Validates scene text as if read from `path` (relative dataset paths resolve against
+    /// its folder).
+    pub fn parse(text: &str, path: impl AsRef<Path>) -> Result<Scene, SceneError> {
+        load::scene(text, path.as_ref())
+    }
+
+    /// The datasets some object uses, in order of first use.
+    pub fn used_datasets(&self) -> Vec<usize> {
+        let mut seen = vec![false; self.datasets.len()];
+        let mut out = Vec::new();
+        for o in &self.objects {
+            if !std::mem::replace(&mut seen[o.dataset], true) {
+                out.push(o.dataset);
+            }
+        }
+        out
+    }
+}
