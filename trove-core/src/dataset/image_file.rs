@@ -89,8 +89,11 @@ fn decoder(path: &Path) -> Result<impl ImageDecoder, DatasetError> {
         .map_err(|e| image_error(path, e))
 }
 
+/// The channels an image provides: name, storage type (always u8) and source.
+pub type ImageChannels = Vec<(ChannelName, VoxelType, ChannelSource)>;
+
 /// Reads only the image header: dims and the channels the image provides.
-pub fn open(path: &Path) -> Result<(Dims, Vec<(ChannelName, VoxelType, ChannelSource)>), DatasetError> {
+pub fn open(path: &Path) -> Result<(Dims, ImageChannels), DatasetError> {
     let dec = decoder(path)?;
     let layout = Layout::from_color(path, dec.color_type())?;
     let (w, h) = dec.dimensions();
