@@ -161,12 +161,22 @@ fn skip_exact(path: &Path, reader: &mut impl Read, n: u64) -> Result<(), Dataset
 }
 
 fn read_layout(path: &Path) -> Result<Layout, DatasetError> {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().to_ascii_lowercase())
-        .unwrap_or_default();
-    let gzip = name.ends_with(".gz");
-    let header = NiftiHeader::from_file(path).map_err(|e| match e {
+    // Compression is told by the gzip magic bytes, not the file name, so a misnamed file
+    // still reads (or fails with a header error rather than garbage).
+    let mut magic = [0u8; 2];
+    let mut file = File::open(path).map_err(|e| DatasetError::io(path, e))?;
+    let n = file.read(&mut magic).map_err(|e| DatasetError::io(path, e))?;
+    let gzip = n == 2 && magic == [0x1f, 0x8b];
+    let parsed = if gzip {
+        NiftiHeader::from_reader(raw::gzip_reader(path, 0)?)
+    } else {
+        file.seek(SeekFrom::Start(0)).map_err(|e| DatasetError::io(path, e))?;
+        NiftiHeader::from_reader(BufReader::new(file))
+    };
+    let header = parsed.map_err(|e| match e {
+        nifti::NiftiError::Io(io) if io.kind() == io::ErrorKind::UnexpectedEof => {
+            DatasetError::format(path, "the file is too short for a NIfTI-1 header (348 bytes)")
+        }
         nifti::NiftiError::Io(io) => DatasetError::io(path, io),
         e => DatasetError::format(path, format!("not a readable NIfTI-1 header: {e}")),
     })?;
@@ -505,8 +515,24 @@ mod tests {
     #[test]
     fn not_nifti() {
         let f = TempFile::with("junk.nii", &[1u8; 400]);
-        assert!(open(&f.0).is_err());
+        assert!(matches!(open(&f.0), Err(DatasetError::Format { .. })));
         let f = TempFile::with("short.nii", &[1u8; 10]);
-        assert!(open(&f.0).is_err());
+        let e = open(&f.0).unwrap_err();
+        assert!(e.to_string().contains("too short"), "{e}");
+    }
+
+    #[test]
+    fn compression_is_sniffed_not_named() {
+        let data = [1u8, 2, 3, 4];
+        let h = || header([3, 2, 2, 1, 1, 1, 1, 1], 2, 8, 0.0, 0.0, b"n+1\0");
+        let mut plain = h();
+        plain.extend_from_slice(&data);
+        let gz_named_nii = TempFile::with("gz.nii", &gzip(&plain));
+        let plain_named_gz = TempFile::with("plain.nii.gz", &plain);
+        for f in [&gz_named_nii, &plain_named_gz] {
+            let fc = open(&f.0).unwrap();
+            let ch = load(&f.0, fc.dims).unwrap();
+            assert_eq!(ch.value(3), 4.0);
+        }
     }
 }
