@@ -18,7 +18,7 @@
 //! |---|---|---|
 //! | `sphere` | `centre` ([0.5, 0.5, 0.5]), `radius` (0.5), `value` (255), `profile` (`"solid"`), `type` (`"u8"`) | d = \|p − centre\|; `solid`: `value` where d ≤ `radius`, else 0; `radial`: `value` · max(0, 1 − d/`radius`), a cone of nested shells that shows lookup-table bands as onion layers |
 //! | `chessboard` | `squares` ([8, 8, 1]) | bit channel: (⌊p.x·sx⌋ + ⌊p.y·sy⌋ + ⌊p.z·sz⌋) mod 2 |
-//! | `ramp` | `axis` (`"x"`; or `"y"`, `"z"`, or 0, 1, 2), `from` (0), `to` (1), `type` (`"f32"`) | `from` + (`to` − `from`) · p[`axis`] |
+//! | `ramp` | `axis` (`"x"`; or `"y"`, `"z"`, or 0, 1, 2), `from` (0), `to` (1), `type` (`"f32"`) | `from` + (`to` − `from`) · p\[`axis`\] |
 //! | `marschner_lobb` | `fm` (6), `alpha` (0.25) | f32: with (x, y, z) = 2p − 1 and r = √(x² + y²), (1 − sin(πz/2) + α(1 + cos(2π·fm·cos(πr/2)))) / (2(1 + α)), in [0, 1] |
 //! | `gaussian` | `centre` ([0.5, 0.5, 0.5]), `sigma` (0.15), `peak` (1) | f32: `peak` · exp(−\|p − centre\|² / (2`sigma`²)) |
 //! | `constant` | `value` (*required*), `type` (`"f32"`) | `value` everywhere |
