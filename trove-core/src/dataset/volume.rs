@@ -16,7 +16,7 @@ impl Dims {
 
     /// Checked constructor; the message says what was expected.
     pub fn new(d: [u64; 3]) -> Result<Dims, String> {
-        if d.iter().any(|&n| n == 0) {
+        if d.contains(&0) {
             return Err(format!("dims {d:?}: every axis must be at least 1"));
         }
         if d.iter().any(|&n| n > i32::MAX as u64) {
