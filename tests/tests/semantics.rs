@@ -182,7 +182,10 @@ fn overlapping_objects_of_one_colour_act_as_one_medium() {
     let (o1, o2) = (0.05f64, 0.12f64);
     let combined = 1.0 - (1.0 - o1) * (1.0 - o2);
     let two = constant_box(8, o1).replace("name = \"box\"", "name = \"a\"")
-        + &constant_box(8, o2).replace("name = \"c\"", "name = \"d\"").replace("\"c\"", "\"d\"").replace("name = \"box\"", "name = \"b\"");
+        + &constant_box(8, o2)
+            .replace("name = \"c\"", "name = \"d\"")
+            .replace("\"c\"", "\"d\"")
+            .replace("name = \"box\"", "name = \"b\"");
     let one = constant_box(8, combined);
     for correction in [true, false] {
         let a = render_text(&dir, &scene(1.0, correction, &two));
@@ -201,10 +204,9 @@ fn rays_in_a_face_plane_and_along_edges_neither_miss_nor_make_nan() {
     // The eye sits on the plane x = 1 of the box's face; with an odd width the middle
     // column's rays have a direction x-component of exactly zero and lie in that plane.
     let body = constant_box(4, 0.3);
-    let text = scene(1.0, true, &body).replace("eye = [0.5, 0.5, 3.0]", "eye = [1.0, 0.5, 3.0]").replace(
-        "target = [0.5, 0.5, 0.5]",
-        "target = [1.0, 0.5, 0.5]",
-    );
+    let text = scene(1.0, true, &body)
+        .replace("eye = [0.5, 0.5, 3.0]", "eye = [1.0, 0.5, 3.0]")
+        .replace("target = [0.5, 0.5, 0.5]", "target = [1.0, 0.5, 0.5]");
     let img = render_text(&dir, &text);
     assert!(img.pixels().iter().flatten().all(|c| c.is_finite()));
     let mid = W / 2;
@@ -295,7 +297,11 @@ opacity = { type = "raw" }
             let (x, y) = (0.5 + t * d[0], 0.5 + t * d[1]);
             let (fx, fy) = (x * 3.0, y * 3.0);
             // Skip rays within rounding of a texel border, or outside the plane.
-            if !(0.0..3.0).contains(&fx) || !(0.0..3.0).contains(&fy) || (fx - fx.round()).abs() < 0.05 || (fy - fy.round()).abs() < 0.05 {
+            if !(0.0..3.0).contains(&fx)
+                || !(0.0..3.0).contains(&fy)
+                || (fx - fx.round()).abs() < 0.05
+                || (fy - fy.round()).abs() < 0.05
+            {
                 continue;
             }
             // Only rays that cross the whole depth (enter at z = 1, leave at z = 0).
@@ -308,13 +314,17 @@ opacity = { type = "raw" }
             }
             let (tx, ty_up) = (fx.floor() as u32, fy.floor() as u32);
             let p = png.get_pixel(tx, 2 - ty_up); // y points up: voxel y = h − 1 − row
-            // The slanted ray crosses the one-voxel-deep plane with VC length ℓ ≥ 1.
+                                                  // The slanted ray crosses the one-voxel-deep plane with VC length ℓ ≥ 1.
             let vc = [d[0] / d[2] * 3.0, d[1] / d[2] * 3.0, 1.0];
             let ell = (vc[0] * vc[0] + vc[1] * vc[1] + 1.0).sqrt();
             let a = 1.0 - (1.0 - p[3] as f64 / 255.0).powf(ell);
             for i in 0..3 {
                 let want = p[i] as f64 / 255.0 * a + bg[i] * (1.0 - a);
-                assert!((img.pixel(col, row)[i] - want).abs() < 1e-9, "({col},{row})[{i}]: {:?} want {want}, texel {tx},{ty_up} {p:?}", img.pixel(col, row));
+                assert!(
+                    (img.pixel(col, row)[i] - want).abs() < 1e-9,
+                    "({col},{row})[{i}]: {:?} want {want}, texel {tx},{ty_up} {p:?}",
+                    img.pixel(col, row)
+                );
             }
             checked += 1;
         }

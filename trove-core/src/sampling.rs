@@ -50,7 +50,11 @@ impl<'a> ObjectCaster<'a> {
         ObjectCaster {
             object,
             volume,
-            voxel: if needs_voxel { Some(reader(ChannelName::Voxel).expect("validated: voxel channel exists")) } else { None },
+            voxel: if needs_voxel {
+                Some(reader(ChannelName::Voxel).expect("validated: voxel channel exists"))
+            } else {
+                None
+            },
             raw_rgb,
             alpha: matches!(object.opacity, OpacityMap::Raw)
                 .then(|| reader(ChannelName::Alpha).expect("validated: alpha channel exists")),

@@ -276,10 +276,7 @@ impl TryFrom<GeneratorTable> for Generator {
             ("peak", t.peak.is_some()),
         ];
         if let Some((key, _)) = given.iter().find(|(k, g)| *g && !keys.contains(k)) {
-            return Err(format!(
-                "key `{key}` does not apply to kind `{kind}` (its keys: {})",
-                keys.join(", ")
-            ));
+            return Err(format!("key `{key}` does not apply to kind `{kind}` (its keys: {})", keys.join(", ")));
         }
         Ok(match t.kind {
             Kind::Sphere => Generator::Sphere {
@@ -289,19 +286,14 @@ impl TryFrom<GeneratorTable> for Generator {
                 profile: t.profile.unwrap_or_default(),
                 ty: t.ty.unwrap_or(SampleType::U8),
             },
-            Kind::Chessboard => Generator::Chessboard {
-                squares: t.squares.unwrap_or([8, 8, 1]),
-            },
+            Kind::Chessboard => Generator::Chessboard { squares: t.squares.unwrap_or([8, 8, 1]) },
             Kind::Ramp => Generator::Ramp {
                 axis: t.axis.unwrap_or_default(),
                 from: t.from.unwrap_or(0.0),
                 to: t.to.unwrap_or(1.0),
                 ty: t.ty.unwrap_or(SampleType::F32),
             },
-            Kind::MarschnerLobb => Generator::MarschnerLobb {
-                fm: t.fm.unwrap_or(6.0),
-                alpha: t.alpha.unwrap_or(0.25),
-            },
+            Kind::MarschnerLobb => Generator::MarschnerLobb { fm: t.fm.unwrap_or(6.0), alpha: t.alpha.unwrap_or(0.25) },
             Kind::Gaussian => Generator::Gaussian {
                 centre: t.centre.unwrap_or([0.5; 3]),
                 sigma: t.sigma.unwrap_or(0.15),
@@ -354,23 +346,14 @@ impl Generator {
                     SampleType::F32 => "the finite f32 range".to_string(),
                     _ => format!("0..={} once rounded", ty.max()),
                 };
-                Err(format!(
-                    "`{name}` = {v} does not fit type {}: must be within {range}",
-                    ty.voxel_type()
-                ))
+                Err(format!("`{name}` = {v} does not fit type {}: must be within {range}", ty.voxel_type()))
             }
         }
         fn centre(c: &[f64; 3]) -> Result<(), String> {
             c.iter().try_for_each(|&v| finite("centre", v))
         }
         match self {
-            Generator::Sphere {
-                centre: c,
-                radius,
-                value,
-                ty,
-                ..
-            } => {
+            Generator::Sphere { centre: c, radius, value, ty, .. } => {
                 centre(c)?;
                 positive("radius", *radius)?;
                 fits("value", *value, *ty)?;
@@ -409,13 +392,7 @@ impl Generator {
     fn eval(&self, p: [f64; 3]) -> f64 {
         let dist2 = |c: &[f64; 3]| (0..3).map(|a| (p[a] - c[a]).powi(2)).sum::<f64>();
         match self {
-            Generator::Sphere {
-                centre,
-                radius,
-                value,
-                profile,
-                ..
-            } => {
+            Generator::Sphere { centre, radius, value, profile, .. } => {
                 let d = dist2(centre).sqrt();
                 match profile {
                     Profile::Solid if d <= *radius => *value,
@@ -533,46 +510,26 @@ mod tests {
                 ty: SampleType::U8
             }
         );
-        assert_eq!(
-            parse("kind = \"chessboard\"").unwrap(),
-            Generator::Chessboard { squares: [8, 8, 1] }
-        );
+        assert_eq!(parse("kind = \"chessboard\"").unwrap(), Generator::Chessboard { squares: [8, 8, 1] });
         assert_eq!(
             parse("kind = \"ramp\"\naxis = \"y\"\nto = 10").unwrap(),
-            Generator::Ramp {
-                axis: Axis::Y,
-                from: 0.0,
-                to: 10.0,
-                ty: SampleType::F32
-            }
+            Generator::Ramp { axis: Axis::Y, from: 0.0, to: 10.0, ty: SampleType::F32 }
         );
         assert_eq!(
             parse("kind = \"ramp\"\naxis = 2").unwrap().clone(),
             parse("kind = \"ramp\"\naxis = \"z\"").unwrap()
         );
-        assert_eq!(
-            parse("kind = \"marschner_lobb\"").unwrap(),
-            Generator::MarschnerLobb { fm: 6.0, alpha: 0.25 }
-        );
+        assert_eq!(parse("kind = \"marschner_lobb\"").unwrap(), Generator::MarschnerLobb { fm: 6.0, alpha: 0.25 });
         assert_eq!(
             parse("kind = \"gaussian\"\nsigma = 0.2").unwrap(),
-            Generator::Gaussian {
-                centre: [0.5; 3],
-                sigma: 0.2,
-                peak: 1.0
-            }
+            Generator::Gaussian { centre: [0.5; 3], sigma: 0.2, peak: 1.0 }
         );
         assert_eq!(
             parse("kind = \"constant\"\nvalue = 3\ntype = \"u16\"").unwrap(),
-            Generator::Constant {
-                value: 3.0,
-                ty: SampleType::U16
-            }
+            Generator::Constant { value: 3.0, ty: SampleType::U16 }
         );
         assert_eq!(
-            parse("kind = \"sphere\"\nprofile = \"radial\"\ntype = \"f32\"\nvalue = 1.5")
-                .unwrap()
-                .voxel_type(),
+            parse("kind = \"sphere\"\nprofile = \"radial\"\ntype = \"f32\"\nvalue = 1.5").unwrap().voxel_type(),
             VoxelType::F32
         );
         for (bad, needle) in [
@@ -585,14 +542,8 @@ mod tests {
             ("kind = \"sphere\"\nprofile = \"hollow\"", "hollow"),
             ("kind = \"chessboard\"\nsquares = [1, 2]", "squares"),
             ("radius = 1.0", "kind"),
-            (
-                "kind = \"chessboard\"\nradius = 1.0",
-                "key `radius` does not apply to kind `chessboard`",
-            ),
-            (
-                "kind = \"gaussian\"\ntype = \"u8\"",
-                "key `type` does not apply to kind `gaussian`",
-            ),
+            ("kind = \"chessboard\"\nradius = 1.0", "key `radius` does not apply to kind `chessboard`"),
+            ("kind = \"gaussian\"\ntype = \"u8\"", "key `type` does not apply to kind `gaussian`"),
         ] {
             let e = parse(bad).unwrap_err();
             assert!(e.contains(needle), "{bad:?}: {e}");
@@ -608,17 +559,11 @@ mod tests {
             generator: Generator,
         }
         for (text, path) in [
-            (
-                "generator = { kind = \"chessboard\", squares = [1, 2] }",
-                "generator.squares",
-            ),
+            ("generator = { kind = \"chessboard\", squares = [1, 2] }", "generator.squares"),
             ("generator = { kind = \"sphere\", radius = \"a\" }", "generator.radius"),
             ("generator = { kind = \"ramp\", axis = 7 }", "generator.axis"),
             ("generator = { kind = \"cube\" }", "generator.kind"),
-            (
-                "generator = { kind = \"sphere\", centre = [0.5, 0.5] }",
-                "generator.centre",
-            ),
+            ("generator = { kind = \"sphere\", centre = [0.5, 0.5] }", "generator.centre"),
         ] {
             let de = toml::Deserializer::parse(text).unwrap();
             let e = serde_path_to_error::deserialize::<_, Scene>(de).unwrap_err();
@@ -687,77 +632,32 @@ mod tests {
         let d = dims(16, 16, 3); // 17 bytes of bits: crosses byte and slice boundaries unevenly
         let ch = g.generate(d);
         assert_eq!(ch.byte_len(), (16 * 16 * 3usize).div_ceil(8));
-        for (i, j, k) in [
-            (0, 0, 0),
-            (1, 0, 0),
-            (2, 0, 0),
-            (3, 3, 0),
-            (5, 2, 2),
-            (15, 15, 2),
-            (4, 9, 1),
-        ] {
+        for (i, j, k) in [(0, 0, 0), (1, 0, 0), (2, 0, 0), (3, 3, 0), (5, 2, 2), (15, 15, 2), (4, 9, 1)] {
             let z = ((k as f64 + 0.5) / 3.0 * 2.0).floor() as usize;
-            assert_eq!(
-                ch.value(d.index(i, j, k)),
-                ((i / 2 + j / 2 + z) % 2) as f32,
-                "({i}, {j}, {k})"
-            );
+            assert_eq!(ch.value(d.index(i, j, k)), ((i / 2 + j / 2 + z) % 2) as f32, "({i}, {j}, {k})");
         }
     }
 
     #[test]
     fn ramp_exact_values_and_rounding() {
-        let g = Generator::Ramp {
-            axis: Axis::X,
-            from: 0.0,
-            to: 1.0,
-            ty: SampleType::F32,
-        };
+        let g = Generator::Ramp { axis: Axis::X, from: 0.0, to: 1.0, ty: SampleType::F32 };
         let ch = g.generate(dims(4, 2, 1));
-        assert_eq!(
-            (0..4).map(|i| ch.value(i)).collect::<Vec<_>>(),
-            [0.125, 0.375, 0.625, 0.875]
-        );
+        assert_eq!((0..4).map(|i| ch.value(i)).collect::<Vec<_>>(), [0.125, 0.375, 0.625, 0.875]);
         assert_eq!(ch.value(5), 0.375);
-        let g = Generator::Ramp {
-            axis: Axis::Z,
-            from: 10.0,
-            to: -10.0,
-            ty: SampleType::F32,
-        };
+        let g = Generator::Ramp { axis: Axis::Z, from: 10.0, to: -10.0, ty: SampleType::F32 };
         let d = dims(1, 1, 5);
         let ch = g.generate(d);
-        assert_eq!(
-            (0..5).map(|k| ch.value(k)).collect::<Vec<_>>(),
-            [8.0, 4.0, 0.0, -4.0, -8.0]
-        );
+        assert_eq!((0..5).map(|k| ch.value(k)).collect::<Vec<_>>(), [8.0, 4.0, 0.0, -4.0, -8.0]);
         // u8: 255 · 0.25 = 63.75 → 64; 255 · 0.75 = 191.25 → 191.
-        let g = Generator::Ramp {
-            axis: Axis::Y,
-            from: 0.0,
-            to: 255.0,
-            ty: SampleType::U8,
-        };
+        let g = Generator::Ramp { axis: Axis::Y, from: 0.0, to: 255.0, ty: SampleType::U8 };
         let ch = g.generate(dims(1, 2, 1));
         assert_eq!((ch.value(0), ch.value(1)), (64.0, 191.0));
         // Half away from zero: 2.5 → 3; u16 and u32 storage.
-        let ch = Generator::Constant {
-            value: 2.5,
-            ty: SampleType::U8,
-        }
-        .generate(dims(2, 1, 1));
+        let ch = Generator::Constant { value: 2.5, ty: SampleType::U8 }.generate(dims(2, 1, 1));
         assert_eq!(ch.value(1), 3.0);
-        let ch = Generator::Constant {
-            value: 65535.0,
-            ty: SampleType::U16,
-        }
-        .generate(dims(2, 1, 1));
+        let ch = Generator::Constant { value: 65535.0, ty: SampleType::U16 }.generate(dims(2, 1, 1));
         assert_eq!((ch.ty(), ch.value(1)), (VoxelType::U16, 65535.0));
-        let ch = Generator::Constant {
-            value: 70000.0,
-            ty: SampleType::U32,
-        }
-        .generate(dims(2, 1, 1));
+        let ch = Generator::Constant { value: 70000.0, ty: SampleType::U32 }.generate(dims(2, 1, 1));
         assert_eq!((ch.ty(), ch.value(1)), (VoxelType::U32, 70000.0));
     }
 
@@ -780,11 +680,7 @@ mod tests {
 
     #[test]
     fn gaussian_values() {
-        let g = Generator::Gaussian {
-            centre: [0.25, 0.5, 0.5],
-            sigma: 0.1,
-            peak: 2.0,
-        };
+        let g = Generator::Gaussian { centre: [0.25, 0.5, 0.5], sigma: 0.1, peak: 2.0 };
         let ch = g.generate(dims(2, 1, 1));
         assert_eq!(ch.value(0), 2.0); // p = (0.25, 0.5, 0.5), the centre
         let expected = 2.0 * (-(0.5f64 * 0.5) / (2.0 * 0.1 * 0.1)).exp();
@@ -823,55 +719,13 @@ mod tests {
                 "`centre`",
             ),
             (Generator::Chessboard { squares: [8, 0, 1] }, "`squares`"),
-            (
-                Generator::Ramp {
-                    axis: Axis::X,
-                    from: -1.0,
-                    to: 255.0,
-                    ty: SampleType::U8,
-                },
-                "`from`",
-            ),
-            (
-                Generator::Ramp {
-                    axis: Axis::X,
-                    from: 0.0,
-                    to: f64::NAN,
-                    ty: SampleType::F32,
-                },
-                "`to`",
-            ),
+            (Generator::Ramp { axis: Axis::X, from: -1.0, to: 255.0, ty: SampleType::U8 }, "`from`"),
+            (Generator::Ramp { axis: Axis::X, from: 0.0, to: f64::NAN, ty: SampleType::F32 }, "`to`"),
             (Generator::MarschnerLobb { fm: 6.0, alpha: -0.5 }, "`alpha`"),
-            (
-                Generator::MarschnerLobb {
-                    fm: f64::INFINITY,
-                    alpha: 0.25,
-                },
-                "`fm`",
-            ),
-            (
-                Generator::Gaussian {
-                    centre: [0.5; 3],
-                    sigma: 0.0,
-                    peak: 1.0,
-                },
-                "`sigma`",
-            ),
-            (
-                Generator::Gaussian {
-                    centre: [0.5; 3],
-                    sigma: 0.1,
-                    peak: f64::NAN,
-                },
-                "`peak`",
-            ),
-            (
-                Generator::Constant {
-                    value: 4294967296.0,
-                    ty: SampleType::U32,
-                },
-                "`value`",
-            ),
+            (Generator::MarschnerLobb { fm: f64::INFINITY, alpha: 0.25 }, "`fm`"),
+            (Generator::Gaussian { centre: [0.5; 3], sigma: 0.0, peak: 1.0 }, "`sigma`"),
+            (Generator::Gaussian { centre: [0.5; 3], sigma: 0.1, peak: f64::NAN }, "`peak`"),
+            (Generator::Constant { value: 4294967296.0, ty: SampleType::U32 }, "`value`"),
         ] {
             let e = g.check(d).unwrap_err();
             assert!(e.contains(needle), "{g:?}: {e}");
@@ -881,10 +735,7 @@ mod tests {
             sphere(0.5, -0.4, SampleType::U8),
             sphere(0.5, 1.0, SampleType::Bit),
             sphere(0.5, -3.0, SampleType::F32),
-            Generator::Constant {
-                value: 4294967295.0,
-                ty: SampleType::U32,
-            },
+            Generator::Constant { value: 4294967295.0, ty: SampleType::U32 },
         ] {
             ok.check(d).unwrap();
         }

@@ -104,16 +104,7 @@ pub fn open(path: &Path) -> Result<(Dims, ImageChannels), DatasetError> {
     }
     let channels = names
         .into_iter()
-        .map(|c| {
-            (
-                c,
-                VoxelType::U8,
-                ChannelSource::Image {
-                    path: path.to_path_buf(),
-                    channel: c,
-                },
-            )
-        })
+        .map(|c| (c, VoxelType::U8, ChannelSource::Image { path: path.to_path_buf(), channel: c }))
         .collect();
     Ok((dims, channels))
 }
@@ -126,11 +117,7 @@ pub fn load(path: &Path, channel: ChannelName, dims: Dims) -> Result<Channel, Da
     if dims.as_array() != [w, h, 1] {
         return Err(DatasetError::format(
             path,
-            format!(
-                "the image is now {w}×{h}, not {}×{} as when the scene was loaded",
-                dims.axis(0),
-                dims.axis(1)
-            ),
+            format!("the image is now {w}×{h}, not {}×{} as when the scene was loaded", dims.axis(0), dims.axis(1)),
         ));
     }
     let component = layout
@@ -140,10 +127,7 @@ pub fn load(path: &Path, channel: ChannelName, dims: Dims) -> Result<Channel, Da
     let bpp = layout.bytes_per_pixel();
     let total = usize::try_from(dec.total_bytes()).map_err(|_| DatasetError::format(path, "image too large"))?;
     if Some(total) != w.checked_mul(h).and_then(|n| n.checked_mul(bpp)) {
-        return Err(DatasetError::format(
-            path,
-            format!("the decoder reports {total} bytes for a {w}×{h} image"),
-        ));
+        return Err(DatasetError::format(path, format!("the decoder reports {total} bytes for a {w}×{h} image")));
     }
     let mut pixels = vec![0u8; total];
     dec.read_image(&mut pixels).map_err(|e| image_error(path, e))?;
@@ -186,10 +170,7 @@ mod tests {
             assert_eq!(load(&path, *name, dims).unwrap().value(0), ch.value(0));
             // The top row of the picture is the last y row of the dataset.
             for x in [0, 100, 225, 450] {
-                assert_eq!(
-                    ch.value(dims.index(x, 299, 0)),
-                    reference.get_pixel(x as u32, 0)[c] as f32
-                );
+                assert_eq!(ch.value(dims.index(x, 299, 0)), reference.get_pixel(x as u32, 0)[c] as f32);
             }
             for (x, row) in [(0u32, 299u32), (17, 5), (300, 150), (450, 299), (222, 77)] {
                 let v = ch.value(dims.index(x as usize, (h - 1 - row) as usize, 0));
@@ -211,15 +192,7 @@ mod tests {
         img.save(&f.0).unwrap();
         let (dims, chs) = open(&f.0).unwrap();
         assert_eq!(dims.as_array(), [3, 2, 1]);
-        assert_eq!(
-            names(&chs),
-            [
-                ChannelName::Red,
-                ChannelName::Green,
-                ChannelName::Blue,
-                ChannelName::Alpha
-            ]
-        );
+        assert_eq!(names(&chs), [ChannelName::Red, ChannelName::Green, ChannelName::Blue, ChannelName::Alpha]);
         let a = load(&f.0, ChannelName::Alpha, dims).unwrap();
         let g = load(&f.0, ChannelName::Green, dims).unwrap();
         // Pixel (x, row) → voxel (x, 1 − row).
@@ -261,10 +234,7 @@ mod tests {
         img.save(&f.0).unwrap();
         let e = open(&f.0).unwrap_err();
         let msg = e.to_string();
-        assert!(
-            matches!(e, DatasetError::Format { .. }) && msg.contains("16-bit"),
-            "{msg}"
-        );
+        assert!(matches!(e, DatasetError::Format { .. }) && msg.contains("16-bit"), "{msg}");
         assert!(msg.contains(&f.0.display().to_string()), "{msg}");
     }
 

@@ -51,10 +51,7 @@ impl Layout {
     }
 
     fn what(&self) -> String {
-        format!(
-            "dims {} of {} (NIfTI header fields `dim` and `datatype`)",
-            self.dims, self.stored
-        )
+        format!("dims {} of {} (NIfTI header fields `dim` and `datatype`)", self.dims, self.stored)
     }
 
     fn expected(&self) -> u64 {
@@ -78,20 +75,14 @@ pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
                 path: path.to_path_buf(),
                 expected: layout.expected(),
                 actual,
-                what: format!(
-                    "{} after the {}-byte header (`vox_offset`)",
-                    layout.what(),
-                    layout.offset
-                ),
+                what: format!("{} after the {}-byte header (`vox_offset`)", layout.what(), layout.offset),
             });
         }
     }
     Ok(FileChannel {
         dims: layout.dims,
         ty: layout.loaded_type(),
-        source: ChannelSource::Nifti {
-            path: path.to_path_buf(),
-        },
+        source: ChannelSource::Nifti { path: path.to_path_buf() },
     })
 }
 
@@ -101,10 +92,7 @@ pub fn load(path: &Path, dims: Dims) -> Result<Channel, DatasetError> {
     if layout.dims != dims {
         return Err(DatasetError::format(
             path,
-            format!(
-                "the header now gives dims {}, not {dims} as when the scene was loaded",
-                layout.dims
-            ),
+            format!("the header now gives dims {}, not {dims} as when the scene was loaded", layout.dims),
         ));
     }
     if !layout.gzip && layout.scale.is_none() {
@@ -117,19 +105,14 @@ pub fn load(path: &Path, dims: Dims) -> Result<Channel, DatasetError> {
         raw::read_counted(path, reader, layout.expected(), Some(&mut bytes), || layout.what())?;
     } else {
         let mut file = File::open(path).map_err(|e| DatasetError::io(path, e))?;
-        file.seek(SeekFrom::Start(layout.offset))
-            .map_err(|e| DatasetError::io(path, e))?;
-        raw::read_counted(path, BufReader::new(file), layout.expected(), Some(&mut bytes), || {
-            layout.what()
-        })?;
+        file.seek(SeekFrom::Start(layout.offset)).map_err(|e| DatasetError::io(path, e))?;
+        raw::read_counted(path, BufReader::new(file), layout.expected(), Some(&mut bytes), || layout.what())?;
     }
     let voxels =
         usize::try_from(dims.voxel_count()).map_err(|_| DatasetError::format(path, "volume too large for memory"))?;
     let (ty, endian, bytes) = match layout.scale {
         Some((slope, inter)) => {
-            let f = raw::convert_to_f32(&bytes, layout.stored, layout.endian, voxels, |v| {
-                (v * slope + inter) as f32
-            });
+            let f = raw::convert_to_f32(&bytes, layout.stored, layout.endian, voxels, |v| (v * slope + inter) as f32);
             (VoxelType::F32, Endian::Little, f)
         }
         None if layout.stored.is_native() => (layout.stored.loaded_type(), layout.endian, bytes),
@@ -139,12 +122,7 @@ pub fn load(path: &Path, dims: Dims) -> Result<Channel, DatasetError> {
         }
     };
     Channel::new(ty, endian, VoxelBytes::Owned(Arc::new(bytes)), dims).map_err(|(expected, actual)| {
-        DatasetError::SizeMismatch {
-            path: path.to_path_buf(),
-            expected,
-            actual,
-            what: layout.what(),
-        }
+        DatasetError::SizeMismatch { path: path.to_path_buf(), expected, actual, what: layout.what() }
     })
 }
 
@@ -189,10 +167,7 @@ fn read_layout(path: &Path) -> Result<Layout, DatasetError> {
         ));
     }
     if &header.magic != b"n+1\0" {
-        return Err(field(
-            "magic",
-            format!("{:?} is not `n+1`", String::from_utf8_lossy(&header.magic)),
-        ));
+        return Err(field("magic", format!("{:?} is not `n+1`", String::from_utf8_lossy(&header.magic))));
     }
 
     let ndim = header.dim[0] as usize;
@@ -215,18 +190,13 @@ fn read_layout(path: &Path) -> Result<Layout, DatasetError> {
         if d(i)? != 1 {
             return Err(field(
                 "dim",
-                format!(
-                    "{ndim} dimensions with dim[{i}] = {}: only 3-D scalar volumes are read",
-                    header.dim[i]
-                ),
+                format!("{ndim} dimensions with dim[{i}] = {}: only 3-D scalar volumes are read", header.dim[i]),
             ));
         }
     }
     let dims = Dims::new(sizes).map_err(|m| field("dim", m))?;
 
-    let dt = header
-        .data_type()
-        .map_err(|_| field("datatype", format!("unknown datatype code {}", header.datatype)))?;
+    let dt = header.data_type().map_err(|_| field("datatype", format!("unknown datatype code {}", header.datatype)))?;
     let stored = match dt {
         NiftiType::Uint8 => StoredType::U8,
         NiftiType::Uint16 => StoredType::U16,
@@ -265,14 +235,7 @@ fn read_layout(path: &Path) -> Result<Layout, DatasetError> {
         nifti::Endianness::Little => Endian::Little,
         nifti::Endianness::Big => Endian::Big,
     };
-    Ok(Layout {
-        dims,
-        stored,
-        endian,
-        offset: vo as u64,
-        scale,
-        gzip,
-    })
+    Ok(Layout { dims, stored, endian, offset: vo as u64, scale, gzip })
 }
 
 #[cfg(test)]
@@ -292,11 +255,7 @@ mod tests {
     fn hand_parse_be(b: &[u8]) -> Hand {
         let i16_at = |o: usize| i16::from_be_bytes([b[o], b[o + 1]]);
         let f32_at = |o: usize| f32::from_be_bytes([b[o], b[o + 1], b[o + 2], b[o + 3]]);
-        assert_eq!(
-            i32::from_be_bytes([b[0], b[1], b[2], b[3]]),
-            348,
-            "sizeof_hdr, big-endian"
-        );
+        assert_eq!(i32::from_be_bytes([b[0], b[1], b[2], b[3]]), 348, "sizeof_hdr, big-endian");
         assert_eq!(&b[344..348], b"n+1\0");
         Hand {
             dim: std::array::from_fn(|i| i16_at(40 + 2 * i)),
@@ -324,21 +283,13 @@ mod tests {
         assert_eq!(ch.ty(), VoxelType::F32);
         let off = h.vox_offset as usize;
         let at = |i: usize| i16::from_be_bytes([bytes[off + 2 * i], bytes[off + 2 * i + 1]]) as f32;
-        for idx in [
-            0,
-            1,
-            500,
-            fc.dims.index(16, 20, 12),
-            fc.dims.index(10, 30, 5),
-            33 * 41 * 25 - 1,
-        ] {
+        for idx in [0, 1, 500, fc.dims.index(16, 20, 12), fc.dims.index(10, 30, 5), 33 * 41 * 25 - 1] {
             assert_eq!(ch.value(idx), at(idx), "index {idx}");
         }
         // PROVENANCE: values −610..30393 (little-endian reading would not give this range).
         let r = ch.reader();
-        let (lo, hi) = (0..33 * 41 * 25)
-            .map(|i| r.read(i))
-            .fold((f32::MAX, f32::MIN), |(a, b), v| (a.min(v), b.max(v)));
+        let (lo, hi) =
+            (0..33 * 41 * 25).map(|i| r.read(i)).fold((f32::MAX, f32::MIN), |(a, b), v| (a.min(v), b.max(v)));
         assert_eq!((lo, hi), (-610.0, 30393.0));
     }
 
@@ -347,9 +298,7 @@ mod tests {
         let Some(dir) = data_dir() else { return };
         let path = dir.join("avg152T1_RL_91x109x91_uint8_be.nii.gz");
         let mut bytes = Vec::new();
-        flate2::read::GzDecoder::new(File::open(&path).unwrap())
-            .read_to_end(&mut bytes)
-            .unwrap();
+        flate2::read::GzDecoder::new(File::open(&path).unwrap()).read_to_end(&mut bytes).unwrap();
         let h = hand_parse_be(&bytes);
         assert_eq!(h.dim[..4], [3, 91, 109, 91]);
         assert_eq!(h.datatype, 2); // uint8
@@ -361,10 +310,7 @@ mod tests {
         let off = h.vox_offset as usize;
         let r = ch.reader();
         assert!((0..91 * 109 * 91).all(|i| r.read(i) == bytes[off + i] as f32));
-        assert!(
-            ch.value(fc.dims.index(45, 54, 45)) > 0.0,
-            "the middle of the brain is not empty"
-        );
+        assert!(ch.value(fc.dims.index(45, 54, 45)) > 0.0, "the middle of the brain is not empty");
     }
 
     /// A little-endian NIfTI-1 header for a single file.
@@ -397,11 +343,7 @@ mod tests {
     #[test]
     fn native_little_endian_is_mapped_and_scaling_converts() {
         let data: Vec<u8> = (0..24u16).flat_map(|v| (v * 100).to_le_bytes()).collect();
-        let f = nii(
-            header([3, 2, 3, 4, 1, 1, 1, 1], 512, 16, 0.0, 0.0, b"n+1\0"),
-            &data,
-            false,
-        );
+        let f = nii(header([3, 2, 3, 4, 1, 1, 1, 1], 512, 16, 0.0, 0.0, b"n+1\0"), &data, false);
         let fc = open(&f.0).unwrap();
         assert_eq!(fc.ty, VoxelType::U16);
         let ch = load(&f.0, fc.dims).unwrap();
@@ -409,11 +351,7 @@ mod tests {
         assert_eq!(ch.value(23), 2300.0);
 
         // slope 0.5, intercept −3: value · slope + inter, as f32.
-        let f = nii(
-            header([3, 2, 3, 4, 1, 1, 1, 1], 512, 16, 0.5, -3.0, b"n+1\0"),
-            &data,
-            true,
-        );
+        let f = nii(header([3, 2, 3, 4, 1, 1, 1, 1], 512, 16, 0.5, -3.0, b"n+1\0"), &data, true);
         let fc = open(&f.0).unwrap();
         assert_eq!(fc.ty, VoxelType::F32);
         let ch = load(&f.0, fc.dims).unwrap();
@@ -423,23 +361,11 @@ mod tests {
 
     #[test]
     fn trailing_unit_dims_accepted_others_refused() {
-        let f = nii(
-            header([5, 2, 2, 1, 1, 1, 1, 1], 2, 8, 0.0, 0.0, b"n+1\0"),
-            &[1, 2, 3, 4],
-            false,
-        );
+        let f = nii(header([5, 2, 2, 1, 1, 1, 1, 1], 2, 8, 0.0, 0.0, b"n+1\0"), &[1, 2, 3, 4], false);
         assert_eq!(open(&f.0).unwrap().dims.as_array(), [2, 2, 1]);
-        let f = nii(
-            header([2, 4, 1, 1, 1, 1, 1, 1], 2, 8, 0.0, 0.0, b"n+1\0"),
-            &[1, 2, 3, 4],
-            false,
-        );
+        let f = nii(header([2, 4, 1, 1, 1, 1, 1, 1], 2, 8, 0.0, 0.0, b"n+1\0"), &[1, 2, 3, 4], false);
         assert_eq!(open(&f.0).unwrap().dims.as_array(), [4, 1, 1]);
-        let f = nii(
-            header([4, 2, 1, 1, 2, 1, 1, 1], 2, 8, 0.0, 0.0, b"n+1\0"),
-            &[1, 2, 3, 4],
-            false,
-        );
+        let f = nii(header([4, 2, 1, 1, 2, 1, 1, 1], 2, 8, 0.0, 0.0, b"n+1\0"), &[1, 2, 3, 4], false);
         let msg = open(&f.0).unwrap_err().to_string();
         assert!(msg.contains("`dim`") && msg.contains("dim[4] = 2"), "{msg}");
     }
@@ -457,10 +383,7 @@ mod tests {
             let f = nii(h, &[0u8; 32], false);
             let e = open(&f.0).unwrap_err();
             let msg = e.to_string();
-            assert!(
-                matches!(e, DatasetError::Format { .. }) && msg.contains(needle),
-                "{msg}"
-            );
+            assert!(matches!(e, DatasetError::Format { .. }) && msg.contains(needle), "{msg}");
             assert!(msg.contains(&f.0.display().to_string()), "{msg}");
         }
     }
@@ -471,26 +394,9 @@ mod tests {
         for gz in [false, true] {
             let f = nii(h(), &[0u8; 15], gz);
             let e = open(&f.0).unwrap_err();
-            assert!(
-                matches!(
-                    e,
-                    DatasetError::SizeMismatch {
-                        expected: 16,
-                        actual: 15,
-                        ..
-                    }
-                ),
-                "{e:?}"
-            );
+            assert!(matches!(e, DatasetError::SizeMismatch { expected: 16, actual: 15, .. }), "{e:?}");
             let f = nii(h(), &[0u8; 17], gz);
-            assert!(matches!(
-                open(&f.0),
-                Err(DatasetError::SizeMismatch {
-                    expected: 16,
-                    actual: 17,
-                    ..
-                })
-            ));
+            assert!(matches!(open(&f.0), Err(DatasetError::SizeMismatch { expected: 16, actual: 17, .. })));
             // The file shrank after open.
             let f = nii(h(), &[0u8; 16], gz);
             let fc = open(&f.0).unwrap();
@@ -498,17 +404,7 @@ mod tests {
             shrunk.extend_from_slice(&[0u8; 8]);
             std::fs::write(&f.0, if gz { gzip(&shrunk) } else { shrunk }).unwrap();
             let e = load(&f.0, fc.dims).unwrap_err();
-            assert!(
-                matches!(
-                    e,
-                    DatasetError::SizeMismatch {
-                        expected: 16,
-                        actual: 8,
-                        ..
-                    }
-                ),
-                "{e:?}"
-            );
+            assert!(matches!(e, DatasetError::SizeMismatch { expected: 16, actual: 8, .. }), "{e:?}");
         }
     }
 

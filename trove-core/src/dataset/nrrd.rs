@@ -43,13 +43,7 @@ pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
     let err = |field: &str, msg: String| DatasetError::format(path, format!("field `{field}`: {msg}"));
 
     let dimension: usize = fields.required("dimension")?.parse().map_err(|_| {
-        err(
-            "dimension",
-            format!(
-                "`{}` is not a whole number",
-                fields.get("dimension").unwrap_or_default()
-            ),
-        )
+        err("dimension", format!("`{}` is not a whole number", fields.get("dimension").unwrap_or_default()))
     })?;
     if !(1..=3).contains(&dimension) {
         return Err(err(
@@ -60,16 +54,10 @@ pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
     let sizes_text = fields.required("sizes")?;
     let mut sizes = Vec::new();
     for s in sizes_text.split_whitespace() {
-        sizes.push(
-            s.parse::<u64>()
-                .map_err(|_| err("sizes", format!("`{s}` is not a whole number")))?,
-        );
+        sizes.push(s.parse::<u64>().map_err(|_| err("sizes", format!("`{s}` is not a whole number")))?);
     }
     if sizes.len() != dimension {
-        return Err(err(
-            "sizes",
-            format!("gives {} sizes but `dimension` is {dimension}", sizes.len()),
-        ));
+        return Err(err("sizes", format!("gives {} sizes but `dimension` is {dimension}", sizes.len())));
     }
     sizes.resize(3, 1);
     let dims = Dims::new([sizes[0], sizes[1], sizes[2]]).map_err(|m| err("sizes", m))?;
@@ -96,17 +84,9 @@ pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
         "raw" => Encoding::Raw,
         "gzip" | "gz" => Encoding::Gzip,
         other @ ("ascii" | "text" | "txt" | "hex" | "bzip2" | "bz2" | "zrl" | "zstd") => {
-            return Err(err(
-                "encoding",
-                format!("`{other}` is not supported; TROVE reads `raw` and `gzip`"),
-            ));
+            return Err(err("encoding", format!("`{other}` is not supported; TROVE reads `raw` and `gzip`")));
         }
-        other => {
-            return Err(err(
-                "encoding",
-                format!("unknown encoding `{other}`; TROVE reads `raw` and `gzip`"),
-            ))
-        }
+        other => return Err(err("encoding", format!("unknown encoding `{other}`; TROVE reads `raw` and `gzip`"))),
     };
 
     let (data_path, mut offset) = match fields.get("data file") {
@@ -123,9 +103,7 @@ pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
     };
 
     if let Some(text) = fields.get("line skip") {
-        let n: u64 = text
-            .parse()
-            .map_err(|_| err("line skip", format!("`{text}` is not a whole number ≥ 0")))?;
+        let n: u64 = text.parse().map_err(|_| err("line skip", format!("`{text}` is not a whole number ≥ 0")))?;
         offset = skip_lines(&data_path, offset, n).map_err(|e| match e {
             DatasetError::Format { path, message } => {
                 DatasetError::format(path, format!("field `line skip` of the header: {message}"))
@@ -134,9 +112,7 @@ pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
         })?;
     }
     if let Some(text) = fields.get("byte skip") {
-        let n: i64 = text
-            .parse()
-            .map_err(|_| err("byte skip", format!("`{text}` is not a whole number")))?;
+        let n: i64 = text.parse().map_err(|_| err("byte skip", format!("`{text}` is not a whole number")))?;
         if n < 0 {
             return Err(err(
                 "byte skip",
@@ -144,21 +120,13 @@ pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
             ));
         }
         if n > 0 && encoding == Encoding::Gzip {
-            return Err(err(
-                "byte skip",
-                "skipping decompressed bytes of gzip data is not supported".to_string(),
-            ));
+            return Err(err("byte skip", "skipping decompressed bytes of gzip data is not supported".to_string()));
         }
         offset += n as u64;
     }
 
     let source = raw::open_with(&data_path, offset, encoding, stored, endian, dims).map_err(|e| match e {
-        DatasetError::SizeMismatch {
-            path: p,
-            expected,
-            actual,
-            what,
-        } => DatasetError::SizeMismatch {
+        DatasetError::SizeMismatch { path: p, expected, actual, what } => DatasetError::SizeMismatch {
             path: p,
             expected,
             actual,
@@ -166,11 +134,7 @@ pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
         },
         e => e,
     })?;
-    Ok(FileChannel {
-        dims,
-        ty: stored.loaded_type(),
-        source,
-    })
+    Ok(FileChannel { dims, ty: stored.loaded_type(), source })
 }
 
 /// The header's lines (magic first), and where attached data would begin: just after the
@@ -178,9 +142,7 @@ pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
 fn read_header(path: &Path) -> Result<(Vec<String>, Option<u64>), DatasetError> {
     let file = File::open(path).map_err(|e| DatasetError::io(path, e))?;
     let mut buf = Vec::new();
-    file.take(MAX_HEADER as u64 + 1)
-        .read_to_end(&mut buf)
-        .map_err(|e| DatasetError::io(path, e))?;
+    file.take(MAX_HEADER as u64 + 1).read_to_end(&mut buf).map_err(|e| DatasetError::io(path, e))?;
     let mut lines = Vec::new();
     let mut pos = 0;
     while pos < buf.len() {
@@ -199,16 +161,10 @@ fn read_header(path: &Path) -> Result<(Vec<String>, Option<u64>), DatasetError> 
         pos = next;
     }
     if buf.len() > MAX_HEADER {
-        return Err(DatasetError::format(
-            path,
-            "no blank line ends the NRRD header within its first MiB",
-        ));
+        return Err(DatasetError::format(path, "no blank line ends the NRRD header within its first MiB"));
     }
     if lines.is_empty() {
-        return Err(DatasetError::format(
-            path,
-            "empty file; expected a NRRD header starting with `NRRD000N`",
-        ));
+        return Err(DatasetError::format(path, "empty file; expected a NRRD header starting with `NRRD000N`"));
     }
     Ok((lines, None))
 }
@@ -218,15 +174,9 @@ fn check_magic(path: &Path, line: &[u8]) -> Result<(), DatasetError> {
         [b'N', b'R', b'R', b'D', b'0', b'0', b'0', v] if (b'1'..=b'5').contains(v) => Ok(()),
         [b'N', b'R', b'R', b'D', ..] => Err(DatasetError::format(
             path,
-            format!(
-                "unsupported NRRD version `{}` (NRRD0001 to NRRD0005 are read)",
-                String::from_utf8_lossy(line)
-            ),
+            format!("unsupported NRRD version `{}` (NRRD0001 to NRRD0005 are read)", String::from_utf8_lossy(line)),
         )),
-        _ => Err(DatasetError::format(
-            path,
-            "not a NRRD file: it does not start with `NRRD000N`",
-        )),
+        _ => Err(DatasetError::format(path, "not a NRRD file: it does not start with `NRRD000N`")),
     }
 }
 
@@ -244,10 +194,7 @@ impl<'a> Fields<'a> {
                 continue;
             }
             let Some(colon) = line.find(':') else {
-                return Err(DatasetError::format(
-                    path,
-                    format!("header line `{line}` is not `field: value`"),
-                ));
+                return Err(DatasetError::format(path, format!("header line `{line}` is not `field: value`")));
             };
             let rest = &line[colon + 1..];
             if rest.starts_with('=') {
@@ -279,18 +226,13 @@ impl<'a> Fields<'a> {
     }
 
     fn required(&self, name: &str) -> Result<&str, DatasetError> {
-        self.get(name)
-            .ok_or_else(|| DatasetError::format(self.path, format!("missing required field `{name}`")))
+        self.get(name).ok_or_else(|| DatasetError::format(self.path, format!("missing required field `{name}`")))
     }
 }
 
 /// Every spelling NRRD allows for each type, case and spacing insensitive.
 fn parse_type(text: &str) -> Result<StoredType, String> {
-    let t = text
-        .split_whitespace()
-        .collect::<Vec<_>>()
-        .join(" ")
-        .to_ascii_lowercase();
+    let t = text.split_whitespace().collect::<Vec<_>>().join(" ").to_ascii_lowercase();
     Ok(match t.as_str() {
         "signed char" | "int8" | "int8_t" => StoredType::I8,
         "uchar" | "unsigned char" | "uint8" | "uint8_t" => StoredType::U8,
@@ -328,9 +270,7 @@ fn data_file(header: &Path, value: &str) -> Result<PathBuf, String> {
         return Err("`LIST` (data in several files) is not supported; concatenate them into one file".into());
     }
     if value.contains('%') && value.split_whitespace().count() > 1 {
-        return Err(format!(
-            "`{value}` names several files by a pattern, which is not supported; concatenate them"
-        ));
+        return Err(format!("`{value}` names several files by a pattern, which is not supported; concatenate them"));
     }
     if value.is_empty() {
         return Err("no file name given".into());
@@ -342,18 +282,14 @@ fn data_file(header: &Path, value: &str) -> Result<PathBuf, String> {
 /// The offset just past `n` more newlines in `path`, starting at `from`.
 fn skip_lines(path: &Path, from: u64, n: u64) -> Result<u64, DatasetError> {
     let mut file = File::open(path).map_err(|e| DatasetError::io(path, e))?;
-    file.seek(SeekFrom::Start(from))
-        .map_err(|e| DatasetError::io(path, e))?;
+    file.seek(SeekFrom::Start(from)).map_err(|e| DatasetError::io(path, e))?;
     let mut reader = BufReader::new(file);
     let mut offset = from;
     let mut skipped = 0;
     while skipped < n {
         let buf = reader.fill_buf().map_err(|e| DatasetError::io(path, e))?;
         if buf.is_empty() {
-            return Err(DatasetError::format(
-                path,
-                format!("the file ends after {skipped} of the {n} lines to skip"),
-            ));
+            return Err(DatasetError::format(path, format!("the file ends after {skipped} of the {n} lines to skip")));
         }
         let (used, found) = match buf.iter().position(|&b| b == b'\n') {
             Some(i) => (i + 1, true),
@@ -373,13 +309,9 @@ mod tests {
 
     fn file_source(fc: &FileChannel) -> (&Path, u64, Encoding, StoredType, Endian) {
         match &fc.source {
-            ChannelSource::File {
-                path,
-                offset,
-                encoding,
-                stored,
-                endian,
-            } => (path.as_path(), *offset, *encoding, *stored, *endian),
+            ChannelSource::File { path, offset, encoding, stored, endian } => {
+                (path.as_path(), *offset, *encoding, *stored, *endian)
+            }
             s => panic!("not a file source: {s:?}"),
         }
     }
@@ -392,22 +324,12 @@ mod tests {
         assert_eq!(fc.ty, VoxelType::U16);
         let (path, offset, enc, stored, endian) = file_source(&fc);
         assert_eq!(path, dir.join("cthead_256x256x113_uint16_le.raw"));
-        assert_eq!(
-            (offset, enc, stored, endian),
-            (0, Encoding::Raw, StoredType::U16, Endian::Little)
-        );
+        assert_eq!((offset, enc, stored, endian), (0, Encoding::Raw, StoredType::U16, Endian::Little));
         let ch = fc.source.load(fc.dims).unwrap();
         assert!(ch.is_mapped());
         let bytes = std::fs::read(path).unwrap();
         let mut nonzero = 0;
-        for (i, j, k) in [
-            (128, 128, 56),
-            (100, 80, 30),
-            (0, 0, 0),
-            (255, 255, 112),
-            (60, 190, 90),
-            (128, 40, 10),
-        ] {
+        for (i, j, k) in [(128, 128, 56), (100, 80, 30), (0, 0, 0), (255, 255, 112), (60, 190, 90), (128, 40, 10)] {
             let idx = fc.dims.index(i, j, k);
             let expected = u16::from_le_bytes([bytes[2 * idx], bytes[2 * idx + 1]]);
             nonzero += (expected != 0) as u32;
@@ -416,9 +338,7 @@ mod tests {
         assert!(nonzero >= 2, "the chosen voxels should include some tissue");
         // PROVENANCE: all values 0..3272 (reading it big-endian would give noise up to 65535).
         let r = ch.reader();
-        let max = (0..fc.dims.voxel_count() as usize)
-            .map(|i| r.read(i))
-            .fold(0.0f32, f32::max);
+        let max = (0..fc.dims.voxel_count() as usize).map(|i| r.read(i)).fold(0.0f32, f32::max);
         assert_eq!(max, 3272.0);
     }
 
@@ -434,9 +354,7 @@ mod tests {
         assert!(!ch.is_mapped());
         // Decompress independently with the single-member decoder and compare everything.
         let mut expected = Vec::new();
-        flate2::read::GzDecoder::new(File::open(path).unwrap())
-            .read_to_end(&mut expected)
-            .unwrap();
+        flate2::read::GzDecoder::new(File::open(path).unwrap()).read_to_end(&mut expected).unwrap();
         assert_eq!(expected.len(), 8_388_608);
         let r = ch.reader();
         assert!(expected.iter().enumerate().all(|(i, &b)| r.read(i) == b as f32));
@@ -458,9 +376,7 @@ mod tests {
             assert_eq!(ch.value(idx), v as f32, "index {idx}");
         }
         let r = ch.reader();
-        let max = (0..fc.dims.voxel_count() as usize)
-            .map(|i| r.read(i))
-            .fold(f32::MIN, f32::max);
+        let max = (0..fc.dims.voxel_count() as usize).map(|i| r.read(i)).fold(f32::MIN, f32::max);
         assert_eq!(max, 3926.0); // PROVENANCE: values 0..3926
     }
 
@@ -543,10 +459,7 @@ mod tests {
         let fc = open(&f.0).unwrap();
         assert_eq!(fc.dims.as_array(), [2, 3, 4]);
         let (_, offset, enc, stored, endian) = file_source(&fc);
-        assert_eq!(
-            (offset, enc, stored, endian),
-            (header.len() as u64, Encoding::Gzip, StoredType::U16, Endian::Big)
-        );
+        assert_eq!((offset, enc, stored, endian), (header.len() as u64, Encoding::Gzip, StoredType::U16, Endian::Big));
         let ch = fc.source.load(fc.dims).unwrap();
         assert_eq!(ch.value(23), 23000.0);
         assert_eq!(ch.value(1), 1000.0);
@@ -566,47 +479,18 @@ mod tests {
         let (p, offset, ..) = file_source(&fc);
         assert_eq!((p, offset), (data.0.as_path(), 20));
         let ch = fc.source.load(fc.dims).unwrap();
-        assert_eq!(
-            (0..6).map(|i| ch.value(i)).collect::<Vec<_>>(),
-            [1., 2., 3., 4., 5., 6.]
-        );
+        assert_eq!((0..6).map(|i| ch.value(i)).collect::<Vec<_>>(), [1., 2., 3., 4., 5., 6.]);
     }
 
     #[test]
     fn size_mismatch_names_both_sizes_and_the_fields() {
-        let f = nrrd(
-            "NRRD0004\ntype: uint8\ndimension: 2\nsizes: 4 4\nencoding: raw\n\n",
-            &[0u8; 15],
-        );
+        let f = nrrd("NRRD0004\ntype: uint8\ndimension: 2\nsizes: 4 4\nencoding: raw\n\n", &[0u8; 15]);
         let e = open(&f.0).unwrap_err();
-        assert!(
-            matches!(
-                e,
-                DatasetError::SizeMismatch {
-                    expected: 16,
-                    actual: 15,
-                    ..
-                }
-            ),
-            "{e:?}"
-        );
+        assert!(matches!(e, DatasetError::SizeMismatch { expected: 16, actual: 15, .. }), "{e:?}");
         let msg = e.to_string();
-        assert!(
-            msg.contains("sizes") && msg.contains("15") && msg.contains("16"),
-            "{msg}"
-        );
-        let f = nrrd(
-            "NRRD0004\ntype: uint8\ndimension: 2\nsizes: 4 4\nencoding: gzip\n\n",
-            &gzip(&[0u8; 17]),
-        );
-        assert!(matches!(
-            open(&f.0),
-            Err(DatasetError::SizeMismatch {
-                expected: 16,
-                actual: 17,
-                ..
-            })
-        ));
+        assert!(msg.contains("sizes") && msg.contains("15") && msg.contains("16"), "{msg}");
+        let f = nrrd("NRRD0004\ntype: uint8\ndimension: 2\nsizes: 4 4\nencoding: gzip\n\n", &gzip(&[0u8; 17]));
+        assert!(matches!(open(&f.0), Err(DatasetError::SizeMismatch { expected: 16, actual: 17, .. })));
     }
 
     #[test]
@@ -619,26 +503,14 @@ mod tests {
             (base("int64", "1", "4", "raw"), &["`type`", "64-bit"]),
             (base("unsigned long long int", "1", "4", "raw"), &["`type`", "64-bit"]),
             (base("uint8", "1", "4", "ascii"), &["`encoding`", "not supported"]),
-            (
-                base("uint8", "1", "4", "lz4"),
-                &["`encoding`", "unknown encoding `lz4`"],
-            ),
+            (base("uint8", "1", "4", "lz4"), &["`encoding`", "unknown encoding `lz4`"]),
             (base("uint8", "4", "1 2 2 1", "raw"), &["`dimension`", "4"]),
             (base("uint8", "2", "4", "raw"), &["`sizes`", "1 sizes"]),
             (base("uint8", "1", "4 x", "raw"), &["`sizes`"]),
             (base("uint8", "1", "0", "raw"), &["`sizes`", "at least 1"]),
-            (
-                "NRRD0004\ntype: uint8\ndimension: 1\nencoding: raw\n\n".into(),
-                &["missing required field `sizes`"],
-            ),
-            (
-                "NRRD0004\ntype: uint16\ndimension: 1\nsizes: 2\nencoding: raw\n\n".into(),
-                &["`endian`"],
-            ),
-            (
-                "NRRD0004\ntype: uint8\ntype: uint8\n\n".into(),
-                &["`type` is given twice"],
-            ),
+            ("NRRD0004\ntype: uint8\ndimension: 1\nencoding: raw\n\n".into(), &["missing required field `sizes`"]),
+            ("NRRD0004\ntype: uint16\ndimension: 1\nsizes: 2\nencoding: raw\n\n".into(), &["`endian`"]),
+            ("NRRD0004\ntype: uint8\ntype: uint8\n\n".into(), &["`type` is given twice"]),
             (
                 "NRRD0004\ntype: uint8\ndimension: 1\nsizes: 4\nencoding: raw\nbyte skip: -1\n\n".into(),
                 &["`byte skip`"],
@@ -651,10 +523,7 @@ mod tests {
                 "NRRD0004\ntype: uint8\ndimension: 1\nsizes: 4\nencoding: raw\ndata file: s%03d.raw 1 10 1\n".into(),
                 &["`data file`", "pattern"],
             ),
-            (
-                "NRRD0004\ntype: uint8\ndimension: 1\nsizes: 4\nencoding: raw".into(),
-                &["no `data file`"],
-            ),
+            ("NRRD0004\ntype: uint8\ndimension: 1\nsizes: 4\nencoding: raw".into(), &["no `data file`"]),
             ("NRRD0009\n".into(), &["NRRD0009"]),
             ("P5 this is a PGM\n".into(), &["not a NRRD file"]),
         ];
@@ -673,14 +542,8 @@ mod tests {
         for (names, ty) in [
             ("uchar|unsigned char|uint8|uint8_t|UCHAR", StoredType::U8),
             ("signed char|int8|int8_t", StoredType::I8),
-            (
-                "short|short int|signed short|signed short int|int16|int16_t",
-                StoredType::I16,
-            ),
-            (
-                "ushort|unsigned short|unsigned short int|uint16|uint16_t|unsigned  short",
-                StoredType::U16,
-            ),
+            ("short|short int|signed short|signed short int|int16|int16_t", StoredType::I16),
+            ("ushort|unsigned short|unsigned short int|uint16|uint16_t|unsigned  short", StoredType::U16),
             ("int|signed int|int32|int32_t", StoredType::I32),
             ("uint|unsigned int|uint32|uint32_t", StoredType::U32),
             ("float", StoredType::F32),
@@ -694,10 +557,7 @@ mod tests {
 
     #[test]
     fn missing_data_file_is_an_io_error() {
-        let f = nrrd(
-            "NRRD0004\ntype: uint8\ndimension: 1\nsizes: 4\nencoding: raw\ndata file: nowhere.raw\n",
-            &[],
-        );
+        let f = nrrd("NRRD0004\ntype: uint8\ndimension: 1\nsizes: 4\nencoding: raw\ndata file: nowhere.raw\n", &[]);
         assert!(matches!(open(&f.0), Err(DatasetError::Io { .. })));
     }
 }

@@ -81,10 +81,7 @@ impl StoredType {
 
     /// Whether loading keeps the stored bytes as they are (no conversion).
     pub fn is_native(self) -> bool {
-        matches!(
-            self,
-            StoredType::Bit | StoredType::U8 | StoredType::U16 | StoredType::U32 | StoredType::F32
-        )
+        matches!(self, StoredType::Bit | StoredType::U8 | StoredType::U16 | StoredType::U32 | StoredType::F32)
     }
 
     /// Short name used in messages (`u16`, `i16`, `f64`, ...).
@@ -165,13 +162,7 @@ pub fn open_with(
             read_counted(path, reader, expected, None, || what(dims, ty))?;
         }
     }
-    Ok(ChannelSource::File {
-        path: path.to_path_buf(),
-        offset,
-        encoding,
-        stored: ty,
-        endian,
-    })
+    Ok(ChannelSource::File { path: path.to_path_buf(), offset, encoding, stored: ty, endian })
 }
 
 /// Reads one channel: `dims` numbers stored as `stored` from byte `offset` of `path`.
@@ -207,19 +198,14 @@ pub fn load(
         (Encoding::Raw, false) => {
             check_file_size(path, offset, expected, || what(dims, stored))?;
             let mut file = File::open(path).map_err(|e| DatasetError::io(path, e))?;
-            file.seek(SeekFrom::Start(offset))
-                .map_err(|e| DatasetError::io(path, e))?;
+            file.seek(SeekFrom::Start(offset)).map_err(|e| DatasetError::io(path, e))?;
             let mut buf = Vec::new();
-            read_counted(path, BufReader::new(file), expected, Some(&mut buf), || {
-                what(dims, stored)
-            })?;
+            read_counted(path, BufReader::new(file), expected, Some(&mut buf), || what(dims, stored))?;
             VoxelBytes::Owned(Arc::new(convert_to_f32(&buf, stored, endian, voxels, |v| v as f32)))
         }
         (Encoding::Gzip, native) => {
             let mut buf = Vec::new();
-            read_counted(path, gzip_reader(path, offset)?, expected, Some(&mut buf), || {
-                what(dims, stored)
-            })?;
+            read_counted(path, gzip_reader(path, offset)?, expected, Some(&mut buf), || what(dims, stored))?;
             if native {
                 VoxelBytes::Owned(Arc::new(buf))
             } else {
@@ -233,12 +219,7 @@ pub fn load(
 }
 
 fn mismatch(path: &Path, expected: u64, actual: u64, what: String) -> DatasetError {
-    DatasetError::SizeMismatch {
-        path: path.to_path_buf(),
-        expected,
-        actual,
-        what,
-    }
+    DatasetError::SizeMismatch { path: path.to_path_buf(), expected, actual, what }
 }
 
 /// Checks an uncompressed file's length minus `offset` against `expected`.
@@ -260,8 +241,7 @@ fn check_file_size(path: &Path, offset: u64, expected: u64, what: impl Fn() -> S
 /// (as `gzip -c a b` writes them), hence `MultiGzDecoder`.
 pub(crate) fn gzip_reader(path: &Path, offset: u64) -> Result<impl Read, DatasetError> {
     let mut file = File::open(path).map_err(|e| DatasetError::io(path, e))?;
-    file.seek(SeekFrom::Start(offset))
-        .map_err(|e| DatasetError::io(path, e))?;
+    file.seek(SeekFrom::Start(offset)).map_err(|e| DatasetError::io(path, e))?;
     Ok(MultiGzDecoder::new(BufReader::new(file)))
 }
 
@@ -283,8 +263,7 @@ pub(crate) fn read_counted(
     if let Some(buf) = keep.as_deref_mut() {
         let n = usize::try_from(expected).map_err(|_| DatasetError::format(path, "volume too large for memory"))?;
         buf.clear();
-        buf.try_reserve_exact(n)
-            .map_err(|_| DatasetError::format(path, format!("cannot allocate {n} bytes")))?;
+        buf.try_reserve_exact(n).map_err(|_| DatasetError::format(path, format!("cannot allocate {n} bytes")))?;
     }
     let mut chunk = vec![0u8; 1 << 16];
     let mut total: u64 = 0;
@@ -339,12 +318,24 @@ pub(crate) fn convert_to_f32(
     match stored {
         StoredType::I8 => go::<1>(bytes, voxels, |b| b[0] as i8 as f64, map),
         StoredType::U8 => go::<1>(bytes, voxels, |b| b[0] as f64, map),
-        StoredType::I16 => go::<2>(bytes, voxels, |b| if big { i16::from_be_bytes(b) } else { i16::from_le_bytes(b) } as f64, map),
-        StoredType::U16 => go::<2>(bytes, voxels, |b| if big { u16::from_be_bytes(b) } else { u16::from_le_bytes(b) } as f64, map),
-        StoredType::I32 => go::<4>(bytes, voxels, |b| if big { i32::from_be_bytes(b) } else { i32::from_le_bytes(b) } as f64, map),
-        StoredType::U32 => go::<4>(bytes, voxels, |b| if big { u32::from_be_bytes(b) } else { u32::from_le_bytes(b) } as f64, map),
-        StoredType::F32 => go::<4>(bytes, voxels, |b| if big { f32::from_be_bytes(b) } else { f32::from_le_bytes(b) } as f64, map),
-        StoredType::F64 => go::<8>(bytes, voxels, |b| if big { f64::from_be_bytes(b) } else { f64::from_le_bytes(b) }, map),
+        StoredType::I16 => {
+            go::<2>(bytes, voxels, |b| if big { i16::from_be_bytes(b) } else { i16::from_le_bytes(b) } as f64, map)
+        }
+        StoredType::U16 => {
+            go::<2>(bytes, voxels, |b| if big { u16::from_be_bytes(b) } else { u16::from_le_bytes(b) } as f64, map)
+        }
+        StoredType::I32 => {
+            go::<4>(bytes, voxels, |b| if big { i32::from_be_bytes(b) } else { i32::from_le_bytes(b) } as f64, map)
+        }
+        StoredType::U32 => {
+            go::<4>(bytes, voxels, |b| if big { u32::from_be_bytes(b) } else { u32::from_le_bytes(b) } as f64, map)
+        }
+        StoredType::F32 => {
+            go::<4>(bytes, voxels, |b| if big { f32::from_be_bytes(b) } else { f32::from_le_bytes(b) } as f64, map)
+        }
+        StoredType::F64 => {
+            go::<8>(bytes, voxels, |b| if big { f64::from_be_bytes(b) } else { f64::from_le_bytes(b) }, map)
+        }
         StoredType::Bit => {
             let mut out = Vec::with_capacity(voxels * 4);
             for i in 0..voxels.min(bytes.len() * 8) {
@@ -491,9 +482,7 @@ mod tests {
                 let gz_file = TempFile::with("rt.raw.gz", &gzip(&bytes));
                 for (file, offset, enc) in [(&raw_file, 7, Encoding::Raw), (&gz_file, 0, Encoding::Gzip)] {
                     let src = open_with(&file.0, offset, enc, ty, endian, d).unwrap();
-                    let ChannelSource::File { encoding, .. } = src else {
-                        panic!("not a file source")
-                    };
+                    let ChannelSource::File { encoding, .. } = src else { panic!("not a file source") };
                     assert_eq!(encoding, enc);
                     let ch = load(&file.0, offset, enc, ty, endian, d).unwrap();
                     assert_eq!(ch.ty(), ty.loaded_type(), "{ty} {endian:?} {enc:?}");
@@ -524,30 +513,18 @@ mod tests {
         let f = TempFile::with("short.raw", &[0u8; 63]);
         let e = open(&f.0, 0, StoredType::U16, Endian::Little, d).unwrap_err();
         match &e {
-            DatasetError::SizeMismatch {
-                expected: 64,
-                actual: 63,
-                what,
-                ..
-            } => {
+            DatasetError::SizeMismatch { expected: 64, actual: 63, what, .. } => {
                 assert_eq!(what, "dims [4, 4, 2] of u16")
             }
             e => panic!("unexpected {e:?}"),
         }
         let msg = e.to_string();
-        assert!(
-            msg.contains("63") && msg.contains("64") && msg.contains("short.raw"),
-            "{msg}"
-        );
+        assert!(msg.contains("63") && msg.contains("64") && msg.contains("short.raw"), "{msg}");
         // Too long by one byte is refused too.
         let f = TempFile::with("long.raw", &[0u8; 65]);
         assert!(matches!(
             open(&f.0, 0, StoredType::U16, Endian::Little, d),
-            Err(DatasetError::SizeMismatch {
-                expected: 64,
-                actual: 65,
-                ..
-            })
+            Err(DatasetError::SizeMismatch { expected: 64, actual: 65, .. })
         ));
         // Load re-checks: the file may have been truncated since open.
         let f = TempFile::with("trunc.raw", &[0u8; 64]);
@@ -556,18 +533,11 @@ mod tests {
         for ty in [StoredType::U16, StoredType::I16] {
             assert!(matches!(
                 load(&f.0, 0, Encoding::Raw, ty, Endian::Little, d),
-                Err(DatasetError::SizeMismatch {
-                    expected: 64,
-                    actual: 40,
-                    ..
-                })
+                Err(DatasetError::SizeMismatch { expected: 64, actual: 40, .. })
             ));
         }
         // An offset past the end of the file.
-        assert!(matches!(
-            open(&f.0, 100, StoredType::U8, Endian::Little, d),
-            Err(DatasetError::Format { .. })
-        ));
+        assert!(matches!(open(&f.0, 100, StoredType::U8, Endian::Little, d), Err(DatasetError::Format { .. })));
     }
 
     #[test]
@@ -577,40 +547,15 @@ mod tests {
         let long = TempFile::with("long.gz", &gzip(&[1u8; 1001]));
         for ty in [StoredType::U8, StoredType::I8] {
             let e = open_with(&short.0, 0, Encoding::Gzip, ty, Endian::Little, d).unwrap_err();
-            assert!(
-                matches!(
-                    e,
-                    DatasetError::SizeMismatch {
-                        expected: 1000,
-                        actual: 999,
-                        ..
-                    }
-                ),
-                "{e:?}"
-            );
+            assert!(matches!(e, DatasetError::SizeMismatch { expected: 1000, actual: 999, .. }), "{e:?}");
             let e = load(&long.0, 0, Encoding::Gzip, ty, Endian::Little, d).unwrap_err();
-            assert!(
-                matches!(
-                    e,
-                    DatasetError::SizeMismatch {
-                        expected: 1000,
-                        actual: 1001,
-                        ..
-                    }
-                ),
-                "{e:?}"
-            );
+            assert!(matches!(e, DatasetError::SizeMismatch { expected: 1000, actual: 1001, .. }), "{e:?}");
         }
         // A stream far longer than expected is not inflated to its end.
         let huge = TempFile::with("huge.gz", &gzip(&vec![0u8; 8 << 20]));
         let e = open_with(&huge.0, 0, Encoding::Gzip, StoredType::U8, Endian::Little, d).unwrap_err();
         match e {
-            DatasetError::SizeMismatch {
-                expected: 1000,
-                actual,
-                what,
-                ..
-            } => {
+            DatasetError::SizeMismatch { expected: 1000, actual, what, .. } => {
                 assert!(actual > 1000 && actual < 3 << 20, "{actual}");
                 assert!(what.contains("stream is longer"), "{what}");
             }
@@ -631,18 +576,12 @@ mod tests {
         bytes.extend(gzip(&[4, 5, 6, 7, 8]));
         let f = TempFile::with("multi.gz", &bytes);
         let ch = load(&f.0, 0, Encoding::Gzip, StoredType::U8, Endian::Little, d).unwrap();
-        assert_eq!(
-            (0..8).map(|i| ch.value(i)).collect::<Vec<_>>(),
-            [1., 2., 3., 4., 5., 6., 7., 8.]
-        );
+        assert_eq!((0..8).map(|i| ch.value(i)).collect::<Vec<_>>(), [1., 2., 3., 4., 5., 6., 7., 8.]);
     }
 
     #[test]
     fn missing_file_is_an_io_error() {
         let f = TempFile::new("absent.raw");
-        assert!(matches!(
-            open(&f.0, 0, StoredType::U8, Endian::Little, dims(1, 1, 1)),
-            Err(DatasetError::Io { .. })
-        ));
+        assert!(matches!(open(&f.0, 0, StoredType::U8, Endian::Little, dims(1, 1, 1)), Err(DatasetError::Io { .. })));
     }
 }

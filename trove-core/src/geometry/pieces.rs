@@ -43,7 +43,9 @@ pub fn split_into_pieces(segments: &[Segment], cuts: &mut Vec<f64>, pieces: &mut
     for w in cuts.windows(2) {
         let (t0, t1) = (w[0], w[1]);
         let start = cover.len() as u32;
-        cover.extend(segments.iter().filter(|s| s.t_far > s.t_near && s.t_near <= t0 && s.t_far >= t1).map(|s| s.object));
+        cover.extend(
+            segments.iter().filter(|s| s.t_far > s.t_near && s.t_near <= t0 && s.t_far >= t1).map(|s| s.object),
+        );
         let end = cover.len() as u32;
         if end > start {
             pieces.push(Piece { t0, t1, cover: (start, end) });
@@ -56,7 +58,8 @@ mod tests {
     use super::*;
 
     fn split(segs: &[(u32, f64, f64)]) -> Vec<(f64, f64, Vec<u32>)> {
-        let segs: Vec<Segment> = segs.iter().map(|&(object, t_near, t_far)| Segment { object, t_near, t_far }).collect();
+        let segs: Vec<Segment> =
+            segs.iter().map(|&(object, t_near, t_far)| Segment { object, t_near, t_far }).collect();
         let (mut cuts, mut pieces, mut cover) = (vec![], vec![], vec![]);
         split_into_pieces(&segs, &mut cuts, &mut pieces, &mut cover);
         pieces.iter().map(|p| (p.t0, p.t1, cover[p.cover.0 as usize..p.cover.1 as usize].to_vec())).collect()
@@ -65,10 +68,7 @@ mod tests {
     #[test]
     fn overlapping_segments_split_at_every_end_point() {
         let p = split(&[(0, 1.0, 3.0), (1, 2.0, 5.0), (2, 6.0, 7.0)]);
-        assert_eq!(
-            p,
-            vec![(1.0, 2.0, vec![0]), (2.0, 3.0, vec![0, 1]), (3.0, 5.0, vec![1]), (6.0, 7.0, vec![2])]
-        );
+        assert_eq!(p, vec![(1.0, 2.0, vec![0]), (2.0, 3.0, vec![0, 1]), (3.0, 5.0, vec![1]), (6.0, 7.0, vec![2])]);
     }
 
     #[test]

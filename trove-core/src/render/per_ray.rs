@@ -109,7 +109,8 @@ fn trace(scene: &Scene, store: &VolumeStore, ray: &Ray, band: &mut Band) -> Resu
         if let [only] = cover {
             let object = &scene.objects[*only as usize];
             let volume = store.get(object.dataset)?;
-            let r = ObjectCaster::new(object, &volume, correction).cast(ray, piece.t0, piece.t1, acc.alpha, termination);
+            let r =
+                ObjectCaster::new(object, &volume, correction).cast(ray, piece.t0, piece.t1, acc.alpha, termination);
             band.samples += r.samples;
             acc.over(r.rgba);
         } else {
@@ -117,7 +118,8 @@ fn trace(scene: &Scene, store: &VolumeStore, ray: &Ray, band: &mut Band) -> Resu
             for &o in cover {
                 let object = &scene.objects[o as usize];
                 let volume = store.get(object.dataset)?;
-                let r = ObjectCaster::new(object, &volume, correction).cast(ray, piece.t0, piece.t1, 0.0, f64::INFINITY);
+                let r =
+                    ObjectCaster::new(object, &volume, correction).cast(ray, piece.t0, piece.t1, 0.0, f64::INFINITY);
                 band.samples += r.samples;
                 band.parts.push(r.rgba);
             }

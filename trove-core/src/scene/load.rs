@@ -10,7 +10,9 @@ use super::file::{ChannelFile, DatasetFile, ObjectFile, SceneFile, TransformFile
 use super::mappings::{self, KeyError};
 use super::{ImageSettings, Object, RenderSettings, Scene, MAX_IMAGE_SIDE, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE};
 use crate::dataset::raw::StoredType;
-use crate::dataset::{image_file, nifti_file, nrrd, raw, ChannelName, ChannelSource, DatasetInfo, Dims, Endian, VoxelType};
+use crate::dataset::{
+    image_file, nifti_file, nrrd, raw, ChannelName, ChannelSource, DatasetInfo, Dims, Endian, VoxelType,
+};
 use crate::geometry::hexahedron::Hexahedron;
 use crate::geometry::{Camera, Extent, Placement, Shape};
 use crate::SceneError;
@@ -48,7 +50,10 @@ pub(super) fn scene(text: &str, path: &Path) -> Result<Scene, SceneError> {
     for (i, d) in file.datasets.iter().enumerate() {
         let key = format!("datasets[{i}]");
         if let Some(j) = by_name.insert(d.name.clone(), i) {
-            return Err(fail((format!("{key}.name"), format!("duplicate dataset name \"{}\" (also datasets[{j}])", d.name))));
+            return Err(fail((
+                format!("{key}.name"),
+                format!("duplicate dataset name \"{}\" (also datasets[{j}])", d.name),
+            )));
         }
         datasets.push(dataset(d, &key, &folder).map_err(fail)?);
     }
@@ -58,7 +63,10 @@ pub(super) fn scene(text: &str, path: &Path) -> Result<Scene, SceneError> {
     for (i, o) in file.objects.iter().enumerate() {
         let key = format!("objects[{i}]");
         if let Some(j) = object_names.insert(o.name.clone(), i) {
-            return Err(fail((format!("{key}.name"), format!("duplicate object name \"{}\" (also objects[{j}])", o.name))));
+            return Err(fail((
+                format!("{key}.name"),
+                format!("duplicate object name \"{}\" (also objects[{j}])", o.name),
+            )));
         }
         let Some(&ds) = by_name.get(&o.dataset) else {
             let known: Vec<_> = file.datasets.iter().map(|d| d.name.as_str()).collect();
@@ -74,9 +82,8 @@ pub(super) fn scene(text: &str, path: &Path) -> Result<Scene, SceneError> {
 
 /// TOML → plain structs, with serde's errors turned into key paths.
 fn deserialize(text: &str, path: &Path) -> Result<SceneFile, SceneError> {
-    let de = toml::Deserializer::parse(text).map_err(|e| {
-        SceneError::new(path, "(syntax)", format!("not valid TOML: {}", e.message().trim()))
-    })?;
+    let de = toml::Deserializer::parse(text)
+        .map_err(|e| SceneError::new(path, "(syntax)", format!("not valid TOML: {}", e.message().trim())))?;
     serde_path_to_error::deserialize(de).map_err(|e| {
         let mut key = e.path().to_string();
         let inner = e.inner().message().trim().to_string();
@@ -91,11 +98,7 @@ fn deserialize(text: &str, path: &Path) -> Result<SceneFile, SceneError> {
         if key == "." || key.is_empty() {
             key = "(top level)".into();
         }
-        let message = if inner.starts_with("missing field") {
-            format!("{inner} (required)")
-        } else {
-            inner
-        };
+        let message = if inner.starts_with("missing field") { format!("{inner} (required)") } else { inner };
         SceneError::new(path, key, message)
     })
 }
@@ -230,12 +233,7 @@ fn dataset(d: &DatasetFile, key: &str, folder: &Path) -> Result<DatasetInfo, Key
     Ok(DatasetInfo { name: d.name.clone(), dims, channels })
 }
 
-fn channel(
-    c: &ChannelFile,
-    key: &str,
-    dims: Dims,
-    folder: &Path,
-) -> Result<(VoxelType, ChannelSource), KeyError> {
+fn channel(c: &ChannelFile, key: &str, dims: Dims, folder: &Path) -> Result<(VoxelType, ChannelSource), KeyError> {
     let given = [c.raw.is_some(), c.nrrd.is_some(), c.generator.is_some()].iter().filter(|&&b| b).count();
     if given != 1 {
         return Err((key.into(), "expected exactly one of `raw`, `nrrd` or `generator`".into()));
@@ -284,7 +282,10 @@ fn object(o: &ObjectFile, key: &str, ds: usize, info: &DatasetInfo, straight: bo
         if reads && !info.has(ChannelName::Voxel) {
             return Err((
                 format!("{key}.{k}"),
-                format!("this map reads the `voxel` channel, which dataset \"{}\" does not have; use raw or constant", info.name),
+                format!(
+                    "this map reads the `voxel` channel, which dataset \"{}\" does not have; use raw or constant",
+                    info.name
+                ),
             ));
         }
     }

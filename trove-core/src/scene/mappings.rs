@@ -178,7 +178,9 @@ pub(super) fn colour(v: &Value, key: &str, has: impl Fn(&str) -> bool) -> Result
                 coefficients(tab, key, "blue", t)?,
             ]))
         }
-        other => err(&format!("{key}.type"), format!("unknown colour map type \"{other}\"; expected one of {COLOUR_TYPES}")),
+        other => {
+            err(&format!("{key}.type"), format!("unknown colour map type \"{other}\"; expected one of {COLOUR_TYPES}"))
+        }
     }
 }
 
@@ -207,7 +209,9 @@ pub(super) fn opacity(v: &Value, key: &str, has: impl Fn(&str) -> bool) -> Resul
             let tab = table(v, key, &["coefficients"])?;
             Ok(OpacityMap::Polynomial(coefficients(tab, key, "coefficients", t)?))
         }
-        other => err(&format!("{key}.type"), format!("unknown opacity map type \"{other}\"; expected one of {COLOUR_TYPES}")),
+        other => {
+            err(&format!("{key}.type"), format!("unknown opacity map type \"{other}\"; expected one of {COLOUR_TYPES}"))
+        }
     }
 }
 
@@ -233,10 +237,14 @@ pub(super) fn interpolation(v: &Value, key: &str) -> Result<Interpolation, KeyEr
             let t = table(v, key, &["omega"])?;
             let k = format!("{key}.omega");
             let w = numbers(&t["omega"], &k)?;
-            let omega: [f64; 3] = w.try_into().or_else(|w: Vec<f64>| err(&k, format!("expected 3 numbers [w0, w1, w2], got {}", w.len())))?;
+            let omega: [f64; 3] = w
+                .try_into()
+                .or_else(|w: Vec<f64>| err(&k, format!("expected 3 numbers [w0, w1, w2], got {}", w.len())))?;
             Ok(Interpolation::Nonlinear { omega })
         }
-        "nonlinear" => err(key, "nonlinear interpolation needs its coefficients: { type = \"nonlinear\", omega = [w0, w1, w2] }"),
+        "nonlinear" => {
+            err(key, "nonlinear interpolation needs its coefficients: { type = \"nonlinear\", omega = [w0, w1, w2] }")
+        }
         other => err(key, format!("unknown interpolation \"{other}\"; expected {EXPECTED}")),
     }
 }
