@@ -1,4 +1,3 @@
-//! TROVE core (partial, in progress).
-pub mod dataset;
-pub mod error;
-pub use error::{DatasetError, RenderError, SceneError};
+//! (partial)
+pub mod geometry;
+pub mod interp;

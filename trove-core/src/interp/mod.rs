@@ -1,0 +1,2 @@
+//! Interpolation functions (SPEC §3.3).
+pub mod cubic;
