@@ -399,11 +399,7 @@ struct Hits {
 
 impl Hits {
     fn new(floor: f64) -> Self {
-        Hits {
-            min: f64::INFINITY,
-            max: f64::NEG_INFINITY,
-            floor,
-        }
+        Hits { min: f64::INFINITY, max: f64::NEG_INFINITY, floor }
     }
 
     fn push(&mut self, t: f64) {
@@ -603,19 +599,15 @@ fn split(b: &Bern, axis: usize) -> (Bern, Bern) {
 fn check_no_fold(bern: &Bern, tol: f64) -> Result<f64, String> {
     let max_abs = bern.iter().flatten().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
     if max_abs <= tol {
-        return Err(
-            "degenerate box: the corners enclose no volume (they lie in a plane, on a line or \
+        return Err("degenerate box: the corners enclose no volume (they lie in a plane, on a line or \
                     coincide)"
-                .to_string(),
-        );
+            .to_string());
     }
     let first = bern[0][0][0];
     if first.abs() <= tol {
-        return Err(
-            "degenerate box: the Jacobian determinant is zero at corner 0 (its three edges are \
+        return Err("degenerate box: the Jacobian determinant is zero at corner 0 (its three edges are \
                     coplanar)"
-                .to_string(),
-        );
+            .to_string());
     }
     let sign = first.signum();
     let fmt_q = |q: DVec3| format!("({:.3}, {:.3}, {:.3})", q.x, q.y, q.z);
@@ -870,9 +862,7 @@ mod tests {
         assert!(Hexahedron::new(point).is_err());
         let mut collapsed_edge = unit_corners();
         collapsed_edge[1] = collapsed_edge[0];
-        assert!(Hexahedron::new(collapsed_edge)
-            .expect_err("edge")
-            .contains("degenerate"));
+        assert!(Hexahedron::new(collapsed_edge).expect_err("edge").contains("degenerate"));
         let mut nan = unit_corners();
         nan[5].y = f64::NAN;
         assert!(Hexahedron::new(nan).expect_err("nan").contains("corner 5"));
@@ -970,9 +960,7 @@ mod tests {
         assert!(h.invert(DVec3::new(f64::NAN, 0.0, 0.0), None, 1e-9).is_none());
         let t = hex(twisted(60.0));
         let q = DVec3::new(0.2, 0.9, 0.4);
-        let r = t
-            .invert(t.world(q), Some(DVec3::splat(0.5)), 1e-12)
-            .expect("twisted inverse");
+        let r = t.invert(t.world(q), Some(DVec3::splat(0.5)), 1e-12).expect("twisted inverse");
         assert!((r - q).length() < 1e-10);
     }
 
@@ -991,10 +979,7 @@ mod tests {
         let got = h.segment(DVec3::from_array(o), DVec3::from_array(d));
         match (got, want) {
             (Some((a, b)), Some((x, y))) => {
-                assert!(
-                    (a - x).abs() < 1e-9 && (b - y).abs() < 1e-9,
-                    "o {o:?} d {d:?}: {got:?} vs {want:?}"
-                )
+                assert!((a - x).abs() < 1e-9 && (b - y).abs() < 1e-9, "o {o:?} d {d:?}: {got:?} vs {want:?}")
             }
             (None, None) => {}
             _ => panic!("o {o:?} d {d:?}: {got:?} vs {want:?}"),
@@ -1043,22 +1028,14 @@ mod tests {
 
     #[test]
     fn segment_special_rays_affine_and_distorted() {
-        let boxes = [
-            corners_of_affine(&skewed_matrix()),
-            frustum(),
-            twisted(30.0),
-            twisted(100.0),
-        ];
+        let boxes = [corners_of_affine(&skewed_matrix()), frustum(), twisted(30.0), twisted(100.0)];
         for c in boxes {
             let h = hex(c);
             let check = |o: DVec3, d: DVec3, lo: f64, hi: f64, what: &str| {
                 let s = h.segment(o, d);
                 let Some((a, b)) = s else { panic!("{what}: miss") };
                 assert!(a.is_finite() && b.is_finite() && 0.0 <= a && a <= b, "{what}: {s:?}");
-                assert!(
-                    a <= lo + 1e-9 && b >= hi - 1e-9,
-                    "{what}: {s:?} does not cover [{lo}, {hi}]"
-                );
+                assert!(a <= lo + 1e-9 && b >= hi - 1e-9, "{what}: {s:?} does not cover [{lo}, {hi}]");
             };
             // Every edge, as a ray from one step before its start: [1, 2] is on the edge.
             for i in 0..8 {

@@ -191,16 +191,11 @@ fn poly(terms: &[(f64, [u8; 3])]) -> [f64; TERMS] {
 fn solve(mut a: Vec<Vec<f64>>, mut b: Vec<Vec<f64>>) -> Vec<Vec<f64>> {
     let n = a.len();
     for col in 0..n {
-        let piv = (col..n)
-            .max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))
-            .unwrap_or(col);
+        let piv = (col..n).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs())).unwrap_or(col);
         a.swap(col, piv);
         b.swap(col, piv);
         let p = a[col][col];
-        assert!(
-            p != 0.0,
-            "singular system in the cubic fit (cannot happen: see the rank argument)"
-        );
+        assert!(p != 0.0, "singular system in the cubic fit (cannot happen: see the rank argument)");
         for r in col + 1..n {
             let f = a[r][col] / p;
             if f != 0.0 {
@@ -232,24 +227,12 @@ fn compute_fit_matrix() -> [[f64; SAMPLES]; TERMS] {
     let rows: Vec<[f64; TERMS]> = (0..SAMPLES).map(|i| basis(sample_point(i))).collect();
 
     // Particular solution: the trilinear interpolant of the corners, in the multilinear monomials.
-    const MULTILINEAR: [[u8; 3]; 8] = [
-        [0, 0, 0],
-        [1, 0, 0],
-        [0, 1, 0],
-        [1, 1, 0],
-        [0, 0, 1],
-        [1, 0, 1],
-        [0, 1, 1],
-        [1, 1, 1],
-    ];
-    let ml_index: Vec<usize> = MULTILINEAR
-        .iter()
-        .map(|e| MONOMIALS.iter().position(|m| m == e).expect("multilinear monomial"))
-        .collect();
+    const MULTILINEAR: [[u8; 3]; 8] =
+        [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]];
+    let ml_index: Vec<usize> =
+        MULTILINEAR.iter().map(|e| MONOMIALS.iter().position(|m| m == e).expect("multilinear monomial")).collect();
     let ct: Vec<Vec<f64>> = (0..8).map(|c| ml_index.iter().map(|&k| rows[c][k]).collect()).collect();
-    let identity8: Vec<Vec<f64>> = (0..8)
-        .map(|r| (0..8).map(|c| f64::from(u8::from(r == c))).collect())
-        .collect();
+    let identity8: Vec<Vec<f64>> = (0..8).map(|r| (0..8).map(|c| f64::from(u8::from(r == c))).collect()).collect();
     let tri = solve(ct, identity8); // 8 multilinear coefficients × 8 corner values
                                     // P: 20×32, λ_T = P · values (only corner columns are non-zero).
     let mut p = vec![vec![0.0; SAMPLES]; TERMS];
@@ -274,14 +257,8 @@ fn compute_fit_matrix() -> [[f64; SAMPLES]; TERMS] {
 
     // Reduced problem: A = E·N (24×12); residual data R = [−E·P_corners | I24] (24×32).
     let ext = &rows[8..];
-    let a: Vec<Vec<f64>> = ext
-        .iter()
-        .map(|row| {
-            null.iter()
-                .map(|n| row.iter().zip(n).map(|(r, v)| r * v).sum())
-                .collect()
-        })
-        .collect();
+    let a: Vec<Vec<f64>> =
+        ext.iter().map(|row| null.iter().map(|n| row.iter().zip(n).map(|(r, v)| r * v).sum()).collect()).collect();
     let mut resid = vec![vec![0.0; SAMPLES]; 24];
     for (i, row) in ext.iter().enumerate() {
         for j in 0..SAMPLES {
@@ -290,16 +267,10 @@ fn compute_fit_matrix() -> [[f64; SAMPLES]; TERMS] {
         resid[i][8 + i] += 1.0;
     }
     // Normal equations (AᵀA) M = Aᵀ R; AᵀA is block diagonal with three non-singular 4×4 blocks.
-    let ata: Vec<Vec<f64>> = (0..12)
-        .map(|r| (0..12).map(|c| (0..24).map(|i| a[i][r] * a[i][c]).sum()).collect())
-        .collect();
-    let atr: Vec<Vec<f64>> = (0..12)
-        .map(|r| {
-            (0..SAMPLES)
-                .map(|c| (0..24).map(|i| a[i][r] * resid[i][c]).sum())
-                .collect()
-        })
-        .collect();
+    let ata: Vec<Vec<f64>> =
+        (0..12).map(|r| (0..12).map(|c| (0..24).map(|i| a[i][r] * a[i][c]).sum()).collect()).collect();
+    let atr: Vec<Vec<f64>> =
+        (0..12).map(|r| (0..SAMPLES).map(|c| (0..24).map(|i| a[i][r] * resid[i][c]).sum()).collect()).collect();
     let mu = solve(ata, atr); // 12×32
 
     let mut f = [[0.0; SAMPLES]; TERMS];
@@ -364,10 +335,7 @@ mod tests {
             for b in 0..=3 - a {
                 for c in 0..=3 - a - b {
                     all += 1;
-                    assert!(
-                        seen.contains(&[a, b, c]),
-                        "monomial x^{a} y^{b} z^{c} missing from eq. 4"
-                    );
+                    assert!(seen.contains(&[a, b, c]), "monomial x^{a} y^{b} z^{c} missing from eq. 4");
                 }
             }
         }
@@ -389,11 +357,7 @@ mod tests {
     #[test]
     fn ranks_make_the_fit_well_posed() {
         let r = rows();
-        assert_eq!(
-            rank(r[..8].to_vec(), 1e-12),
-            8,
-            "corner constraints must have full row rank"
-        );
+        assert_eq!(rank(r[..8].to_vec(), 1e-12), 8, "corner constraints must have full row rank");
         assert_eq!(rank(r.clone(), 1e-12), 20, "[C; E] must have full column rank");
         // Reduced problem: E restricted to the null space of C. Build a null-space basis numerically
         // (independently of the hand-made one) from the rank: ker C has dimension 12.
@@ -411,9 +375,7 @@ mod tests {
                     null.push(f);
                 }
             }
-            let en: Vec<Vec<f64>> = (8..SAMPLES)
-                .map(|i| null.iter().map(|f| f(sample_point(i))).collect())
-                .collect();
+            let en: Vec<Vec<f64>> = (8..SAMPLES).map(|i| null.iter().map(|f| f(sample_point(i))).collect()).collect();
             // and those functions really vanish at the corners
             for c in 0..8 {
                 for f in &null {
@@ -451,12 +413,7 @@ mod tests {
         let f = fit_matrix();
         for i in 0..TERMS {
             for j in 0..SAMPLES {
-                assert!(
-                    (sol[i][j] - f[i][j]).abs() < 1e-10,
-                    "F[{i}][{j}]: KKT {} vs {}",
-                    sol[i][j],
-                    f[i][j]
-                );
+                assert!((sol[i][j] - f[i][j]).abs() < 1e-10, "F[{i}][{j}]: KKT {} vs {}", sol[i][j], f[i][j]);
             }
         }
     }
@@ -479,9 +436,7 @@ mod tests {
             let sigma = |i: usize| {
                 let mut p = sample_point(i);
                 p[a] = 1.0 - p[a];
-                (0..SAMPLES)
-                    .find(|&j| sample_point(j) == p)
-                    .expect("mirror image is a sample")
+                (0..SAMPLES).find(|&j| sample_point(j) == p).expect("mirror image is a sample")
             };
             let t = [0.21, 0.67, 0.43];
             let mut tm = t;

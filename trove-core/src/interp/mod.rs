@@ -63,6 +63,8 @@ fn cell_axis(u: f64, n: u32) -> (usize, f64) {
 }
 
 /// The voxels a sample reads and their weights.
+// A per-sample temporary on the stack: boxing the cubic variant would allocate per sample.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug)]
 pub enum Stencil {
     /// One voxel.
