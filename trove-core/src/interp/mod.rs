@@ -241,4 +241,60 @@ mod tests {
             assert!(!v.is_finite(), "{bad}: {v}");
         }
     }
+    fn cubic_poly(x: f64, y: f64, z: f64) -> f64 {
+        0.5 + x - 2.0 * y + 0.25 * z + 0.1 * x * x - 0.3 * y * z + 0.05 * x * y * z + 0.02 * x * x * x
+            - 0.04 * y * y * x
+            + 0.03 * z * z * z
+    }
+
+    #[test]
+    fn cubic_reproduces_a_cubic_polynomial_in_the_interior() {
+        let dims = Dims::new([7, 6, 8]).unwrap();
+        let ch = field(dims, |x, y, z| cubic_poly(x, y, z) as f32);
+        let r = ch.reader();
+        // Interior: the 32-point stencil of the cell needs x0 − 1 ≥ 0 and x0 + 2 ≤ n − 1.
+        for &p in &[[1.25, 1.5, 2.75], [3.9, 2.01, 4.5], [2.0, 3.0, 5.0], [4.999, 1.0, 1.0]] {
+            let v = Stencil::new(&Interpolation::Cubic, dims, p).apply(&r);
+            // The field is stored in f32, so compare against the f32-rounded data's scale.
+            assert!((v - cubic_poly(p[0], p[1], p[2])).abs() < 1e-4, "{p:?}: {v} vs {}", cubic_poly(p[0], p[1], p[2]));
+        }
+        // Trilinear cannot: the same points are off by the curvature.
+        let tri = Stencil::new(&Interpolation::Trilinear, dims, [1.25, 1.5, 2.75]).apply(&r);
+        assert!((tri - cubic_poly(1.25, 1.5, 2.75)).abs() > 1e-3);
+    }
+
+    #[test]
+    fn cubic_takes_the_cell_whose_lower_corner_is_the_integer() {
+        // A field that is not cubic, so the two cells' fits differ on their shared face.
+        let dims = Dims::new([6, 6, 6]).unwrap();
+        let ch = field(dims, |x, y, z| ((x * 3.0 + y * 5.0 + z * 7.0) % 4.0) as f32 * (x - 2.5).abs() as f32);
+        let r = ch.reader();
+        let at = |u: f64| Stencil::new(&Interpolation::Cubic, dims, [u, 2.3, 1.7]).apply(&r);
+        // The value at x = 3 from the cell [3, 4] (t = 0) versus from the cell [2, 3] (t = 1).
+        let upper_cell = {
+            let w = cubic::weights([0.0, 0.3, 0.7]);
+            gather(&r, dims, [3, 2, 1], &w)
+        };
+        let lower_cell = {
+            let w = cubic::weights([1.0, 0.3, 0.7]);
+            gather(&r, dims, [2, 2, 1], &w)
+        };
+        assert!((upper_cell - lower_cell).abs() > 1e-6, "the test field must tell the cells apart");
+        assert!((at(3.0) - upper_cell).abs() < 1e-12);
+        // Rounding noise just below the integer still picks the upper cell (SPEC §4.5).
+        assert!((at(3.0 - 1e-12) - upper_cell).abs() < 1e-9);
+    }
+
+    /// Σ w·v over the 32 fit points of the cell with lower corner `x0`, clamped to `dims`.
+    fn gather(r: &ChannelReader<'_>, dims: Dims, x0: [usize; 3], w: &[f64; 32]) -> f64 {
+        let n = dims.as_array();
+        (0..32)
+            .map(|i| {
+                let p = cubic::sample_point(i);
+                let idx: [usize; 3] =
+                    std::array::from_fn(|a| (x0[a] as i64 + p[a] as i64).clamp(0, n[a] as i64 - 1) as usize);
+                w[i] * r.read(dims.index(idx[0], idx[1], idx[2])) as f64
+            })
+            .sum()
+    }
 }
