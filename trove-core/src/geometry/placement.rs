@@ -84,6 +84,14 @@ impl Placement {
         Placement { shape, extent, vc_scale, vc_offset, vc_from_world, tol_q }
     }
 
+    /// Chooses straight-line sampling (true) or exact inversion for a distorted box; affine
+    /// boxes are unaffected.
+    pub fn set_straight(&mut self, straight_line: bool) {
+        if let Shape::Distorted { straight, .. } = &mut self.shape {
+            *straight = straight_line;
+        }
+    }
+
     /// The shape.
     pub fn shape(&self) -> &Shape {
         &self.shape

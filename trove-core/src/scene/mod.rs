@@ -97,6 +97,14 @@ impl Scene {
         load::scene(text, path.as_ref())
     }
 
+    /// Switches every distorted box between exact inversion and the paper's straight-line
+    /// approximation (`[render] distorted_sampling`), e.g. to compare the two on one scene.
+    pub fn set_straight_distorted_sampling(&mut self, straight: bool) {
+        for o in &mut self.objects {
+            o.placement.set_straight(straight);
+        }
+    }
+
     /// The datasets some object uses, in order of first use.
     pub fn used_datasets(&self) -> Vec<usize> {
         let mut seen = vec![false; self.datasets.len()];
