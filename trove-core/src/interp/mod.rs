@@ -41,11 +41,13 @@ impl Interpolation {
 /// noise in the geometry.
 pub const SNAP_TOLERANCE: f64 = 1e-9;
 
-/// `u` snapped to the nearest multiple of `step` when within the tolerance, relative to an
-/// axis of `n` voxels.
+/// `u` (≥ 0, already clamped) snapped to the nearest multiple of `step` when within the
+/// tolerance, relative to an axis of `n` voxels. Truncating casts stand in for `round` and
+/// `floor` on these non-negative values: without SSE4.1 those are libm calls, and this runs
+/// for every axis of every sample.
 #[inline(always)]
 fn snap(u: f64, n: u32, step: f64) -> f64 {
-    let r = (u / step).round() * step;
+    let r = ((u / step + 0.5) as u64) as f64 * step;
     if (u - r).abs() <= SNAP_TOLERANCE * n as f64 {
         r
     } else {
@@ -58,7 +60,7 @@ fn snap(u: f64, n: u32, step: f64) -> f64 {
 fn cell_axis(u: f64, n: u32) -> (usize, f64) {
     let last = (n - 1) as f64;
     let u = snap(u.clamp(0.0, last), n, 1.0);
-    let x0 = u.floor().min((n as f64 - 2.0).max(0.0));
+    let x0 = ((u as u64) as f64).min((n as f64 - 2.0).max(0.0));
     (x0 as usize, u - x0)
 }
 
@@ -96,7 +98,7 @@ impl Stencil {
                 let i: [usize; 3] = std::array::from_fn(|a| {
                     let last = (n[a] - 1) as f64;
                     let u = snap(vc[a].clamp(0.0, last), n[a], 0.5);
-                    (u + 0.5).floor().clamp(0.0, last) as usize
+                    ((u + 0.5) as usize).min(n[a] as usize - 1)
                 });
                 Stencil::Nearest(dims.index(i[0], i[1], i[2]))
             }
