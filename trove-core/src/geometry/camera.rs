@@ -35,7 +35,7 @@ impl Camera {
     pub fn new(eye: DVec3, target: DVec3, up: DVec3, fov_y_degrees: f64) -> Result<Camera, (&'static str, String)> {
         for (key, v) in [("camera.eye", eye), ("camera.target", target), ("camera.up", up)] {
             if !v.is_finite() {
-                return Err((key, format!("expected three finite numbers, got {v:?}")));
+                return Err((key, format!("expected three finite numbers, got {:?}", v.to_array())));
             }
         }
         if !(fov_y_degrees > 0.0 && fov_y_degrees < 180.0) {
@@ -48,7 +48,10 @@ impl Camera {
         let forward = view.normalize();
         let side = forward.cross(up);
         if side.length() <= 1e-12 * up.length() || up.length() == 0.0 {
-            return Err(("camera.up", format!("expected a direction not parallel to the view direction, got {up:?}")));
+            return Err((
+                "camera.up",
+                format!("expected a direction not parallel to the view direction, got {:?}", up.to_array()),
+            ));
         }
         let right = side.normalize();
         Ok(Camera {

@@ -80,27 +80,99 @@ pub(super) fn scene(text: &str, path: &Path) -> Result<Scene, SceneError> {
     Ok(Scene { path: path.to_path_buf(), image, camera, render, datasets, objects })
 }
 
-/// TOML → plain structs, with serde's errors turned into key paths.
+/// TOML → plain structs, with serde's errors turned into key paths and plain words.
 fn deserialize(text: &str, path: &Path) -> Result<SceneFile, SceneError> {
-    let de = toml::Deserializer::parse(text)
-        .map_err(|e| SceneError::new(path, "(syntax)", format!("not valid TOML: {}", e.message().trim())))?;
+    let de = toml::Deserializer::parse(text).map_err(|e| {
+        let at = e.span().map(|s| line_column(text, s.start)).unwrap_or_default();
+        SceneError::new(path, "(syntax)", format!("not valid TOML{at}: {}", e.message().trim()))
+    })?;
     serde_path_to_error::deserialize(de).map_err(|e| {
         let mut key = e.path().to_string();
-        let inner = e.inner().message().trim().to_string();
-        // serde reports a missing or unknown field at its parent; name the field itself.
-        for prefix in ["missing field `", "unknown field `"] {
-            if let Some(rest) = inner.strip_prefix(prefix) {
-                if let Some(field) = rest.split('`').next() {
-                    key = if key == "." || key.is_empty() { field.to_string() } else { format!("{key}.{field}") };
-                }
-            }
+        if key == "." {
+            key.clear();
         }
-        if key == "." || key.is_empty() {
+        let (field, message) = describe(e.inner().message().trim());
+        // A missing field (and a generator's key check) is reported at its table; name the
+        // field itself. An unknown field's path already ends with it.
+        if let Some(field) = field {
+            key = if key.is_empty() { field } else { format!("{key}.{field}") };
+        }
+        if key.is_empty() {
             key = "(top level)".into();
         }
-        let message = if inner.starts_with("missing field") { format!("{inner} (required)") } else { inner };
         SceneError::new(path, key, message)
     })
+}
+
+/// ` at line L, column C` of byte `offset` in `text`, both counted from 1.
+fn line_column(text: &str, offset: usize) -> String {
+    let before = text.get(..offset).unwrap_or(text);
+    let line = before.matches('\n').count() + 1;
+    let column = before.rsplit('\n').next().unwrap_or_default().chars().count() + 1;
+    format!(" at line {line}, column {column}")
+}
+
+/// The text between the first pair of backticks after `prefix` at the start of `s`.
+fn quoted_after<'a>(s: &'a str, prefix: &str) -> Option<&'a str> {
+    s.strip_prefix(prefix)?.split('`').next()
+}
+
+/// serde's message in the scene's words: the sub-key it is about (for errors reported at
+/// the enclosing table), and what was expected.
+fn describe(inner: &str) -> (Option<String>, String) {
+    if let Some(field) = quoted_after(inner, "missing field `") {
+        return (Some(field.to_string()), format!("missing; `{field}` is required here"));
+    }
+    if let Some(field) = quoted_after(inner, "unknown field `") {
+        let rest = inner.split_once("`, ").map_or("", |(_, r)| r);
+        let expected = match rest.strip_prefix("expected ") {
+            Some(e) => format!("expected {e}"),
+            None => "expected no keys here".to_string(),
+        };
+        return (None, format!("unknown key `{field}`; {expected}"));
+    }
+    // The generator's own key checks (dataset::generator): name the key they are about.
+    if let Some(field) = quoted_after(inner, "key `") {
+        return (Some(field.to_string()), inner.to_string());
+    }
+    if let Some((_, field)) = inner.split_once(" needs key `") {
+        return (Some(field.trim_end_matches('`').to_string()), inner.to_string());
+    }
+    // "invalid type: string \"8\", expected i64" → "expected a whole number, got string \"8\"".
+    for prefix in ["invalid type: ", "invalid value: "] {
+        if let Some((got, expected)) = inner.strip_prefix(prefix).and_then(|r| r.split_once(", expected ")) {
+            return (None, format!("expected {}, got {got}", plain_type(expected)));
+        }
+    }
+    if let Some((n, expected)) = inner.strip_prefix("invalid length ").and_then(|r| r.split_once(", expected ")) {
+        // A table given as an array reaches here as "struct ImageFile with 3 elements".
+        if expected.starts_with("struct ") {
+            return (None, format!("expected a table, got an array of {n} entries"));
+        }
+        return (None, format!("expected {expected}, got {n} entries"));
+    }
+    (None, inner.to_string())
+}
+
+/// Rust's primitive type names in words.
+fn plain_type(expected: &str) -> String {
+    match expected {
+        "i8" | "i16" | "i32" | "i64" => "a whole number".into(),
+        "u8" | "u16" | "u32" | "u64" | "usize" => {
+            let max = match expected {
+                "u8" => u8::MAX as u64,
+                "u16" => u16::MAX as u64,
+                "u32" => u32::MAX as u64,
+                _ => u64::MAX,
+            };
+            format!("a whole number from 0 to {max}")
+        }
+        "f32" | "f64" => "a number".into(),
+        "a sequence" => "an array".into(),
+        "a map" => "a table".into(),
+        other if other.starts_with("struct ") => "a table".into(),
+        other => other.into(),
+    }
 }
 
 fn image_settings(f: &SceneFile) -> Result<ImageSettings, KeyError> {
@@ -220,8 +292,7 @@ fn dataset(d: &DatasetFile, key: &str, folder: &Path) -> Result<DatasetInfo, Key
         let Some(dims) = dims else {
             return Err((format!("{key}.dims"), "missing; explicit channels need the dataset's dims".into()));
         };
-        let (ty, source) = channel(c, &ck, dims, folder)?;
-        check_channel_type(name, ty, &ck)?;
+        let (ty, source) = channel(c, &ck, name, dims, folder)?;
         channels.insert(name, (ty, source));
     }
     let dims = dims.expect("every branch above fixes dims or returns");
@@ -233,7 +304,15 @@ fn dataset(d: &DatasetFile, key: &str, folder: &Path) -> Result<DatasetInfo, Key
     Ok(DatasetInfo { name: d.name.clone(), dims, channels })
 }
 
-fn channel(c: &ChannelFile, key: &str, dims: Dims, folder: &Path) -> Result<(VoxelType, ChannelSource), KeyError> {
+/// One explicit channel `name`; a type the channel does not allow is refused at the key that
+/// gives it (`type` of a raw file, the NRRD file, the generator).
+fn channel(
+    c: &ChannelFile,
+    key: &str,
+    name: ChannelName,
+    dims: Dims,
+    folder: &Path,
+) -> Result<(VoxelType, ChannelSource), KeyError> {
     let given = [c.raw.is_some(), c.nrrd.is_some(), c.generator.is_some()].iter().filter(|&&b| b).count();
     if given != 1 {
         return Err((key.into(), "expected exactly one of `raw`, `nrrd` or `generator`".into()));
@@ -252,7 +331,9 @@ fn channel(c: &ChannelFile, key: &str, dims: Dims, folder: &Path) -> Result<(Vox
         let Some(t) = &c.ty else {
             return Err((tk, "missing; a raw channel needs its type: bit, u8, u16, u32 or f32".into()));
         };
-        let ty = VoxelType::parse(t).ok_or_else(|| (tk, format!("expected bit, u8, u16, u32 or f32, got \"{t}\"")))?;
+        let ty = VoxelType::parse(t)
+            .ok_or_else(|| (tk.clone(), format!("expected bit, u8, u16, u32 or f32, got \"{t}\"")))?;
+        check_channel_type(name, ty, &tk)?;
         let endian = match c.endian.as_deref() {
             None => Endian::Little,
             Some(e) => Endian::parse(e)
@@ -267,10 +348,17 @@ fn channel(c: &ChannelFile, key: &str, dims: Dims, folder: &Path) -> Result<(Vox
         let nk = format!("{key}.nrrd");
         let opened = nrrd::open(&resolve(folder, n)).map_err(|e| (nk.clone(), e.to_string()))?;
         agree(&mut Some(dims), opened.dims, &nk)?;
+        check_channel_type(name, opened.ty, &nk)?;
         return Ok((opened.ty, opened.source));
     }
     let g = c.generator.as_ref().expect("exactly one source is present");
-    g.check(dims).map_err(|m| (format!("{key}.generator"), m))?;
+    let gk = format!("{key}.generator");
+    // The generator's messages start with the key they are about: "`radius` = 0: ...".
+    g.check(dims).map_err(|m| match quoted_after(&m, "`") {
+        Some(field) => (format!("{gk}.{field}"), m),
+        None => (gk.clone(), m),
+    })?;
+    check_channel_type(name, g.voxel_type(), &gk)?;
     Ok((g.voxel_type(), ChannelSource::Generated(g.clone())))
 }
 
@@ -297,7 +385,7 @@ fn object(o: &ObjectFile, key: &str, ds: usize, info: &DatasetInfo, straight: bo
     if !(sampling_distance.is_finite() && sampling_distance >= 0.0) {
         return Err((
             format!("{key}.sampling_distance"),
-            format!("expected a finite world distance ≥ 0 (0 = one voxel), got {sampling_distance}"),
+            format!("expected a finite world distance ≥ 0 (0 = one voxel), got {sampling_distance:?}"),
         ));
     }
     let extent = extent(o, key)?;
@@ -313,7 +401,7 @@ fn object(o: &ObjectFile, key: &str, ds: usize, info: &DatasetInfo, straight: bo
         return Err((
             format!("{key}.sampling_distance"),
             format!(
-                "{sampling_distance} would take up to {:.3e} samples per ray through a box {diagonal:.3e} across; \
+                "{sampling_distance:?} would take up to {:.3e} samples per ray through a box {diagonal:.3e} across; \
                  at most {MAX_SAMPLES_PER_PIECE:.3e} are allowed",
                 diagonal / sampling_distance
             ),
@@ -330,7 +418,11 @@ fn extent(o: &ObjectFile, key: &str) -> Result<Extent, KeyError> {
         if !(min[a] >= 0.0 && min[a] < max[a] && max[a] <= 1.0) {
             return Err((
                 format!("{key}.extent"),
-                format!("expected 0 ≤ min < max ≤ 1 on every axis, got min {min:?}, max {max:?} (axis {a})"),
+                format!(
+                    "expected 0 ≤ min < max ≤ 1 on every axis, got min {:?}, max {:?} (axis {a})",
+                    min.to_array(),
+                    max.to_array()
+                ),
             ));
         }
     }
@@ -377,7 +469,10 @@ fn affine_from(m: DMat4, key: &str) -> Result<Shape, KeyError> {
     let lin = DMat3::from_mat4(m);
     let scale = lin.x_axis.length() * lin.y_axis.length() * lin.z_axis.length();
     if scale == 0.0 || lin.determinant().abs() <= 1e-12 * scale {
-        return Err((key.into(), "the matrix is singular: the box has no volume".into()));
+        return Err((
+            key.into(),
+            "expected a non-singular matrix; this one is singular (the box has no volume)".into(),
+        ));
     }
     Ok(Shape::Affine { world_from_box: m, box_from_world: m.inverse() })
 }

@@ -38,6 +38,9 @@ fn table<'a>(v: &'a Value, key: &str, allowed: &[&str]) -> Result<&'a toml::Tabl
 }
 
 fn type_of<'a>(v: &'a Value, key: &str, expected: &str) -> Result<&'a str, KeyError> {
+    if !v.is_table() {
+        return err(key, format!("expected a table such as {{ type = \"lut\", ... }}, got {}", v.type_str()));
+    }
     match v.get("type") {
         Some(Value::String(s)) => Ok(s),
         Some(other) => err(&format!("{key}.type"), format!("expected a string ({expected}), got {}", other.type_str())),
@@ -107,7 +110,10 @@ fn coefficients(t: &toml::Table, key: &str, name: &str, ty: &str) -> Result<Poly
         _ => None,
     };
     match want {
-        Some(n) if c.len() != n => err(&k, format!("a {ty} map takes exactly {n} coefficients, got {}", c.len())),
+        Some(n) if c.len() != n => {
+            let s = if n == 1 { "" } else { "s" };
+            err(&k, format!("a {ty} map takes exactly {n} coefficient{s}, got {}", c.len()))
+        }
         None if c.is_empty() || c.len() > MAX_POLYNOMIAL_TERMS => {
             err(&k, format!("expected 1 to {MAX_POLYNOMIAL_TERMS} coefficients (ascending powers), got {}", c.len()))
         }

@@ -8,6 +8,8 @@
 mod file;
 mod load;
 mod mappings;
+#[cfg(test)]
+mod tests;
 
 use std::path::{Path, PathBuf};
 

@@ -1,0 +1,230 @@
+//! `trove render` end to end, run as a user runs it (SPEC §5): bad input exits non-zero with
+//! a one-paragraph message naming the file and key, never a panic; good input writes a PNG,
+//! a PFM that agrees with it, and `--stats` JSON with the documented keys.
+//!
+//! **Finding the binary.** Cargo sets `CARGO_BIN_EXE_trove` only for the tests of the package
+//! that defines `trove` (`trove-coordinator`), and a binary crate cannot be a dependency, so
+//! this test builds it: once per test process, with the cargo that runs the tests (`$CARGO`
+//! at compile time), into the same target folder and profile as this test executable. Both
+//! are read from where this executable lives (`<target-dir>/<profile-dir>/deps/cli-*`), which
+//! holds whatever `CARGO_TARGET_DIR`, `--target-dir` or `--profile` said; the build is a
+//! no-op when `trove` is up to date. (Cross-compiling with `--target` puts test binaries
+//! under `<target-dir>/<triple>/`; the binary then lands beside them only if the same
+//! `CARGO_BUILD_TARGET` is set in the environment, which cargo then reads for this build too.)
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::OnceLock;
+
+use trove_core::render::Image;
+use trove_tests::{repo_root, scratch};
+
+/// The `trove` binary, built on first use.
+fn trove() -> &'static Path {
+    static BIN: OnceLock<PathBuf> = OnceLock::new();
+    BIN.get_or_init(|| {
+        let exe = std::env::current_exe().expect("the test executable's path");
+        let deps = exe.parent().expect("deps folder");
+        let profile_dir = deps.parent().expect("profile folder");
+        let target_dir = profile_dir.parent().expect("target folder");
+        // `debug` is the folder of the `dev` and `test` profiles; others are named as is.
+        let profile = match profile_dir.file_name().and_then(|n| n.to_str()) {
+            Some("debug") | None => "dev",
+            Some(name) => name,
+        };
+        let cargo = option_env!("CARGO").unwrap_or("cargo");
+        let status = Command::new(cargo)
+            .args(["build", "-q", "-p", "trove-coordinator", "--bin", "trove", "--profile", profile])
+            .arg("--manifest-path")
+            .arg(repo_root().join("Cargo.toml"))
+            .arg("--target-dir")
+            .arg(target_dir)
+            .status()
+            .expect("run cargo to build `trove`");
+        assert!(status.success(), "building `trove` failed");
+        let bin = profile_dir.join(format!("trove{}", std::env::consts::EXE_SUFFIX));
+        assert!(bin.is_file(), "`trove` was built but is not at {}", bin.display());
+        bin
+    })
+}
+
+/// Runs `trove` with `args`, with backtraces enabled so that a panic could not hide.
+fn run(args: &[&dyn AsRef<std::ffi::OsStr>]) -> Output {
+    let mut cmd = Command::new(trove());
+    for a in args {
+        cmd.arg(a);
+    }
+    cmd.env("RUST_BACKTRACE", "1").env_remove("RUST_LOG").output().expect("run trove")
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// A failed run: non-zero exit, and stderr one paragraph that contains every `needle`, with
+/// no panic or backtrace.
+#[track_caller]
+fn failed(out: &Output, needles: &[&str]) -> String {
+    let err = stderr(out);
+    assert!(!out.status.success(), "expected failure, got {:?}; stderr: {err}", out.status);
+    assert!(out.status.code().is_some_and(|c| c != 0), "killed by a signal? {:?}; stderr: {err}", out.status);
+    assert!(!err.contains("panicked") && !err.contains("backtrace"), "a panic, not an error message: {err}");
+    let text = err.trim();
+    assert!(!text.is_empty(), "no message on stderr");
+    assert!(!text.contains("\n\n"), "more than one paragraph: {err}");
+    assert!(text.starts_with("error: "), "{err}");
+    for n in needles {
+        assert!(err.contains(n), "stderr lacks {n:?}: {err}");
+    }
+    err
+}
+
+const SIZE: (u32, u32) = (7, 5);
+
+/// A tiny valid scene from generators: an opaque-ish graded sphere over a coloured background.
+fn tiny_scene() -> String {
+    format!(
+        r#"
+[image]
+width = {}
+height = {}
+background = [0.2, 0.4, 0.6]
+
+[camera]
+eye = [0.5, 0.5, 3.0]
+target = [0.5, 0.5, 0.5]
+up = [0, 1, 0]
+fov_y = 25.0
+
+[[datasets]]
+name = "ball"
+dims = [8, 8, 8]
+[datasets.channels.voxel]
+generator = {{ kind = "sphere", radius = 0.5, profile = "radial", value = 1.0, type = "f32" }}
+
+[[objects]]
+name = "ball"
+dataset = "ball"
+colour = {{ type = "linear", red = [0.1, 0.9], green = [0.7, -0.3], blue = [0.05, 0.2] }}
+opacity = {{ type = "ramp", points = [[0.0, 0.0], [1.0, 0.4]] }}
+"#,
+        SIZE.0, SIZE.1
+    )
+}
+
+/// Writes `text` as `dir/name` and returns its path.
+fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
+    let path = dir.join(name);
+    std::fs::write(&path, text).expect("write scene");
+    path
+}
+
+#[test]
+fn malformed_scenes_exit_non_zero_naming_the_file_and_key() {
+    let dir = scratch("cli-malformed");
+    let good = tiny_scene();
+    let cases = [
+        (
+            "bounds.toml",
+            good.replace("[[0.0, 0.0], [1.0, 0.4]]", "[[1.0, 0.0], [0.0, 0.4]]"),
+            "objects[0].opacity.points[1]",
+        ),
+        ("unknown.toml", good.replace("fov_y = 25.0", "fov_y = 25.0\nzoom = 2"), "camera.zoom"),
+        ("fov.toml", good.replace("fov_y = 25.0", "fov_y = 180.0"), "camera.fov_y"),
+        ("missing.toml", good.replace("dataset = \"ball\"\n", ""), "objects[0].dataset"),
+        ("syntax.toml", good.replace("height = 5", "height = = 5"), "(syntax)"),
+        (
+            "raw.toml",
+            good.replace("generator = {", "raw = \"absent.raw\"\ntype = \"f32\"\n# {"),
+            "datasets[0].channels.voxel.raw",
+        ),
+        ("dims.toml", good.replace("dims = [8, 8, 8]", "dims = [8, 0, 8]"), "datasets[0].dims"),
+    ];
+    for (name, text, key) in &cases {
+        assert_ne!(text, &good, "{name}: the edit must change the scene");
+        let scene = write(&dir, name, text);
+        let png = dir.join(format!("{name}.png"));
+        let out = run(&[&"render", &scene, &"-o", &png]);
+        failed(&out, &[&scene.display().to_string(), key]);
+        assert!(!png.exists(), "{name}: no image may be written for a refused scene");
+    }
+}
+
+#[test]
+fn a_missing_scene_file_is_named() {
+    let dir = scratch("cli-missing-scene");
+    let scene = dir.join("no-such-scene.toml");
+    let out = run(&[&"render", &scene, &"-o", &dir.join("out.png")]);
+    failed(&out, &[&scene.display().to_string(), "cannot read the scene file"]);
+}
+
+#[test]
+fn an_unwritable_output_path_is_a_clear_error() {
+    let dir = scratch("cli-unwritable");
+    let scene = write(&dir, "scene.toml", &tiny_scene());
+    for name in ["out.png", "out.pfm"] {
+        let output = dir.join("no-such-folder").join(name);
+        let out = run(&[&"render", &scene, &"-o", &output]);
+        failed(&out, &["cannot write", &output.display().to_string()]);
+    }
+    // Statistics to a folder that does not exist: the image is written, the error names the file.
+    let stats = dir.join("no-such-folder").join("stats.json");
+    let out = run(&[&"render", &scene, &"-o", &dir.join("ok.png"), &"--stats", &stats]);
+    failed(&out, &[&stats.display().to_string()]);
+}
+
+#[test]
+fn stats_json_has_the_documented_keys() {
+    let dir = scratch("cli-stats");
+    let scene = write(&dir, "scene.toml", &tiny_scene());
+    let stats = dir.join("stats.json");
+    let out = run(&[&"render", &scene, &"-o", &dir.join("out.png"), &"--stats", &stats]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&stats).expect("stats written")).expect("stats are JSON");
+    assert_eq!(json["algorithm"], "per-ray");
+    assert_eq!(json["width"], SIZE.0);
+    assert_eq!(json["height"], SIZE.1);
+    assert_eq!(json["objects"], 1);
+    assert_eq!(json["datasets"], 1);
+    for key in ["segments", "samples", "dataset_loads", "bytes_loaded"] {
+        assert!(json[key].is_u64(), "`{key}` must be a count: {json}");
+    }
+    assert!(json["segments"].as_u64().unwrap() > 0 && json["samples"].as_u64().unwrap() > 0, "{json}");
+    assert!(json["dataset_loads"].as_u64().unwrap() >= 1, "{json}");
+    // 8³ f32 voxels.
+    assert!(json["bytes_loaded"].as_u64().unwrap() >= 8 * 8 * 8 * 4, "{json}");
+    let seconds = &json["seconds"];
+    for key in ["intersection", "volume_rendering", "composition", "loading", "other", "total"] {
+        let s = seconds[key].as_f64().unwrap_or_else(|| panic!("`seconds.{key}` must be a number: {json}"));
+        assert!(s >= 0.0 && s.is_finite(), "seconds.{key} = {s}");
+    }
+}
+
+#[test]
+fn png_and_pfm_agree_to_rounding() {
+    let dir = scratch("cli-png-pfm");
+    let scene = write(&dir, "scene.toml", &tiny_scene());
+    let (png, pfm) = (dir.join("out.png"), dir.join("out.pfm"));
+    for output in [&png, &pfm] {
+        let out = run(&[&"render", &scene, &"-o", output]);
+        assert!(out.status.success(), "{}", stderr(&out));
+    }
+    let bytes = image::open(&png).expect("a readable PNG").to_rgb8();
+    assert_eq!(bytes.dimensions(), SIZE);
+    let float = Image::read_pfm(&pfm).expect("a readable PFM");
+    assert_eq!((float.width(), float.height()), SIZE);
+    let mut object_seen = false;
+    for row in 0..SIZE.1 {
+        for col in 0..SIZE.0 {
+            let c = float.pixel(col, row);
+            let b = bytes.get_pixel(col, row).0;
+            for i in 0..3 {
+                let expected = (255.0 * c[i].clamp(0.0, 1.0)).round() as u8;
+                assert_eq!(b[i], expected, "pixel ({col}, {row}) channel {i}: PFM {} vs PNG {}", c[i], b[i]);
+            }
+            object_seen |= (c[0] - 0.2).abs() > 1e-3;
+        }
+    }
+    assert!(object_seen, "the sphere must be visible, or this compares only background");
+}
