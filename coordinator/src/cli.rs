@@ -1,10 +1,10 @@
 //! The command line: argument parsing and the `render` command.
 
 use std::io::IsTerminal;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use trove_core::render::{self, Algorithm, RenderOptions};
@@ -71,6 +71,10 @@ pub fn run() -> Result<()> {
 }
 
 fn render_command(args: RenderArgs) -> Result<()> {
+    check_output(&args.output, &["png", "pfm"])?;
+    if let Some(stats) = &args.stats {
+        check_output(stats, &["json"])?;
+    }
     let mut scene = Scene::load(&args.scene)?;
     if let Some(mode) = args.distorted_sampling {
         scene.set_straight_distorted_sampling(matches!(mode, DistortedSampling::Straight));
@@ -90,6 +94,20 @@ fn render_command(args: RenderArgs) -> Result<()> {
         std::fs::write(path, json + "\n").with_context(|| format!("writing statistics to {}", path.display()))?;
     }
     tracing::info!(seconds = rendered.stats.seconds.total, samples = rendered.stats.samples, "rendered");
+    Ok(())
+}
+
+/// Refuses, before any work, an output whose folder does not exist or whose extension we do
+/// not write — a long render should not be lost to a typo in `-o`.
+fn check_output(path: &Path, extensions: &[&str]) -> Result<()> {
+    let ext = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+    if !ext.as_deref().is_some_and(|e| extensions.contains(&e)) {
+        bail!("cannot write {}: expected a file ending in .{}", path.display(), extensions.join(" or ."));
+    }
+    let folder = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    if !folder.is_dir() {
+        bail!("cannot write {}: folder {} does not exist", path.display(), folder.display());
+    }
     Ok(())
 }
 

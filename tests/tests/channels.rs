@@ -78,7 +78,7 @@ fn colour_model_channels_must_be_bytes() {
     for name in ["red2", "green2", "blue2", "beta", "interp", "alpha"] {
         let text = scene_with(&channel(name, "{ kind = \"constant\", value = 1.5 }"));
         let err = Scene::parse(&text, dir.join("scene.toml")).unwrap_err();
-        assert_eq!(err.key, format!("datasets[0].channels.{name}"), "{err}");
+        assert_eq!(err.key, format!("datasets[0].channels.{name}.generator"), "{err}");
         assert!(err.message.contains("u8"), "{err}");
     }
     let err = Scene::parse(
@@ -86,5 +86,5 @@ fn colour_model_channels_must_be_bytes() {
         dir.join("s.toml"),
     )
     .unwrap_err();
-    assert_eq!(err.key, "datasets[0].channels.bit");
+    assert_eq!(err.key, "datasets[0].channels.bit.generator");
 }
