@@ -29,6 +29,7 @@
 //! Each wave is exactly what a farm ships: a batch of [`PieceTask`]s for one dataset, cast
 //! by [`cast_batch`], answered with [`PieceRgba`]s in the same order.
 
+use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
@@ -119,13 +120,21 @@ impl<'i> Waves<'i> {
     /// Decides every task of a wave: culls those behind opaque fronts (returning the count
     /// of their sample positions) and returns the others, with their fronts, as a batch.
     fn prepare(&mut self, scene: &Scene, wave: &[usize]) -> (Vec<usize>, Vec<PieceTask>, u64) {
+        let (index, batch, culled) = self.decide(wave);
+        let skipped = culled.par_iter().map(|&t| sample_positions(scene, &self.inter.tasks[t])).sum();
+        (index, batch, skipped)
+    }
+
+    /// [`Waves::prepare`] without counting the culled tasks' samples: the wave's tasks to
+    /// cast (indices and tasks with their fronts) and those culled.
+    fn decide(&mut self, wave: &[usize]) -> (Vec<usize>, Vec<PieceTask>, Vec<usize>) {
         let fronts: Vec<Front> = wave.par_iter().map(|&t| self.front(t)).collect();
-        let (mut index, mut batch, mut skipped_tasks) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut index, mut batch, mut culled) = (Vec::new(), Vec::new(), Vec::new());
         for (&t, front) in wave.iter().zip(fronts) {
             match front {
                 Front::Opaque => {
                     self.status[t] = Status::Culled;
-                    skipped_tasks.push(t);
+                    culled.push(t);
                 }
                 Front::Alpha(a) => {
                     let mut task = self.inter.tasks[t];
@@ -135,8 +144,7 @@ impl<'i> Waves<'i> {
                 }
             }
         }
-        let skipped = skipped_tasks.par_iter().map(|&t| sample_positions(scene, &self.inter.tasks[t])).sum();
-        (index, batch, skipped)
+        (index, batch, culled)
     }
 
     /// Stores a cast wave's results.
@@ -233,14 +241,10 @@ pub fn plan(scene: &Scene, inter: &Intersections) -> Plan {
 /// The datasets some task uses, front to back as far as the scene allows.
 ///
 /// Each ray votes "A before B" for each pair of datasets it meets one right after the
-/// other (first appearances along the ray). The order is the Eades–Lin–Smyth greedy
-/// ordering of that weighted graph: sinks go last, sources first, otherwise the dataset
-/// with the largest out-minus-in weight goes next. It is a topological order when the
-/// graph has no cycle, so every ray then meets datasets in their turn order; ties (and the
-/// choice among several sources or sinks) go to the smaller mean depth of the dataset's
-/// pieces, then the lower index.
+/// other (first appearances along the ray), and [`greedy_order`] orders that graph: when it
+/// has no cycle every ray meets datasets in their turn order. Ties go to the smaller mean
+/// depth of the dataset's pieces.
 pub fn dataset_order(scene: &Scene, inter: &Intersections) -> Vec<usize> {
-    use std::collections::HashMap;
     let n = scene.datasets.len();
     let dataset_of = |t: usize| scene.objects[inter.tasks[t].object as usize].dataset;
     type Votes = (HashMap<(usize, usize), u64>, Vec<f64>, Vec<u64>);
@@ -280,42 +284,51 @@ pub fn dataset_order(scene: &Scene, inter: &Intersections) -> Vec<usize> {
     let used: Vec<usize> = (0..n).filter(|&d| count[d] > 0).collect();
     let mean_depth: Vec<f64> =
         (0..n).map(|d| if count[d] > 0 { depth_sum[d] / count[d] as f64 } else { 0.0 }).collect();
+    greedy_order(&used, &votes, &mean_depth)
+}
+
+/// The Eades–Lin–Smyth greedy ordering of `nodes` under weighted edges `votes[(a, b)]`
+/// ("a before b"): sinks go last, sources first, otherwise the node with the largest
+/// out-minus-in weight goes next. Exact (a topological order) on an acyclic graph. Ties go
+/// to the smaller `depth`, then the lower index.
+pub fn greedy_order(nodes: &[usize], votes: &HashMap<(usize, usize), u64>, depth: &[f64]) -> Vec<usize> {
+    let n = depth.len();
     let mut out_edges: Vec<Vec<(usize, u64)>> = vec![Vec::new(); n];
     let mut in_edges: Vec<Vec<(usize, u64)>> = vec![Vec::new(); n];
-    for (&(a, b), &v) in &votes {
-        out_edges[a].push((b, v));
-        in_edges[b].push((a, v));
+    for (&(a, b), &v) in votes {
+        if a != b && v > 0 {
+            out_edges[a].push((b, v));
+            in_edges[b].push((a, v));
+        }
     }
     let mut remaining = vec![false; n];
-    used.iter().for_each(|&d| remaining[d] = true);
+    nodes.iter().for_each(|&d| remaining[d] = true);
     let weight = |edges: &[(usize, u64)], remaining: &[bool]| -> u64 {
         edges.iter().filter(|(o, _)| remaining[*o]).map(|(_, v)| v).sum()
     };
-    // Nearest first; among equals the lower index.
-    let nearer = |a: &usize, b: &usize| mean_depth[*a].total_cmp(&mean_depth[*b]).then(a.cmp(b));
+    let nearer = |a: &usize, b: &usize| depth[*a].total_cmp(&depth[*b]).then(a.cmp(b));
     let (mut front, mut back) = (Vec::new(), Vec::new());
-    let mut left = used.len();
-    while left > 0 {
-        let alive: Vec<usize> = used.iter().copied().filter(|&d| remaining[d]).collect();
-        let sinks: Vec<usize> = alive.iter().copied().filter(|&d| weight(&out_edges[d], &remaining) == 0).collect();
-        let pick = if let Some(&sink) = sinks.iter().max_by(|a, b| nearer(a, b)) {
+    for _ in 0..nodes.len() {
+        let alive: Vec<usize> = nodes.iter().copied().filter(|&d| remaining[d]).collect();
+        let sinks = alive.iter().filter(|&&d| weight(&out_edges[d], &remaining) == 0);
+        // The farthest sink goes to the very back.
+        let pick = if let Some(&sink) = sinks.max_by(|a, b| nearer(a, b)) {
             back.push(sink);
             sink
         } else {
-            let sources: Vec<usize> =
-                alive.iter().copied().filter(|&d| weight(&in_edges[d], &remaining) == 0).collect();
-            let best = if let Some(&s) = sources.iter().min_by(|a, b| nearer(a, b)) {
-                s
-            } else {
-                let net =
-                    |d: usize| weight(&out_edges[d], &remaining) as i128 - weight(&in_edges[d], &remaining) as i128;
-                *alive.iter().min_by(|a, b| net(**b).cmp(&net(**a)).then_with(|| nearer(a, b))).expect("non-empty")
+            let sources = alive.iter().filter(|&&d| weight(&in_edges[d], &remaining) == 0);
+            let best = match sources.min_by(|a, b| nearer(a, b)) {
+                Some(&s) => s,
+                None => {
+                    let net =
+                        |d: usize| weight(&out_edges[d], &remaining) as i128 - weight(&in_edges[d], &remaining) as i128;
+                    *alive.iter().min_by(|a, b| net(**b).cmp(&net(**a)).then_with(|| nearer(a, b))).expect("non-empty")
+                }
             };
             front.push(best);
             best
         };
         remaining[pick] = false;
-        left -= 1;
     }
     front.extend(back.into_iter().rev());
     front
@@ -375,4 +388,155 @@ pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progr
         p(h as u64);
     }
     Ok(Rendered { image: Image::new(w, h, pixels), stats })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One ray of three pieces: [task 0], [tasks 1 and 2, shared], [task 3].
+    fn one_ray() -> Intersections {
+        let task = |object, t0, t1, shared| PieceTask::new(0, object, t0, t1, shared);
+        Intersections {
+            tasks: vec![
+                task(0, 1.0, 2.0, false),
+                task(1, 2.0, 3.0, true),
+                task(2, 2.0, 3.0, true),
+                task(3, 3.0, 4.0, false),
+            ],
+            piece_start: vec![0, 1, 3, 4],
+            ray_start: vec![0, 3],
+            segments: 4,
+        }
+    }
+
+    fn done(waves: &mut Waves, t: usize, alpha: f32) {
+        waves.record(&[t], &[PieceRgba { colour: [alpha; 3], alpha }]);
+    }
+
+    #[test]
+    fn the_front_is_a_lower_bound_that_becomes_exact_once_every_piece_in_front_is_known() {
+        let inter = one_ray();
+        let mut w = Waves::new(&inter, 0.9);
+        assert_eq!(w.front(0), Front::Alpha(0.0));
+        assert_eq!(w.front(3), Front::Alpha(0.0), "nothing known in front");
+        done(&mut w, 0, 0.5);
+        assert_eq!(w.front(1), Front::Alpha(0.5));
+        assert_eq!(w.front(2), Front::Alpha(0.5), "shared tasks have the same front");
+        assert_eq!(w.front(3), Front::Alpha(0.5), "piece 1 unknown: left out");
+        done(&mut w, 1, 0.5);
+        assert_eq!(w.front(3), Front::Alpha(0.75), "half of piece 1 known: a lower bound");
+        done(&mut w, 2, 0.5);
+        // Piece 1 co-located: 1 − 0.5·0.5 = 0.75; over 0.5 in front: 0.875, exactly as the
+        // composition phase will compute it.
+        assert_eq!(w.front(3), Front::Alpha(0.875));
+        done(&mut w, 3, 0.5);
+        let composited = w.composite(0);
+        assert_eq!(composited.alpha, 0.875 + 0.125 * 0.5);
+        let mut per_ray = Rgba::CLEAR;
+        per_ray.over(Rgba { colour: [0.5; 3], alpha: 0.5 });
+        per_ray.over(Rgba::colocated([Rgba { colour: [0.5; 3], alpha: 0.5 }; 2]));
+        per_ray.over(Rgba { colour: [0.5; 3], alpha: 0.5 });
+        assert_eq!(composited, per_ray);
+    }
+
+    #[test]
+    fn tasks_behind_an_opaque_front_are_culled_and_composition_stops_there() {
+        let inter = one_ray();
+        let mut w = Waves::new(&inter, 0.8);
+        done(&mut w, 1, 0.7);
+        done(&mut w, 2, 0.7);
+        // Piece 1 alone makes 1 − 0.3² = 0.91 ≥ 0.8, whatever piece 0 holds.
+        assert_eq!(w.front(3), Front::Opaque);
+        let (index, batch, _) = w.decide(&[0, 3]);
+        assert_eq!(index, vec![0]);
+        assert_eq!(batch[0].front_alpha(), 0.0);
+        assert_eq!(w.status[3], Status::Culled);
+        done(&mut w, 0, 0.0);
+        let piece_1 = 1.0 - (1.0 - 0.7_f32 as f64).powi(2);
+        assert_eq!(w.composite(0).alpha, piece_1, "piece 2 never composited");
+        // A culled task in front makes everything behind it opaque too.
+        let mut w = Waves::new(&inter, 0.8);
+        w.status[0] = Status::Culled;
+        assert_eq!(w.front(1), Front::Opaque);
+        assert_eq!(w.front(3), Front::Opaque);
+    }
+
+    #[test]
+    fn the_front_alpha_travels_rounded_down_and_shared_pieces_go_whole() {
+        let inter = one_ray();
+        let mut w = Waves::new(&inter, 0.999);
+        done(&mut w, 0, 0.3);
+        let (index, batch, _) = w.decide(&[1, 2, 3]);
+        assert_eq!(index, vec![1, 2, 3]);
+        assert!(batch[0].is_whole() && batch[1].is_whole());
+        let a = batch[2].front_alpha();
+        assert!(a <= 0.3_f32 as f64 && 0.3_f32 as f64 - a < 2e-5, "{a}");
+    }
+
+    #[test]
+    fn greedy_order_is_topological_on_an_acyclic_graph() {
+        // A → B on one ray, B → C on a hundred: a net-score order would put B first.
+        let votes = HashMap::from([((0, 1), 1), ((1, 2), 100)]);
+        assert_eq!(greedy_order(&[0, 1, 2], &votes, &[5.0, 1.0, 3.0]), vec![0, 1, 2]);
+        // Unconnected datasets: nearest first.
+        assert_eq!(greedy_order(&[0, 1, 2], &HashMap::new(), &[5.0, 1.0, 3.0]), vec![1, 2, 0]);
+        // Nodes not listed are left out.
+        assert_eq!(greedy_order(&[2, 0], &votes, &[0.0; 3]), vec![0, 2]);
+    }
+
+    #[test]
+    fn greedy_order_breaks_a_cycle_at_its_lightest_edge() {
+        // 0 → 1 (10), 1 → 2 (10), 2 → 0 (1): dropping 2 → 0 gives 0, 1, 2.
+        let votes = HashMap::from([((0, 1), 10), ((1, 2), 10), ((2, 0), 1)]);
+        assert_eq!(greedy_order(&[0, 1, 2], &votes, &[0.0; 3]), vec![0, 1, 2]);
+        let order = greedy_order(&[2, 1, 0], &votes, &[3.0, 2.0, 1.0]);
+        assert_eq!(order.len(), 3);
+        assert_eq!(order, vec![0, 1, 2]);
+    }
+
+    fn scene(objects: &[(&str, f64)]) -> Scene {
+        let mut text = String::from(
+            "[image]\nwidth = 4\nheight = 4\nbackground = [0, 0, 0]\n\
+             [camera]\neye = [0.5, 0.5, 5.0]\ntarget = [0.5, 0.5, 0.0]\nup = [0, 1, 0]\nfov_y = 5.0\n",
+        );
+        for d in ["near", "far"] {
+            text += &format!(
+                "[[datasets]]\nname = \"{d}\"\ndims = [2, 2, 2]\n[datasets.channels.voxel]\n\
+                 generator = {{ kind = \"constant\", value = 1.0 }}\n"
+            );
+        }
+        for (i, (d, z)) in objects.iter().enumerate() {
+            text += &format!(
+                "[[objects]]\nname = \"o{i}\"\ndataset = \"{d}\"\n\
+                 colour = {{ type = \"constant\", red = [1], green = [1], blue = [1] }}\n\
+                 opacity = {{ type = \"constant\", coefficients = [0.5] }}\n\
+                 transform = {{ matrix = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0.5, {z}], [0, 0, 0, 1]] }}\n"
+            );
+        }
+        Scene::parse(&text, "plan.toml").unwrap()
+    }
+
+    #[test]
+    fn datasets_go_front_to_back_and_waves_follow_each_ray() {
+        // Along every ray: far-dataset object at z ∈ [1, 1.5], near at [0, 0.5] behind it,
+        // and near again at [-1, -0.5]: the dataset declared first is met second.
+        let s = scene(&[("near", 0.0), ("far", 1.0), ("near", -1.0)]);
+        let inter = intersect(&s);
+        assert_eq!(inter.rays(), 16);
+        let p = plan(&s, &inter);
+        assert_eq!(p.datasets, vec![1, 0], "the dataset met first goes first");
+        // Dataset 1 has one piece per ray: one wave. Dataset 0 has two: two waves, the
+        // nearer piece of every ray in the first.
+        assert_eq!(p.waves[0].len(), 1);
+        assert_eq!(p.waves[1].len(), 2);
+        for (k, wave) in p.waves[1].iter().enumerate() {
+            assert_eq!(wave.len(), 16);
+            for &t in wave {
+                let task = inter.tasks[t];
+                assert_eq!(task.object, [0, 2][k], "wave {k}");
+                assert_eq!(inter.piece_of(t), inter.ray_start[task.ray as usize] + k + 1);
+            }
+        }
+    }
 }

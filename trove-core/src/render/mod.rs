@@ -9,7 +9,7 @@
 //! 3. **Composition**: a ray's pieces front to back with [`crate::composite::Rgba`]
 //!    (co-located objects combined first, SPEC §4.4).
 //!
-//! [`per_ray`] is Algorithm 1 (paper §3.1): each ray runs all three stages before the next
+//! `per_ray` is Algorithm 1 (paper §3.1): each ray runs all three stages before the next
 //! ray starts, loading datasets in the order the ray meets them, so under a short memory
 //! budget it thrashes — the paper's point. [`grouped`] is Algorithm 2 (§3.3): each stage
 //! runs over all rays before the next, and volume rendering visits each dataset once, in

@@ -292,3 +292,144 @@ fn evict_until_fits(state: &mut State, needed: u64, budget: u64) -> bool {
     }
     true
 }
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::AtomicBool;
+    use std::time::Duration;
+
+    use super::*;
+
+    /// `count` generated datasets of 10³ f32 = 4000 bytes each.
+    fn scene(count: usize) -> Scene {
+        let mut text = String::from(
+            "[image]\nwidth = 2\nheight = 2\nbackground = [0, 0, 0]\n\
+             [camera]\neye = [0.5, 0.5, 5.0]\ntarget = [0.5, 0.5, 0.0]\nup = [0, 1, 0]\nfov_y = 5.0\n",
+        );
+        for d in 0..count {
+            text += &format!(
+                "[[datasets]]\nname = \"d{d}\"\ndims = [10, 10, 10]\n[datasets.channels.voxel]\n\
+                 generator = {{ kind = \"constant\", value = {d} }}\n\
+                 [[objects]]\nname = \"o{d}\"\ndataset = \"d{d}\"\n\
+                 colour = {{ type = \"constant\", red = [1], green = [1], blue = [1] }}\n\
+                 opacity = {{ type = \"constant\", coefficients = [0.5] }}\n"
+            );
+        }
+        Scene::parse(&text, "store.toml").unwrap()
+    }
+
+    const BYTES: u64 = 4000;
+
+    #[test]
+    fn least_recently_used_goes_first() {
+        let s = scene(3);
+        let store = VolumeStore::with_budget(&s, Some(2 * BYTES));
+        for d in [0, 1, 0, 2] {
+            assert_eq!(store.get(d).unwrap().channel(crate::dataset::ChannelName::Voxel).unwrap().value(0), d as f32);
+        }
+        // Loading 2 evicted 1 (used before the second use of 0), so 0 is still here.
+        assert_eq!(store.loads(), 3);
+        drop(store.get(0).unwrap());
+        assert_eq!(store.loads(), 3);
+        drop(store.get(1).unwrap());
+        assert_eq!(store.loads(), 4);
+        assert_eq!(store.bytes_loaded(), 4 * BYTES);
+        assert_eq!(store.peak_resident_bytes(), 2 * BYTES);
+        assert_eq!(store.resident_bytes(), 2 * BYTES);
+    }
+
+    #[test]
+    fn with_no_budget_nothing_is_evicted_but_unload_frees() {
+        let s = scene(3);
+        let store = VolumeStore::new(&s);
+        for d in [0, 1, 2, 0, 1, 2] {
+            drop(store.get(d).unwrap());
+        }
+        assert_eq!((store.loads(), store.peak_resident_bytes()), (3, 3 * BYTES));
+        let pinned = store.get(1).unwrap();
+        store.unload(1);
+        assert_eq!(store.resident_bytes(), 3 * BYTES, "a pinned dataset stays");
+        drop(pinned);
+        store.unload(1);
+        store.unload(2);
+        assert_eq!(store.resident_bytes(), BYTES);
+    }
+
+    #[test]
+    fn a_pinned_dataset_is_not_evicted_and_a_load_waits_for_room() {
+        let s = scene(2);
+        let store = VolumeStore::with_budget(&s, Some(BYTES));
+        let pinned = store.get(0).unwrap();
+        let finished = AtomicBool::new(false);
+        std::thread::scope(|scope| {
+            let waiter = scope.spawn(|| {
+                let v = store.get(1).map(|v| v.dims());
+                finished.store(true, Ordering::SeqCst);
+                v
+            });
+            std::thread::sleep(Duration::from_millis(100));
+            assert!(!finished.load(Ordering::SeqCst), "loaded dataset 1 while dataset 0 was pinned");
+            assert_eq!(store.loads(), 1);
+            assert_eq!(pinned.dims().voxel_count(), 1000);
+            drop(pinned);
+            assert!(waiter.join().unwrap().is_ok());
+        });
+        assert_eq!(store.loads(), 2);
+        assert_eq!(store.peak_resident_bytes(), BYTES);
+    }
+
+    #[test]
+    fn many_threads_never_exceed_the_budget() {
+        let s = scene(5);
+        let budget = 2 * BYTES + BYTES / 2;
+        let store = VolumeStore::with_budget(&s, Some(budget));
+        std::thread::scope(|scope| {
+            for thread in 0..4usize {
+                let store = &store;
+                scope.spawn(move || {
+                    for i in 0..200usize {
+                        let v = store.get((i * 7 + thread * 3) % 5).unwrap();
+                        assert!(store.resident_bytes() <= budget);
+                        drop(v);
+                    }
+                });
+            }
+        });
+        assert!(store.peak_resident_bytes() <= budget);
+        assert!(store.loads() > 5);
+        assert_eq!(store.bytes_loaded(), store.loads() * BYTES);
+    }
+
+    #[test]
+    fn a_budget_below_a_dataset_is_refused_naming_it() {
+        let s = scene(2);
+        let store = VolumeStore::with_budget(&s, Some(BYTES - 1));
+        for e in [store.check_budget().unwrap_err(), store.get(1).err().unwrap()] {
+            assert!(matches!(&e, RenderError::BudgetTooSmall { needed: BYTES, .. }), "{e}");
+        }
+        assert!(store.get(1).err().unwrap().to_string().contains("`d1`"));
+        assert_eq!(store.loads(), 0);
+        assert!(VolumeStore::with_budget(&s, Some(BYTES)).check_budget().is_ok());
+    }
+
+    #[test]
+    fn a_failed_load_gives_its_bytes_back_and_is_reported_each_time() {
+        let dir = std::env::temp_dir().join(format!("trove-store-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("v.raw"), [0u8; 8]).unwrap();
+        let text = "[image]\nwidth = 2\nheight = 2\nbackground = [0, 0, 0]\n\
+                    [camera]\neye = [0.5, 0.5, 5.0]\ntarget = [0.5, 0.5, 0.0]\nup = [0, 1, 0]\nfov_y = 5.0\n\
+                    [[datasets]]\nname = \"gone\"\ndims = [2, 2, 2]\n[datasets.channels.voxel]\nraw = \"v.raw\"\ntype = \"u8\"\n\
+                    [[objects]]\nname = \"o\"\ndataset = \"gone\"\n\
+                    colour = { type = \"constant\", red = [1], green = [1], blue = [1] }\n\
+                    opacity = { type = \"constant\", coefficients = [0.5] }\n";
+        let s = Scene::parse(text, dir.join("scene.toml")).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+        let store = VolumeStore::with_budget(&s, Some(100));
+        for _ in 0..2 {
+            let e = store.get(0).err().expect("the file is gone");
+            assert!(matches!(e, RenderError::Dataset { ref name, .. } if name == "gone"), "{e}");
+        }
+        assert_eq!((store.resident_bytes(), store.loads()), (0, 0));
+    }
+}
