@@ -130,10 +130,10 @@ fn run_in(args: &Args, dir: &Path) -> Result<()> {
     let shared = load_scene(dir, &texts[1])?;
     let budgeted = |algorithm| RenderOptions { algorithm, memory_budget: Some(budget), progress: None };
     let runs = [
-        best_of(&separate, &budgeted(Algorithm::PerRay), 1)?,
-        best_of(&separate, &budgeted(Algorithm::Grouped), args.repeat)?,
-        best_of(&shared, &budgeted(Algorithm::PerRay), args.repeat)?,
-        best_of(&shared, &budgeted(Algorithm::Grouped), args.repeat)?,
+        best_of("15/15", &separate, &budgeted(Algorithm::PerRay), 1)?,
+        best_of("15/15", &separate, &budgeted(Algorithm::Grouped), args.repeat)?,
+        best_of("15/1", &shared, &budgeted(Algorithm::PerRay), args.repeat)?,
+        best_of("15/1", &shared, &budgeted(Algorithm::Grouped), args.repeat)?,
     ];
     print!("{}", table(&runs));
 
@@ -142,7 +142,10 @@ fn run_in(args: &Args, dir: &Path) -> Result<()> {
     println!("\nEarly termination (samples cast; skipped = samples of pieces never cast behind opaque rays):\n");
     let fig10 = load_scene(dir, &texts[2])?;
     let plain = |algorithm| RenderOptions { algorithm, memory_budget: None, progress: None };
-    let fig10_runs = [best_of(&fig10, &plain(Algorithm::PerRay), 1)?, best_of(&fig10, &plain(Algorithm::Grouped), 1)?];
+    let fig10_runs = [
+        best_of("Fig. 10", &fig10, &plain(Algorithm::PerRay), 1)?,
+        best_of("Fig. 10", &fig10, &plain(Algorithm::Grouped), 1)?,
+    ];
     println!(
         "| scene | per-ray samples | grouped samples | grouped / per-ray | grouped skipped | max image difference |"
     );
@@ -168,15 +171,14 @@ fn load_scene(dir: &Path, text: &str) -> Result<Scene> {
     Scene::parse(text, dir.join("scene.toml")).context("building the benchmark scene")
 }
 
-/// Renders `repeat` times and keeps the fastest.
-fn best_of(scene: &Scene, options: &RenderOptions, repeat: u32) -> Result<Rendered> {
+/// Renders `repeat` times and keeps the fastest; progress goes to standard error.
+fn best_of(label: &str, scene: &Scene, options: &RenderOptions, repeat: u32) -> Result<Rendered> {
     let mut best: Option<Rendered> = None;
     for _ in 0..repeat.max(1) {
         let r = render::render(scene, options)?;
         eprintln!(
-            "  {} {}: {:.2} s, {} loads",
+            "  {} {label}: {:.2} s, {} loads",
             options.algorithm.name(),
-            if scene.datasets.len() == 1 { "15/1" } else { "15/15" },
             r.stats.seconds.total,
             r.stats.dataset_loads
         );
@@ -221,6 +223,7 @@ fn table(runs: &[Rendered; 4]) -> String {
     count_row(&mut out, "Peak resident bytes", &|r| r.stats.peak_resident_bytes.to_string());
     count_row(&mut out, "Pieces", &|r| r.stats.pieces.to_string());
     count_row(&mut out, "Samples", &|r| r.stats.samples.to_string());
+    count_row(&mut out, "Samples skipped (early termination)", &|r| r.stats.samples_skipped.to_string());
     let _ = writeln!(
         out,
         "| Max image difference vs Alg. 1 | | {}/255 | | {}/255 |",
