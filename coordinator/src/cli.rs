@@ -1,4 +1,4 @@
-//! The command line: argument parsing and the `render` command.
+//! The command line: argument parsing, the `render` command and the `bench` experiments.
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -21,6 +21,9 @@ struct Cli {
 enum Command {
     /// Render a scene to a PNG (or a .pfm float image) in this process.
     Render(RenderArgs),
+    /// Run one of the paper's experiments and print its table.
+    #[command(subcommand)]
+    Bench(crate::bench::BenchCommand),
 }
 
 #[derive(clap::Args)]
@@ -31,8 +34,13 @@ struct RenderArgs {
     #[arg(short, long)]
     output: PathBuf,
     /// Ray-casting algorithm.
-    #[arg(long, value_enum, default_value_t = AlgorithmArg::PerRay)]
+    #[arg(long, value_enum, default_value_t = AlgorithmArg::Grouped)]
     algorithm: AlgorithmArg,
+    /// Most voxel bytes kept resident (e.g. 512MiB, 1.5GiB, 4000000); datasets beyond it
+    /// are evicted least-recently-used and loaded again when needed. It must hold the
+    /// largest dataset.
+    #[arg(long, value_name = "BYTES", value_parser = parse_bytes)]
+    memory_budget: Option<u64>,
     /// Write counts and the Table-1 timing breakdown as JSON.
     #[arg(long)]
     stats: Option<PathBuf>,
@@ -53,20 +61,62 @@ enum DistortedSampling {
 enum AlgorithmArg {
     /// Algorithm 1: per ray, datasets in ray order.
     PerRay,
+    /// Algorithm 2: grouped by dataset, each loaded once (the default).
+    Grouped,
 }
 
 impl From<AlgorithmArg> for Algorithm {
     fn from(a: AlgorithmArg) -> Algorithm {
         match a {
             AlgorithmArg::PerRay => Algorithm::PerRay,
+            AlgorithmArg::Grouped => Algorithm::Grouped,
         }
     }
+}
+
+/// A byte count: a plain number of bytes, or a number (decimals allowed) followed by
+/// `B`, `KiB`, `MiB` or `GiB` (any case, optional space). Fractions of a byte round down.
+pub fn parse_bytes(text: &str) -> Result<u64, String> {
+    let t = text.trim();
+    let split = t.find(|c: char| !(c.is_ascii_digit() || c == '.')).unwrap_or(t.len());
+    let (number, unit) = (&t[..split], t[split..].trim());
+    let scale: u64 = match unit.to_ascii_lowercase().as_str() {
+        "" | "b" => 1,
+        "kib" => 1 << 10,
+        "mib" => 1 << 20,
+        "gib" => 1 << 30,
+        _ => {
+            return Err(format!(
+                "`{text}`: unknown unit `{unit}`; expected bytes, or a number followed by KiB, MiB or GiB"
+            ))
+        }
+    };
+    let bad = || format!("`{text}`: expected a number of bytes, optionally followed by KiB, MiB or GiB");
+    if number.is_empty() || number.matches('.').count() > 1 {
+        return Err(bad());
+    }
+    let bytes = if number.contains('.') {
+        let v: f64 = number.parse().map_err(|_| bad())?;
+        let b = v * scale as f64;
+        if !b.is_finite() || b >= u64::MAX as f64 {
+            return Err(format!("`{text}`: too large"));
+        }
+        b.floor() as u64
+    } else {
+        let v: u64 = number.parse().map_err(|_| format!("`{text}`: too large"))?;
+        v.checked_mul(scale).ok_or_else(|| format!("`{text}`: too large"))?
+    };
+    if bytes == 0 {
+        return Err(format!("`{text}`: a memory budget must be at least one byte"));
+    }
+    Ok(bytes)
 }
 
 /// Parses the arguments and runs the command.
 pub fn run() -> Result<()> {
     match Cli::parse().command {
         Command::Render(args) => render_command(args),
+        Command::Bench(bench) => bench.run(),
     }
 }
 
@@ -82,6 +132,7 @@ fn render_command(args: RenderArgs) -> Result<()> {
     let bar = progress_bar(scene.image.height as u64);
     let options = RenderOptions {
         algorithm: args.algorithm.into(),
+        memory_budget: args.memory_budget,
         progress: bar.clone().map(|b| Arc::new(move |rows: u64| b.set_position(rows)) as render::Progress),
     };
     let rendered = render::render(&scene, &options).with_context(|| format!("rendering {}", args.scene.display()))?;
@@ -123,4 +174,23 @@ fn progress_bar(rows: u64) -> Option<ProgressBar> {
             .progress_chars("=> "),
     );
     Some(bar)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_bytes;
+
+    #[test]
+    fn byte_counts_take_binary_suffixes() {
+        assert_eq!(parse_bytes("4096"), Ok(4096));
+        assert_eq!(parse_bytes("64KiB"), Ok(64 << 10));
+        assert_eq!(parse_bytes("3 MiB"), Ok(3 << 20));
+        assert_eq!(parse_bytes("1.5GiB"), Ok(3 << 29));
+        assert_eq!(parse_bytes("2gib"), Ok(2 << 30));
+        assert_eq!(parse_bytes("100B"), Ok(100));
+        for bad in ["", "MiB", "12 MB", "1.2.3KiB", "-5", "0", "99999999999999999999", "20000000000GiB", "1e3"] {
+            assert!(parse_bytes(bad).is_err(), "{bad}");
+        }
+        assert!(parse_bytes("12 MB").unwrap_err().contains("KiB, MiB or GiB"));
+    }
 }

@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 
 use trove_core::render::{render, Algorithm, Image, RenderOptions, Rendered};
 use trove_core::scene::Scene;
+use trove_core::RenderError;
 
 /// A fresh scratch folder under the system temp dir, unique to this test.
 pub fn scratch(name: &str) -> PathBuf {
@@ -20,9 +21,43 @@ pub fn render_in(dir: &Path, toml: &str, algorithm: Algorithm) -> Rendered {
     render(&scene, &RenderOptions { algorithm, ..Default::default() }).unwrap_or_else(|e| panic!("render: {e}"))
 }
 
-/// Renders scene text with the default algorithm and returns the image.
+/// Renders scene text with both algorithms, checks that they agree, and returns
+/// Algorithm 1's image.
+///
+/// Algorithm 1 is f64 end to end, so closed forms can be checked against its image to
+/// 1e-9. The grouped algorithm (the default) carries each piece's colour and opacity as f32
+/// (16-byte results, see `trove_core::render::workunit`), so it must agree to 1e-6, plus
+/// `1 − termination` where the two may stop a ray at different samples (SPEC §4.4).
 pub fn render_text(dir: &Path, toml: &str) -> Image {
-    render_in(dir, toml, Algorithm::default()).image
+    let scene = Scene::parse(toml, dir.join("scene.toml")).unwrap_or_else(|e| panic!("scene: {e}"));
+    let run = |algorithm| {
+        render(&scene, &RenderOptions { algorithm, ..Default::default() }).unwrap_or_else(|e| panic!("render: {e}"))
+    };
+    let reference = run(Algorithm::PerRay).image;
+    let grouped = run(Algorithm::Grouped).image;
+    let slack = 1e-6 + (1.0 - scene.render.termination);
+    let diff = max_abs_difference(&reference, &grouped);
+    assert!(diff <= slack, "grouped differs from per-ray by {diff} (allowed {slack})");
+    reference
+}
+
+/// Largest per-channel difference between two images' linear values.
+pub fn max_abs_difference(a: &Image, b: &Image) -> f64 {
+    assert_eq!((a.width(), a.height()), (b.width(), b.height()), "image sizes");
+    a.pixels().iter().zip(b.pixels()).flat_map(|(p, q)| (0..3).map(move |i| (p[i] - q[i]).abs())).fold(0.0, f64::max)
+}
+
+/// Loads a scene file and overrides its image size (to render repository scenes small).
+pub fn load_scene_sized(path: &Path, width: u32, height: u32) -> Scene {
+    let mut scene = Scene::load(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    scene.image.width = width;
+    scene.image.height = height;
+    scene
+}
+
+/// Renders `scene` with `algorithm` under an optional memory budget.
+pub fn render_with(scene: &Scene, algorithm: Algorithm, memory_budget: Option<u64>) -> Result<Rendered, RenderError> {
+    render(scene, &RenderOptions { algorithm, memory_budget, progress: None })
 }
 
 /// `../shared/data` seen from the repository root, if present.

@@ -1,5 +1,5 @@
 //! Rendering semantics of SPEC §2–4 checked against closed forms, end to end through the
-//! scene parser and Algorithm 1.
+//! scene parser, checked on Algorithm 1 (f64 end to end) and held to it for Algorithm 2.
 
 use trove_core::render::Image;
 use trove_tests::{render_text, scratch, write_f32};

@@ -5,7 +5,10 @@
 //! [`scene`] (TOML → validated model) → [`geometry`] (camera rays → per-object segments →
 //! pieces) → [`sampling`] (interpolate a dataset's channels, map to colour and opacity,
 //! composite one object over one piece) → [`composite`] (co-located media, front to back,
-//! background) → [`render`] (Algorithm 1 per ray, and the image and statistics it yields).
+//! background) → [`render`] (Algorithm 1 per ray; Algorithm 2 as three stages —
+//! intersection into wire-shaped work units, volume rendering dataset by dataset in
+//! front-to-back waves, composition — over a volume store with a memory budget; the image
+//! and statistics they yield).
 //! [`dataset`] is the voxel level: channels stored once and shared by every object that
 //! names them.
 #![deny(missing_docs)]

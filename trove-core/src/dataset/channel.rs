@@ -276,6 +276,17 @@ impl Channel {
         matches!(self.bytes, VoxelBytes::Mapped { .. })
     }
 
+    /// The same channel in memory it owns: a mapped channel's bytes are copied (which
+    /// reads every page of the file), an owned one is shared as is. A memory budget needs
+    /// this so that loading really brings the bytes in and eviction really frees them.
+    pub fn owned_copy(&self) -> Channel {
+        let bytes = match &self.bytes {
+            VoxelBytes::Mapped { .. } => VoxelBytes::Owned(Arc::new(self.bytes.as_slice().to_vec())),
+            owned @ VoxelBytes::Owned(_) => owned.clone(),
+        };
+        Channel { ty: self.ty, endian: self.endian, bytes, voxels: self.voxels }
+    }
+
     /// The stored number at linear index `i` as f32 (SPEC §3.1). Panics if `i` is out of
     /// range; hot loops use [`Channel::reader`] instead.
     pub fn value(&self, i: usize) -> f32 {

@@ -87,6 +87,11 @@ impl Volume {
         self.channels.iter().map(|(n, c)| (*n, c))
     }
 
+    /// The same volume with every channel in owned memory (see [`Channel::owned_copy`]).
+    pub fn owned_copy(&self) -> Volume {
+        Volume { dims: self.dims, channels: self.channels.iter().map(|(n, c)| (*n, c.owned_copy())).collect() }
+    }
+
     /// Resident bytes (what a memory budget counts).
     pub fn byte_len(&self) -> u64 {
         self.channels.values().map(|c| c.byte_len() as u64).sum()

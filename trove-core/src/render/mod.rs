@@ -1,20 +1,35 @@
 //! Rendering a validated scene to an image, with the statistics of the paper's Table 1.
 //!
-//! [`per_ray`] is Algorithm 1 (paper §3.1): each ray intersects every object, then casts
-//! its pieces front to back, loading datasets as it meets them. Both this and any other
-//! algorithm use [`crate::sampling::ObjectCaster`] and [`crate::composite::Rgba`], so they
-//! render the same image up to early termination (SPEC §4.4).
+//! Both algorithms are built from the same three stages, and differ only in when they run:
+//!
+//! 1. **Intersection** ([`intersection`]): rays → segments → pieces → [`PieceTask`]s.
+//!    Object-level data only: placements and dataset dims, never a voxel.
+//! 2. **Volume rendering**: casting a task with [`crate::sampling::ObjectCaster::cast`], the
+//!    only sampler, while its dataset is resident in the [`VolumeStore`].
+//! 3. **Composition**: a ray's pieces front to back with [`crate::composite::Rgba`]
+//!    (co-located objects combined first, SPEC §4.4).
+//!
+//! `per_ray` is Algorithm 1 (paper §3.1): each ray runs all three stages before the next
+//! ray starts, loading datasets in the order the ray meets them, so under a short memory
+//! budget it thrashes — the paper's point. [`grouped`] is Algorithm 2 (§3.3): each stage
+//! runs over all rays before the next, and volume rendering visits each dataset once, in
+//! front-to-back waves that recover early termination. Both render the same image up to
+//! early termination (SPEC §4.4).
 
+pub mod grouped;
 mod image;
+pub mod intersection;
 mod per_ray;
 mod stats;
 mod store;
+pub mod workunit;
 
 use std::sync::Arc;
 
 pub use image::Image;
 pub use stats::{RenderStats, Seconds};
-pub use store::VolumeStore;
+pub use store::{Pinned, VolumeStore};
+pub use workunit::{cast_batch, PieceRgba, PieceTask};
 
 use crate::scene::Scene;
 use crate::RenderError;
@@ -23,8 +38,11 @@ use crate::RenderError;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum Algorithm {
     /// Algorithm 1 (paper §3.1): rays in scanline order, datasets in ray order.
-    #[default]
     PerRay,
+    /// Algorithm 2 (paper §3.3): all intersections, then dataset by dataset, then
+    /// composition — with early termination recovered by front-to-back waves.
+    #[default]
+    Grouped,
 }
 
 impl Algorithm {
@@ -32,11 +50,13 @@ impl Algorithm {
     pub fn name(self) -> &'static str {
         match self {
             Algorithm::PerRay => "per-ray",
+            Algorithm::Grouped => "grouped",
         }
     }
 }
 
-/// Called with the number of image rows finished so far (from any thread).
+/// Called with the number of image rows finished so far (from any thread); the grouped
+/// algorithm reports the same fraction of its work in rows.
 pub type Progress = Arc<dyn Fn(u64) + Send + Sync>;
 
 /// How to render.
@@ -44,6 +64,9 @@ pub type Progress = Arc<dyn Fn(u64) + Send + Sync>;
 pub struct RenderOptions {
     /// The algorithm.
     pub algorithm: Algorithm,
+    /// Most bytes of voxel data kept resident at once (`None`: no limit). It must hold the
+    /// largest dataset the scene uses (datasets are loaded whole).
+    pub memory_budget: Option<u64>,
     /// Progress callback.
     pub progress: Option<Progress>,
 }
@@ -60,9 +83,11 @@ pub struct Rendered {
 /// Renders `scene` with the chosen algorithm.
 pub fn render(scene: &Scene, options: &RenderOptions) -> Result<Rendered, RenderError> {
     let started = std::time::Instant::now();
-    let store = VolumeStore::new(scene);
+    let store = VolumeStore::with_budget(scene, options.memory_budget);
+    store.check_budget()?;
     let mut rendered = match options.algorithm {
         Algorithm::PerRay => per_ray::render(scene, &store, options.progress.as_ref())?,
+        Algorithm::Grouped => grouped::render(scene, &store, options.progress.as_ref())?,
     };
     rendered.stats.finish(scene, options.algorithm, &store, started.elapsed().as_secs_f64());
     Ok(rendered)

@@ -1,13 +1,16 @@
 //! Algorithm 1 (paper §3.1): for each ray, intersect every object, order the pieces, and
 //! cast them front to back until the ray is opaque. Threads take bands of scanlines, so
-//! rays are visited in scanline order within each band, as the paper's loop does.
+//! rays are visited in scanline order within each band, as the paper's loop does, and
+//! datasets are asked for in the order each ray meets them: under a memory budget that
+//! cannot hold them all, that is what makes it thrash. A thread holds one dataset at a time
+//! (the pin is dropped after each cast), so two threads can never wait on each other.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::{Image, Progress, RenderStats, Rendered, VolumeStore};
+use super::{Image, Pinned, Progress, RenderStats, Rendered, VolumeStore};
 use crate::composite::Rgba;
 use crate::geometry::{split_into_pieces, Piece, Ray, Segment};
 use crate::sampling::ObjectCaster;
@@ -28,8 +31,12 @@ struct Band {
     n_segments: u64,
     n_pieces: u64,
     samples: u64,
+    samples_skipped: u64,
     intersection_nanos: u64,
+    /// Casting, loading included.
     casting_nanos: u64,
+    /// Time in [`VolumeStore::get`]: loading, and waiting for room under a budget.
+    loading_nanos: u64,
 }
 
 /// Renders with Algorithm 1.
@@ -61,23 +68,24 @@ pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progr
     let wall = started.elapsed().as_secs_f64();
 
     let mut stats = RenderStats::default();
-    let (mut inter, mut cast) = (0u64, 0u64);
+    let (mut inter, mut cast, mut load) = (0u64, 0u64, 0u64);
     for band in bands {
         let band = band?;
         stats.segments += band.n_segments;
         stats.pieces += band.n_pieces;
         stats.samples += band.samples;
+        stats.samples_skipped += band.samples_skipped;
         inter += band.intersection_nanos;
         cast += band.casting_nanos;
+        load += band.loading_nanos.min(band.casting_nanos);
     }
     // Split the parallel section's wall time by thread time; loading happened inside
     // casting, so it is taken out of the casting share.
     let thread_total = (inter + cast).max(1) as f64;
-    let loading = store.loading_seconds().min(wall);
     let s = &mut stats.seconds;
     s.intersection = wall * inter as f64 / thread_total;
-    s.loading = loading * (cast as f64 / thread_total);
-    s.volume_rendering = (wall * cast as f64 / thread_total - s.loading).max(0.0);
+    s.loading = wall * load as f64 / thread_total;
+    s.volume_rendering = wall * (cast - load) as f64 / thread_total;
     Ok(Rendered { image: Image::new(w, h, pixels), stats })
 }
 
@@ -101,14 +109,15 @@ fn trace(scene: &Scene, store: &VolumeStore, ray: &Ray, band: &mut Band) -> Resu
     let termination = scene.render.termination;
     let correction = scene.render.opacity_correction;
     let mut acc = Rgba::CLEAR;
-    for piece in &band.pieces {
+    for (i, piece) in band.pieces.iter().enumerate() {
         if acc.alpha >= termination {
+            band.samples_skipped += skipped_samples(scene, ray, &band.pieces[i..], &band.cover);
             break;
         }
         let cover = &band.cover[piece.cover.0 as usize..piece.cover.1 as usize];
         if let [only] = cover {
             let object = &scene.objects[*only as usize];
-            let volume = store.get(object.dataset)?;
+            let volume = get(store, object.dataset, &mut band.loading_nanos)?;
             let r =
                 ObjectCaster::new(object, &volume, correction).cast(ray, piece.t0, piece.t1, acc.alpha, termination);
             band.samples += r.samples;
@@ -117,7 +126,7 @@ fn trace(scene: &Scene, store: &VolumeStore, ray: &Ray, band: &mut Band) -> Resu
             band.parts.clear();
             for &o in cover {
                 let object = &scene.objects[o as usize];
-                let volume = store.get(object.dataset)?;
+                let volume = get(store, object.dataset, &mut band.loading_nanos)?;
                 let r =
                     ObjectCaster::new(object, &volume, correction).cast(ray, piece.t0, piece.t1, 0.0, f64::INFINITY);
                 band.samples += r.samples;
@@ -128,4 +137,24 @@ fn trace(scene: &Scene, store: &VolumeStore, ray: &Ray, band: &mut Band) -> Resu
     }
     band.casting_nanos += t_cast.elapsed().as_nanos() as u64;
     Ok(acc)
+}
+
+/// Dataset `index` from the store, timing the call (loading and waiting for room).
+fn get<'a>(store: &'a VolumeStore, index: usize, nanos: &mut u64) -> Result<Pinned<'a>, RenderError> {
+    let started = Instant::now();
+    let volume = store.get(index);
+    *nanos += started.elapsed().as_nanos() as u64;
+    volume
+}
+
+/// Sample positions of every object over `pieces`, never cast because the ray is opaque.
+fn skipped_samples(scene: &Scene, ray: &Ray, pieces: &[Piece], cover: &[u32]) -> u64 {
+    let mut n = 0;
+    for piece in pieces {
+        for &o in &cover[piece.cover.0 as usize..piece.cover.1 as usize] {
+            let object = &scene.objects[o as usize];
+            n += object.placement.walk(ray, piece.t0, piece.t1, object.sampling_distance).len();
+        }
+    }
+    n
 }

@@ -5,7 +5,8 @@ use serde::Serialize;
 use super::{Algorithm, VolumeStore};
 use crate::scene::Scene;
 
-/// Wall-clock seconds per phase. Where phases interleave on several threads (the per-ray
+/// Wall-clock seconds per phase. The grouped algorithm runs its phases one after another,
+/// so each is measured directly. Where phases interleave on several threads (the per-ray
 /// algorithm), the parallel section's wall time is split in proportion to the thread time
 /// each phase took; `other` is what remains of `total`.
 #[derive(Clone, Copy, Debug, Default, Serialize, PartialEq)]
@@ -16,7 +17,7 @@ pub struct Seconds {
     pub volume_rendering: f64,
     /// Combining pieces into pixels (0 when interleaved with casting, as in Algorithm 1).
     pub composition: f64,
-    /// Bringing voxel data into memory.
+    /// Bringing voxel data into memory, including waiting for room under a budget.
     pub loading: f64,
     /// Everything else: setup, image assembly.
     pub other: f64,
@@ -43,10 +44,19 @@ pub struct RenderStats {
     pub pieces: u64,
     /// Samples interpolated and mapped.
     pub samples: u64,
-    /// Whole-dataset loads.
+    /// Sample positions in (piece, object) pairs never cast because the ray was already
+    /// known to be opaque in front of them (early termination). Samples a cast left out
+    /// after reaching termination inside its own piece are not counted.
+    pub samples_skipped: u64,
+    /// Whole-dataset loads (the store does not brick), reloads after eviction included.
     pub dataset_loads: u64,
     /// Bytes loaded, over all loads.
     pub bytes_loaded: u64,
+    /// The memory budget, in bytes (`null`: none).
+    pub memory_budget: Option<u64>,
+    /// The most voxel bytes resident at once, from the store's own accounting (loads in
+    /// flight included); never above `memory_budget`.
+    pub peak_resident_bytes: u64,
     /// Per-phase timings.
     pub seconds: Seconds,
 }
@@ -61,6 +71,8 @@ impl RenderStats {
         self.datasets = scene.datasets.len();
         self.dataset_loads = store.loads();
         self.bytes_loaded = store.bytes_loaded();
+        self.memory_budget = store.budget();
+        self.peak_resident_bytes = store.peak_resident_bytes();
         let s = &mut self.seconds;
         s.total = total;
         s.other = (total - s.intersection - s.volume_rendering - s.composition - s.loading).max(0.0);

@@ -1,0 +1,25 @@
+//! `trove bench …`: the paper's experiments, runnable, printed beside the paper's figures.
+//!
+//! Each experiment is one variant of [`BenchCommand`] and one module; adding one is a
+//! variant, a `mod` line and a match arm.
+
+mod table1;
+
+use anyhow::Result;
+
+/// The experiments.
+#[derive(clap::Subcommand)]
+pub enum BenchCommand {
+    /// Table 1 (paper §3.3): 15 objects from 15 datasets and from 1, both algorithms,
+    /// under a memory budget of a quarter of the 15 datasets.
+    Table1(table1::Args),
+}
+
+impl BenchCommand {
+    /// Runs the experiment and prints its tables on standard output.
+    pub fn run(self) -> Result<()> {
+        match self {
+            BenchCommand::Table1(args) => table1::run(args),
+        }
+    }
+}

@@ -1,0 +1,399 @@
+//! Table 1 of the paper (§3.3): a scene of 15 objects like Fig. 1's, built once from 15
+//! datasets and once from a single shared one, rendered at 512×512 by Algorithm 1
+//! (per ray) and Algorithm 2 (grouped by dataset), with the time broken down as the paper
+//! does and the paper's figures printed beside ours.
+//!
+//! The datasets are generated (a CT-like head: air, skin, skull and a textured interior,
+//! 12-bit values in u16 voxels, 81³ like the paper's) and written to raw files first, so
+//! that loading one really reads a file. The memory budget is a quarter of the 15
+//! datasets' bytes: under it Algorithm 1 must evict and re-read datasets as its rays move
+//! between objects (the paper's disk swapping), while Algorithm 2 reads each file once.
+//! The single shared dataset fits the same budget, which is the paper's second case.
+//!
+//! A second, smaller experiment checks the early termination that the grouped algorithm
+//! recovers (the paper gives it up): samples cast by each algorithm on the Fig. 1-like
+//! scene and on a Fig. 10-like one (translucent and opaque objects in front of each other).
+
+use std::fmt::Write as _;
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use trove_core::render::workunit::{RESULT_BYTES, TASK_BYTES};
+use trove_core::render::{self, Algorithm, RenderOptions, Rendered};
+use trove_core::scene::Scene;
+
+/// `trove bench table1` options.
+#[derive(clap::Args)]
+pub struct Args {
+    /// Image width and height in pixels (the paper: 512).
+    #[arg(long, default_value_t = 512)]
+    size: u32,
+    /// Voxels per axis of each dataset, stored as u16 (the paper: 81).
+    #[arg(long, default_value_t = 81)]
+    dims: u32,
+    /// Runs of each configuration that does not thrash; the fastest is reported (the
+    /// thrashing per-ray run is run once).
+    #[arg(long, default_value_t = 3)]
+    repeat: u32,
+    /// How the datasets are stored: `gzip` NRRD files (a load reads and inflates one, a
+    /// real cost like the paper's disk) or `raw` files (a load copies the file from the
+    /// operating system's page cache, which holds every file whatever our budget).
+    #[arg(long, value_enum, default_value_t = Storage::Gzip)]
+    storage: Storage,
+    /// Where to write the generated datasets, and the scenes as `table1-15.toml`,
+    /// `table1-1.toml` and `fig10.toml` for `trove render` (default: a fresh folder under
+    /// the system temporary folder, removed afterwards).
+    #[arg(long)]
+    data_dir: Option<PathBuf>,
+}
+
+/// How the benchmark stores its datasets.
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Storage {
+    /// Attached-header NRRD with gzip encoding.
+    Gzip,
+    /// Raw little-endian u16.
+    Raw,
+}
+
+impl Storage {
+    fn file_name(self, v: u32) -> String {
+        match self {
+            Storage::Gzip => format!("head{v:02}.nrrd"),
+            Storage::Raw => format!("head{v:02}.raw"),
+        }
+    }
+}
+
+/// The paper's Table 1, in seconds: rows as in [`ROWS`], columns Algorithm 1 and 2 with 15
+/// datasets, then Algorithm 1 and 2 with 1 dataset. NaN marks the paper's "–".
+const PAPER: [[f64; 4]; 6] = [
+    [261.76, 241.95, 248.03, 244.35],
+    [19.30, 18.33, 18.32, 17.83],
+    [f64::NAN, 1.10, f64::NAN, 1.00],
+    [6670.28, 2.55, 0.28, 0.30],
+    [279.11, 127.22, 39.68, 33.24],
+    [7230.45, 391.15, 306.31, 296.72],
+];
+const ROWS: [&str; 6] = [
+    "Volume rendering",
+    "Intersection computation",
+    "Image composition",
+    "Data loading and swapping",
+    "Other computation",
+    "Total time",
+];
+
+/// Runs the experiment and prints the tables.
+pub fn run(args: Args) -> Result<()> {
+    let (dir, remove) = match &args.data_dir {
+        Some(d) => (d.clone(), false),
+        None => (std::env::temp_dir().join(format!("trove-table1-{}", std::process::id())), true),
+    };
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let result = run_in(&args, &dir);
+    if remove {
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+    result
+}
+
+fn run_in(args: &Args, dir: &Path) -> Result<()> {
+    let n = args.dims;
+    let storage = args.storage;
+    for v in 0..15 {
+        write_dataset(&dir.join(storage.file_name(v)), v, n, storage)?;
+    }
+    let dataset_bytes = 2 * (n as u64).pow(3);
+    let budget = 15 * dataset_bytes / 4;
+    let threads = rayon::current_num_threads();
+    println!(
+        "Table 1: 15 objects, {s}×{s} pixels, datasets {n}³ u16 ({} bytes each, {} files), memory budget {budget} bytes \
+         (a quarter of the 15 datasets), {threads} threads",
+        dataset_bytes,
+        if storage == Storage::Gzip { "gzip NRRD" } else { "raw" },
+        s = args.size
+    );
+
+    let texts = [
+        table1_scene(args.size, n, storage, false),
+        table1_scene(args.size, n, storage, true),
+        fig10_scene(args.size, n, storage),
+    ];
+    if args.data_dir.is_some() {
+        for (name, text) in ["table1-15.toml", "table1-1.toml", "fig10.toml"].iter().zip(&texts) {
+            std::fs::write(dir.join(name), text).with_context(|| format!("writing {name}"))?;
+        }
+    }
+    let separate = load_scene(dir, &texts[0])?;
+    let shared = load_scene(dir, &texts[1])?;
+    let budgeted = |algorithm| RenderOptions { algorithm, memory_budget: Some(budget), progress: None };
+    let runs = [
+        best_of("15/15", &separate, &budgeted(Algorithm::PerRay), 1)?,
+        best_of("15/15", &separate, &budgeted(Algorithm::Grouped), args.repeat)?,
+        best_of("15/1", &shared, &budgeted(Algorithm::PerRay), args.repeat)?,
+        best_of("15/1", &shared, &budgeted(Algorithm::Grouped), args.repeat)?,
+    ];
+    print!("{}", table(&runs));
+
+    println!("\nWork units: {TASK_BYTES} bytes per piece task, {RESULT_BYTES} bytes per piece result.");
+
+    println!("\nEarly termination (samples cast; skipped = samples of pieces never cast behind opaque rays):\n");
+    let fig10 = load_scene(dir, &texts[2])?;
+    let plain = |algorithm| RenderOptions { algorithm, memory_budget: None, progress: None };
+    let fig10_runs = [
+        best_of("Fig. 10", &fig10, &plain(Algorithm::PerRay), 1)?,
+        best_of("Fig. 10", &fig10, &plain(Algorithm::Grouped), 1)?,
+    ];
+    println!(
+        "| scene | per-ray samples | grouped samples | grouped / per-ray | grouped skipped | max image difference |"
+    );
+    println!("|---|---:|---:|---:|---:|---:|");
+    for (name, pr, gr) in [
+        ("Fig. 1-like, 15 datasets", &runs[0], &runs[1]),
+        ("Fig. 1-like, 1 dataset", &runs[2], &runs[3]),
+        ("Fig. 10-like, 3 datasets", &fig10_runs[0], &fig10_runs[1]),
+    ] {
+        println!(
+            "| {name} | {} | {} | {:.3} | {} | {}/255 |",
+            pr.stats.samples,
+            gr.stats.samples,
+            gr.stats.samples as f64 / pr.stats.samples.max(1) as f64,
+            gr.stats.samples_skipped,
+            pr.image.max_byte_difference(&gr.image)
+        );
+    }
+    Ok(())
+}
+
+fn load_scene(dir: &Path, text: &str) -> Result<Scene> {
+    Scene::parse(text, dir.join("scene.toml")).context("building the benchmark scene")
+}
+
+/// Renders `repeat` times and keeps the fastest; progress goes to standard error.
+fn best_of(label: &str, scene: &Scene, options: &RenderOptions, repeat: u32) -> Result<Rendered> {
+    let mut best: Option<Rendered> = None;
+    for _ in 0..repeat.max(1) {
+        let r = render::render(scene, options)?;
+        eprintln!(
+            "  {} {label}: {:.2} s, {} loads",
+            options.algorithm.name(),
+            r.stats.seconds.total,
+            r.stats.dataset_loads
+        );
+        if best.as_ref().is_none_or(|b| r.stats.seconds.total < b.stats.seconds.total) {
+            best = Some(r);
+        }
+    }
+    Ok(best.expect("at least one run"))
+}
+
+/// The paper's table with our seconds and, in brackets, the paper's.
+fn table(runs: &[Rendered; 4]) -> String {
+    let mut out = String::new();
+    let _ = writeln!(out, "\n| Algorithm | Algorithm 1 | Algorithm 2 | Algorithm 1 | Algorithm 2 |");
+    let _ = writeln!(out, "|---|---:|---:|---:|---:|");
+    let _ = writeln!(out, "| No. objects / volumes | 15/15 | 15/15 | 15/1 | 15/1 |");
+    for (row, name) in ROWS.iter().enumerate() {
+        let _ = write!(out, "| {name} |");
+        for (col, r) in runs.iter().enumerate() {
+            let s = &r.stats.seconds;
+            let ours = [s.volume_rendering, s.intersection, s.composition, s.loading, s.other, s.total][row];
+            let paper = PAPER[row][col];
+            let ours =
+                if row == 2 && r.stats.algorithm == "per-ray" { "–".to_string() } else { format!("{ours:.2}") };
+            let paper = if paper.is_nan() { "–".to_string() } else { format!("{paper:.2}") };
+            let _ = write!(out, " {ours} ({paper}) |");
+        }
+        let _ = writeln!(out);
+    }
+    let speedup = |a: &Rendered, b: &Rendered| a.stats.seconds.total / b.stats.seconds.total;
+    let _ = writeln!(
+        out,
+        "| Speedup (Alg1/Alg2) | – | {:.2} (18.49) | – | {:.2} (1.03) |",
+        speedup(&runs[0], &runs[1]),
+        speedup(&runs[2], &runs[3])
+    );
+    let count_row = |out: &mut String, name: &str, f: &dyn Fn(&Rendered) -> String| {
+        let _ = writeln!(out, "| {name} | {} | {} | {} | {} |", f(&runs[0]), f(&runs[1]), f(&runs[2]), f(&runs[3]));
+    };
+    count_row(&mut out, "Dataset loads", &|r| r.stats.dataset_loads.to_string());
+    count_row(&mut out, "Bytes loaded", &|r| r.stats.bytes_loaded.to_string());
+    count_row(&mut out, "Peak resident bytes", &|r| r.stats.peak_resident_bytes.to_string());
+    count_row(&mut out, "Pieces", &|r| r.stats.pieces.to_string());
+    count_row(&mut out, "Samples", &|r| r.stats.samples.to_string());
+    count_row(&mut out, "Samples skipped (early termination)", &|r| r.stats.samples_skipped.to_string());
+    let _ = writeln!(
+        out,
+        "| Max image difference vs Alg. 1 | | {}/255 | | {}/255 |",
+        runs[0].image.max_byte_difference(&runs[1].image),
+        runs[2].image.max_byte_difference(&runs[3].image)
+    );
+    let _ = writeln!(out, "\nOur seconds, the paper's (DEC Alpha 2100, 275 MHz) in brackets.");
+    out
+}
+
+/// Writes variant `v` of the head dataset, `n`³ little-endian u16 voxels.
+fn write_dataset(path: &Path, v: u32, n: u32, storage: Storage) -> Result<()> {
+    let mut bytes = Vec::with_capacity(2 * (n as usize).pow(3));
+    for k in 0..n {
+        for j in 0..n {
+            for i in 0..n {
+                bytes.extend_from_slice(&head_value(v, [i, j, k], n).to_le_bytes());
+            }
+        }
+    }
+    let bytes = match storage {
+        Storage::Raw => bytes,
+        Storage::Gzip => {
+            let header =
+                format!("NRRD0004\ntype: uint16\ndimension: 3\nsizes: {n} {n} {n}\nendian: little\nencoding: gzip\n\n");
+            let mut gz = flate2::write::GzEncoder::new(header.into_bytes(), flate2::Compression::default());
+            gz.write_all(&bytes)?;
+            gz.finish()?
+        }
+    };
+    std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))
+}
+
+/// A CT-like head: 12-bit values of air (0), skin (1000), skull (3000) and a textured
+/// interior (about 1500), as shells of an ellipsoid whose radii and texture vary with `v`.
+fn head_value(v: u32, [i, j, k]: [u32; 3], n: u32) -> u16 {
+    let p = [i, j, k].map(|c| (c as f64 + 0.5) / n as f64 - 0.5);
+    let radii = [0.40 - 0.01 * (v % 3) as f64, 0.46 - 0.01 * (v % 4) as f64, 0.42 - 0.01 * (v % 5) as f64];
+    let r = (0..3).map(|a| (p[a] / radii[a]).powi(2)).sum::<f64>().sqrt();
+    let f = 5.0 + (v % 4) as f64;
+    let tau = std::f64::consts::TAU;
+    let texture = (tau * f * p[0] + v as f64).sin() * (tau * f * p[1]).sin() * (tau * f * p[2] + 0.5 * v as f64).sin();
+    // Piecewise-linear radial profile, so surfaces are smooth at any resolution.
+    let ramp = |x: f64, x0: f64, x1: f64, a: f64, b: f64| a + (b - a) * ((x - x0) / (x1 - x0)).clamp(0.0, 1.0);
+    let value = if r < 0.70 {
+        1500.0 + 400.0 * texture
+    } else if r < 0.75 {
+        ramp(r, 0.70, 0.75, 1500.0, 3000.0)
+    } else if r < 0.85 {
+        3000.0
+    } else if r < 0.90 {
+        ramp(r, 0.85, 0.90, 3000.0, 1000.0)
+    } else if r < 0.97 {
+        1000.0
+    } else {
+        ramp(r, 0.97, 1.0, 1000.0, 0.0)
+    };
+    value.round().clamp(0.0, 4095.0) as u16
+}
+
+/// Colour and opacity maps, by look.
+const LOOKS: [(&str, &str); 4] = [
+    // Opaque bone under a faint skin.
+    (
+        "[[0, 0.9, 0.6, 0.5], [1000, 0.95, 0.7, 0.6], [3000, 1.0, 1.0, 0.95]]",
+        "[[500, 0.0], [1000, 0.01], [2400, 0.01], [2800, 0.9]]",
+    ),
+    // Translucent everywhere: skin and skull shells, glowing interior.
+    (
+        "[[0, 0.3, 0.5, 1.0], [1500, 0.4, 1.0, 0.6], [3000, 1.0, 1.0, 1.0]]",
+        "[[500, 0.0], [1000, 0.02], [1500, 0.04], [3000, 0.08]]",
+    ),
+    // Opaque skin.
+    ("[[0, 0.8, 0.5, 0.4], [1000, 0.9, 0.6, 0.5], [3000, 1.0, 0.9, 0.8]]", "[[400, 0.0], [900, 0.95]]"),
+    // Interior texture only.
+    (
+        "[[1100, 0.9, 0.2, 0.2], [1500, 1.0, 0.8, 0.3], [1900, 1.0, 1.0, 0.6]]",
+        "[[1150, 0.0], [1300, 0.05], [1900, 0.15], [2100, 0.0]]",
+    ),
+];
+
+/// The TOML of one dataset.
+fn dataset_toml(v: u32, n: u32, storage: Storage) -> String {
+    let file = storage.file_name(v);
+    match storage {
+        Storage::Gzip => format!("[[datasets]]\nname = \"head{v:02}\"\nfile = \"{file}\"\n\n"),
+        Storage::Raw => format!(
+            "[[datasets]]\nname = \"head{v:02}\"\ndims = [{n}, {n}, {n}]\n[datasets.channels.voxel]\nraw = \"{file}\"\ntype = \"u16\"\n\n"
+        ),
+    }
+}
+
+/// One object: dataset, look, a box of side `s` with its base centre at `c`, turned by
+/// `angle` degrees about the vertical.
+fn object_toml(name: &str, dataset: u32, look: usize, s: f64, c: [f64; 3], angle: f64) -> String {
+    let (sin, cos) = angle.to_radians().sin_cos();
+    // Box coordinates q ∈ [0,1]³ → world: centre the box on its base, turn, move.
+    let m = [
+        [s * cos, 0.0, s * sin, c[0] - s / 2.0 * (cos + sin)],
+        [0.0, s, 0.0, c[1]],
+        [-s * sin, 0.0, s * cos, c[2] - s / 2.0 * (cos - sin)],
+    ];
+    let (colour, opacity) = LOOKS[look];
+    format!(
+        "[[objects]]\nname = \"{name}\"\ndataset = \"head{dataset:02}\"\n\
+         colour = {{ type = \"ramp\", points = {colour} }}\nopacity = {{ type = \"ramp\", points = {opacity} }}\n\
+         transform = {{ matrix = [{:?}, {:?}, {:?}, [0, 0, 0, 1]] }}\n\n",
+        m[0], m[1], m[2]
+    )
+}
+
+fn header(size: u32, eye: [f64; 3], target: [f64; 3], fov: f64) -> String {
+    format!(
+        "[image]\nwidth = {size}\nheight = {size}\nbackground = [0.05, 0.05, 0.08]\n\n\
+         [camera]\neye = {eye:?}\ntarget = {target:?}\nup = [0.0, 1.0, 0.0]\nfov_y = {fov:?}\n\n"
+    )
+}
+
+/// The Fig. 1-like scene: a floor and 14 heads in three staggered rows, so that most rays
+/// through a head go on into others behind it. `shared`: every object uses dataset 0;
+/// otherwise object i uses dataset i.
+pub fn table1_scene(size: u32, n: u32, storage: Storage, shared: bool) -> String {
+    let mut text = header(size, [0.0, 1.6, 6.5], [0.0, -0.3, -0.6], 42.0);
+    for v in 0..if shared { 1 } else { 15 } {
+        text += &dataset_toml(v, n, storage);
+    }
+    let ds = |i: u32| if shared { 0 } else { i };
+    // The floor: a thin, wide, opaque slab.
+    text += &format!(
+        "[[objects]]\nname = \"floor\"\ndataset = \"head{:02}\"\n\
+         colour = {{ type = \"ramp\", points = [[0, 0.25, 0.25, 0.3], [3000, 0.6, 0.6, 0.7]] }}\n\
+         opacity = {{ type = \"constant\", coefficients = [1.0] }}\n\
+         transform = {{ matrix = [[7.5, 0, 0, -3.75], [0, 0.08, 0, -1.28], [0, 0, 6.5, -4.5], [0, 0, 0, 1]] }}\n\n",
+        ds(14)
+    );
+    let rows: [(f64, f64, &[f64]); 3] = [
+        (1.0, -1.2, &[-2.4, -1.2, 0.0, 1.2, 2.4]),
+        (-0.4, -0.75, &[-1.8, -0.6, 0.6, 1.8]),
+        (-1.9, -0.3, &[-2.4, -1.2, 0.0, 1.2, 2.4]),
+    ];
+    let mut i = 0;
+    for (z, y, xs) in rows {
+        for &x in xs {
+            let look = [1, 3, 0, 1, 2, 3, 1][i as usize % 7];
+            text += &object_toml(&format!("head{i}"), ds(i), look, 1.15, [x, y, z], 15.0 * (i as f64 - 7.0));
+            i += 1;
+        }
+    }
+    text
+}
+
+/// The Fig. 10-like scene: objects of varying colour and translucency in front of each
+/// other, from 3 datasets.
+pub fn fig10_scene(size: u32, n: u32, storage: Storage) -> String {
+    let mut text = header(size, [0.3, 0.8, 5.0], [0.0, 0.0, 0.0], 40.0);
+    for v in 0..3 {
+        text += &dataset_toml(v, n, storage);
+    }
+    let objects: [(u32, usize, f64, [f64; 3], f64); 8] = [
+        (0, 1, 1.3, [-0.7, -0.6, 1.0], 10.0),
+        (1, 1, 1.3, [0.7, -0.6, 1.0], -20.0),
+        (2, 0, 1.2, [0.0, -0.5, -0.2], 30.0),
+        (0, 2, 1.0, [-1.4, -0.4, -0.8], 0.0),
+        (1, 3, 1.2, [1.3, -0.5, -0.6], 45.0),
+        (2, 1, 1.6, [0.0, -0.8, -1.8], 0.0),
+        (0, 0, 1.0, [-0.4, 0.2, 0.3], -35.0),
+        (1, 2, 0.9, [0.8, 0.3, -1.2], 60.0),
+    ];
+    for (i, (d, look, s, c, angle)) in objects.into_iter().enumerate() {
+        text += &object_toml(&format!("o{i}"), d, look, s, c, angle);
+    }
+    text
+}

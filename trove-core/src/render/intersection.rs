@@ -1,0 +1,134 @@
+//! Phase 1 of Algorithm 2 (paper §3.3, lines 1–9): every ray against every object, the
+//! segments split into pieces, and one [`PieceTask`] per object per piece. Only object-level
+//! data is read — placements and dataset dims — never a voxel.
+//!
+//! The result is flat, so that it can be sliced into batches and shipped: `tasks` holds the
+//! work units ray by ray, pieces front to back, a shared piece's objects in scene order;
+//! `piece_start` and `ray_start` delimit pieces and rays. A task's index in `tasks` is also
+//! its result's index, so the composition phase finds every ray's ordered piece slots
+//! without any ids travelling with the work.
+
+use rayon::prelude::*;
+
+use super::workunit::PieceTask;
+use crate::geometry::{split_into_pieces, Piece, Segment};
+use crate::scene::Scene;
+
+/// Rows per parallel work item.
+const BAND_ROWS: usize = 4;
+
+/// Every ray's pieces and the work units they make.
+#[derive(Clone, Debug, Default)]
+pub struct Intersections {
+    /// One task per (piece, covering object), ray by ray, front to back.
+    pub tasks: Vec<PieceTask>,
+    /// Piece `p`'s tasks are `tasks[piece_start[p]..piece_start[p + 1]]`.
+    pub piece_start: Vec<usize>,
+    /// Ray `r`'s pieces are `ray_start[r]..ray_start[r + 1]` (rays row-major).
+    pub ray_start: Vec<usize>,
+    /// Ray–object segments of non-zero length.
+    pub segments: u64,
+}
+
+impl Intersections {
+    /// Number of rays (pixels).
+    pub fn rays(&self) -> usize {
+        self.ray_start.len() - 1
+    }
+
+    /// Number of pieces over all rays.
+    pub fn pieces(&self) -> usize {
+        self.piece_start.len() - 1
+    }
+
+    /// The pieces of ray `r`, as indices into `piece_start`.
+    pub fn pieces_of(&self, r: usize) -> std::ops::Range<usize> {
+        self.ray_start[r]..self.ray_start[r + 1]
+    }
+
+    /// The tasks of piece `p`, as indices into `tasks`.
+    pub fn tasks_of(&self, p: usize) -> std::ops::Range<usize> {
+        self.piece_start[p]..self.piece_start[p + 1]
+    }
+
+    /// The piece that task `t` belongs to (binary search within its ray).
+    pub fn piece_of(&self, t: usize) -> usize {
+        let pieces = self.pieces_of(self.tasks[t].ray as usize);
+        pieces.start + self.piece_start[pieces.clone()].partition_point(|&s| s <= t) - 1
+    }
+}
+
+/// One band of rows, intersected on one thread.
+#[derive(Default)]
+struct Band {
+    tasks: Vec<PieceTask>,
+    tasks_per_piece: Vec<u32>,
+    pieces_per_ray: Vec<u32>,
+    segments: u64,
+}
+
+/// Intersects every ray of `scene` with every object (the scene guarantees at most
+/// [`crate::scene::MAX_OBJECTS`] objects, so an object index fits the task's 16 bits).
+pub fn intersect(scene: &Scene) -> Intersections {
+    let (w, h) = (scene.image.width, scene.image.height);
+    let bands: Vec<Band> = (0..h as usize)
+        .into_par_iter()
+        .step_by(BAND_ROWS)
+        .map(|first_row| {
+            let mut band = Band::default();
+            let (mut segments, mut cuts, mut pieces, mut cover) =
+                (Vec::new(), Vec::new(), Vec::<Piece>::new(), Vec::new());
+            for row in first_row..(first_row + BAND_ROWS).min(h as usize) {
+                for col in 0..w {
+                    let ray_index = row as u32 * w + col;
+                    let ray = scene.camera.ray(col, row as u32, w, h);
+                    segments.clear();
+                    for (i, object) in scene.objects.iter().enumerate() {
+                        if let Some((t_near, t_far)) = object.placement.segment(&ray) {
+                            if t_far > t_near {
+                                segments.push(Segment { object: i as u32, t_near, t_far });
+                            }
+                        }
+                    }
+                    band.segments += segments.len() as u64;
+                    split_into_pieces(&segments, &mut cuts, &mut pieces, &mut cover);
+                    band.pieces_per_ray.push(pieces.len() as u32);
+                    for p in &pieces {
+                        let objects = &cover[p.cover.0 as usize..p.cover.1 as usize];
+                        let shared = objects.len() > 1;
+                        for &o in objects {
+                            let object = u16::try_from(o).expect("a scene holds at most MAX_OBJECTS objects");
+                            band.tasks.push(PieceTask::new(ray_index, object, p.t0, p.t1, shared));
+                        }
+                        band.tasks_per_piece.push(objects.len() as u32);
+                    }
+                }
+            }
+            band
+        })
+        .collect();
+
+    let n_tasks = bands.iter().map(|b| b.tasks.len()).sum();
+    let n_pieces = bands.iter().map(|b| b.tasks_per_piece.len()).sum::<usize>();
+    let mut out = Intersections {
+        tasks: Vec::with_capacity(n_tasks),
+        piece_start: Vec::with_capacity(n_pieces + 1),
+        ray_start: Vec::with_capacity(w as usize * h as usize + 1),
+        segments: 0,
+    };
+    out.piece_start.push(0);
+    out.ray_start.push(0);
+    for band in bands {
+        out.segments += band.segments;
+        out.tasks.extend_from_slice(&band.tasks);
+        for n in band.tasks_per_piece {
+            let last = *out.piece_start.last().expect("starts with 0");
+            out.piece_start.push(last + n as usize);
+        }
+        for n in band.pieces_per_ray {
+            let last = *out.ray_start.last().expect("starts with 0");
+            out.ray_start.push(last + n as usize);
+        }
+    }
+    out
+}
