@@ -182,7 +182,7 @@ fn stats_json_has_the_documented_keys() {
     assert!(out.status.success(), "{}", stderr(&out));
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&stats).expect("stats written")).expect("stats are JSON");
-    assert_eq!(json["algorithm"], "per-ray");
+    assert_eq!(json["algorithm"], "grouped");
     assert_eq!(json["width"], SIZE.0);
     assert_eq!(json["height"], SIZE.1);
     assert_eq!(json["objects"], 1);
