@@ -3,6 +3,7 @@
 //! Each experiment is one variant of [`BenchCommand`] and one module; adding one is a
 //! variant, a `mod` line and a match arm.
 
+mod distorted;
 mod table1;
 
 use anyhow::Result;
@@ -13,6 +14,9 @@ pub enum BenchCommand {
     /// Table 1 (paper §3.3): 15 objects from 15 datasets and from 1, both algorithms,
     /// under a memory budget of a quarter of the 15 datasets.
     Table1(table1::Args),
+    /// Distorted boxes: exact inversion (SPEC default) against the paper's straight-line
+    /// approximation, in time and in image error.
+    Distorted(distorted::Args),
 }
 
 impl BenchCommand {
@@ -20,6 +24,7 @@ impl BenchCommand {
     pub fn run(self) -> Result<()> {
         match self {
             BenchCommand::Table1(args) => table1::run(args),
+            BenchCommand::Distorted(args) => distorted::run(args),
         }
     }
 }
