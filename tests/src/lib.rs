@@ -47,12 +47,31 @@ pub fn max_abs_difference(a: &Image, b: &Image) -> f64 {
     a.pixels().iter().zip(b.pixels()).flat_map(|(p, q)| (0..3).map(move |i| (p[i] - q[i]).abs())).fold(0.0, f64::max)
 }
 
-/// Loads a scene file and overrides its image size (to render repository scenes small).
-pub fn load_scene_sized(path: &Path, width: u32, height: u32) -> Scene {
-    let mut scene = Scene::load(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    scene.image.width = width;
-    scene.image.height = height;
-    scene
+/// Every example scene in `scenes/`, sorted, loaded and shrunk so that its longer side is
+/// `max_side` pixels (aspect kept). Scenes that read `../shared/data` are skipped, with a
+/// message, where that folder is absent.
+pub fn example_scenes(max_side: u32) -> Vec<(PathBuf, Scene)> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(repo_root().join("scenes"))
+        .expect("scenes/ exists")
+        .map(|e| e.expect("dir entry").path())
+        .filter(|p| p.extension().is_some_and(|e| e == "toml"))
+        .collect();
+    files.sort();
+    let shared = repo_root().join("../shared/data").is_dir();
+    let mut scenes = Vec::new();
+    for path in files {
+        let text = std::fs::read_to_string(&path).expect("read scene");
+        if text.contains("shared/data") && !shared {
+            eprintln!("skipping {}: it reads ../shared/data, which is absent", path.display());
+            continue;
+        }
+        let mut scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
+        let scale = max_side as f64 / scene.image.width.max(scene.image.height) as f64;
+        scene.image.width = ((scene.image.width as f64 * scale).round() as u32).max(1);
+        scene.image.height = ((scene.image.height as f64 * scale).round() as u32).max(1);
+        scenes.push((path, scene));
+    }
+    scenes
 }
 
 /// Renders `scene` with `algorithm` under an optional memory budget.

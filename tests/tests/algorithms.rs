@@ -8,7 +8,7 @@ use std::path::Path;
 use trove_core::render::{Algorithm, Rendered};
 use trove_core::scene::Scene;
 use trove_core::RenderError;
-use trove_tests::{load_scene_sized, max_abs_difference, render_with, repo_root, scratch, write_f32};
+use trove_tests::{example_scenes, max_abs_difference, render_with, scratch, write_f32};
 
 fn parse(dir: &Path, text: &str) -> Scene {
     Scene::parse(text, dir.join("scene.toml")).unwrap_or_else(|e| panic!("scene: {e}"))
@@ -126,26 +126,14 @@ fn rows_of_one_dataset(size: u32, datasets_count: usize) -> String {
 
 #[test]
 fn per_ray_and_grouped_agree_on_every_scene_in_scenes() {
-    let dir = repo_root().join("scenes");
-    let mut count = 0;
-    for entry in std::fs::read_dir(&dir).expect("scenes/") {
-        let path = entry.expect("entry").path();
-        if path.extension().is_none_or(|e| e != "toml") {
-            continue;
-        }
-        let text = std::fs::read_to_string(&path).expect("read scene");
-        if text.contains("shared/data") && trove_tests::shared_data().is_none() {
-            eprintln!("skipping {}: it reads ../shared/data", path.display());
-            continue;
-        }
-        let scene = load_scene_sized(&path, 64, 48);
+    let scenes = example_scenes(64);
+    assert!(!scenes.is_empty(), "no scene files in scenes/");
+    for (path, scene) in scenes {
         let (a, b) = both(&scene, None);
         let d = a.image.max_byte_difference(&b.image);
         assert!(d <= 1, "{}: per-ray and grouped differ by {d}/255", path.display());
         assert_eq!(a.stats.pieces, b.stats.pieces, "{}", path.display());
-        count += 1;
     }
-    assert!(count > 0, "no scene files in {}", dir.display());
 }
 
 #[test]
