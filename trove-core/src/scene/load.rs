@@ -210,16 +210,6 @@ fn dims_of(d: [i64; 3], key: &str) -> Result<Dims, KeyError> {
     Dims::new(d.map(|n| n as u64)).map_err(|m| (key.to_string(), m))
 }
 
-fn stored_type(t: VoxelType) -> StoredType {
-    match t {
-        VoxelType::Bit => StoredType::Bit,
-        VoxelType::U8 => StoredType::U8,
-        VoxelType::U16 => StoredType::U16,
-        VoxelType::U32 => StoredType::U32,
-        VoxelType::F32 => StoredType::F32,
-    }
-}
-
 fn check_channel_type(name: ChannelName, ty: VoxelType, key: &str) -> Result<(), KeyError> {
     if name.allowed_types().contains(&ty) {
         return Ok(());
@@ -340,7 +330,7 @@ fn channel(
                 .ok_or_else(|| (format!("{key}.endian"), format!("expected \"little\" or \"big\", got \"{e}\"")))?,
         };
         let rk = format!("{key}.raw");
-        let source = raw::open(&resolve(folder, r), c.offset.unwrap_or(0), stored_type(ty), endian, dims)
+        let source = raw::open(&resolve(folder, r), c.offset.unwrap_or(0), StoredType::from(ty), endian, dims)
             .map_err(|e| (rk, e.to_string()))?;
         return Ok((ty, source));
     }
