@@ -86,6 +86,11 @@ fn deserialize(text: &str, path: &Path) -> Result<SceneFile, SceneError> {
         let at = e.span().map(|s| line_column(text, s.start)).unwrap_or_default();
         SceneError::new(path, "(syntax)", format!("not valid TOML{at}: {}", e.message().trim()))
     })?;
+    // serde fills a struct from an array too (`image = [8, 6, [0, 0, 0]]`), which would let
+    // positional values through where the SPEC wants named keys: refuse that first.
+    if let Ok(value) = text.parse::<toml::Table>() {
+        tables_where_expected(&value).map_err(|(key, message)| SceneError::new(path, key, message))?;
+    }
     serde_path_to_error::deserialize(de).map_err(|e| {
         let mut key = e.path().to_string();
         if key == "." {
@@ -102,6 +107,61 @@ fn deserialize(text: &str, path: &Path) -> Result<SceneFile, SceneError> {
         }
         SceneError::new(path, key, message)
     })
+}
+
+/// Checks that every key the format defines as a table (or an array of tables) is one.
+fn tables_where_expected(top: &toml::Table) -> Result<(), KeyError> {
+    fn table(v: &toml::Value, key: &str) -> Result<(), KeyError> {
+        match v {
+            toml::Value::Table(_) => Ok(()),
+            other => {
+                Err((key.to_string(), format!("expected a table of named keys, got {} `{other}`", other.type_str())))
+            }
+        }
+    }
+    fn array_of_tables<'a>(v: &'a toml::Value, key: &str) -> Result<Vec<&'a toml::Table>, KeyError> {
+        let Some(items) = v.as_array() else {
+            return Err((key.to_string(), format!("expected an array of tables ([[{key}]]), got {}", v.type_str())));
+        };
+        items
+            .iter()
+            .enumerate()
+            .map(|(i, item)| {
+                item.as_table().ok_or_else(|| {
+                    (format!("{key}[{i}]"), format!("expected a table of named keys, got {}", item.type_str()))
+                })
+            })
+            .collect()
+    }
+    for key in ["image", "camera", "render"] {
+        if let Some(v) = top.get(key) {
+            table(v, key)?;
+        }
+    }
+    if let Some(v) = top.get("datasets") {
+        for (i, d) in array_of_tables(v, "datasets")?.into_iter().enumerate() {
+            if let Some(channels) = d.get("channels") {
+                let k = format!("datasets[{i}].channels");
+                table(channels, &k)?;
+                for (name, c) in channels.as_table().into_iter().flatten() {
+                    table(c, &format!("{k}.{name}"))?;
+                    if let Some(g) = c.get("generator") {
+                        table(g, &format!("{k}.{name}.generator"))?;
+                    }
+                }
+            }
+        }
+    }
+    if let Some(v) = top.get("objects") {
+        for (i, o) in array_of_tables(v, "objects")?.into_iter().enumerate() {
+            for key in ["transform", "extent"] {
+                if let Some(v) = o.get(key) {
+                    table(v, &format!("objects[{i}].{key}"))?;
+                }
+            }
+        }
+    }
+    Ok(())
 }
 
 /// ` at line L, column C` of byte `offset` in `text`, both counted from 1.

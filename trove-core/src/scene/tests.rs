@@ -944,3 +944,14 @@ fn a_missing_scene_file_is_named() {
     assert!(e.to_string().contains(&path.display().to_string()), "{e}");
     assert!(e.message.contains("cannot read the scene file"), "{e}");
 }
+
+#[test]
+fn positional_arrays_are_refused_where_tables_are_expected() {
+    let text = "image = [8, 6, [0, 0, 0]]\n[camera]\neye = [0, 0, 4]\ntarget = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 40\n";
+    let err = Scene::parse(text, "pos.toml").unwrap_err();
+    assert_eq!(err.key, "image");
+    assert!(err.message.contains("table"), "{err}");
+    let text = format!("{}\n[[objects]]\nname = \"x\"\ndataset = \"d\"\ncolour = {{ type = \"raw\" }}\nopacity = {{ type = \"raw\" }}\ntransform = [[1, 0, 0, 0]]\n", "[image]\nwidth = 2\nheight = 2\nbackground = [0, 0, 0]\n[camera]\neye = [0, 0, 4]\ntarget = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 40");
+    let err = Scene::parse(&text, "pos.toml").unwrap_err();
+    assert_eq!(err.key, "objects[0].transform");
+}
