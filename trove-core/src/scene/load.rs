@@ -121,7 +121,10 @@ fn tables_where_expected(top: &toml::Table) -> Result<(), KeyError> {
     }
     fn array_of_tables<'a>(v: &'a toml::Value, key: &str) -> Result<Vec<&'a toml::Table>, KeyError> {
         let Some(items) = v.as_array() else {
-            return Err((key.to_string(), format!("expected an array of tables ([[{key}]]), got {}", v.type_str())));
+            return Err((
+                key.to_string(),
+                format!("expected an array of tables ([[{key}]]), got {} `{v}`", v.type_str()),
+            ));
         };
         items
             .iter()
