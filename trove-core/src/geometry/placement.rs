@@ -57,9 +57,13 @@ pub struct Placement {
     tol_q: f64,
 }
 
-/// Relative slack when testing a point against the closed unit box, so a ray in a face
-/// plane stays inside despite rounding in the world → box transform (SPEC §4.5).
-const BOX_SLACK: f64 = 1e-12;
+/// Relative slack (64 ulps of the largest box coordinate involved) within which a ray that
+/// runs along a face plane counts as lying in it, so that rounding in the world → box
+/// transform cannot push a ray in a face plane out of the closed box (SPEC §4.5). The slack
+/// applies only to axes the ray is parallel to within that rounding: on every other axis the
+/// entry and exit are exact, so no chord is lengthened by it (a fixed 1e-12·|o| slack made
+/// chords 5e-11 too long at unit scale and 1e-6 too long with the camera 10⁶ away).
+const BOX_SLACK: f64 = 64.0 * f64::EPSILON;
 
 impl Placement {
     /// A placement; the shape and extent were validated by the scene loader.
@@ -166,20 +170,25 @@ pub fn sample_count(world_len: f64, sampling_distance: f64, vc_len: f64) -> u64 
     (x.round() as u64).max(1)
 }
 
-/// The slab test against the closed unit box in box coordinates. A zero direction
-/// component (+0.0 or −0.0) is handled without dividing, so it never makes NaN.
+/// The slab test against the closed unit box in box coordinates. An axis along which the
+/// ray moves less than the rounding slack over every t at which it could be in the box
+/// (`reach` bounds those t) is treated as parallel: the ray is inside that slab for all t
+/// or for none, decided on its origin with the slack. A zero direction component (+0.0 or
+/// −0.0) takes that branch, so it never divides and never makes NaN. Other axes give the
+/// exact crossing parameters.
 fn slab_segment(o: DVec3, d: DVec3) -> Option<(f64, f64)> {
-    let (mut t_near, mut t_far) = (0.0f64, f64::INFINITY);
     let slack = BOX_SLACK * (1.0 + o.abs().max_element());
+    // |o + t·d| ≤ √3 inside the box, so t ≤ (|o| + √3)/|d| there.
+    let reach = (o.length() + 2.0) / d.length();
+    let (mut t_near, mut t_far) = (0.0f64, f64::INFINITY);
     for a in 0..3 {
-        let (lo, hi) = (-slack, 1.0 + slack);
-        if d[a] == 0.0 {
-            if o[a] < lo || o[a] > hi {
+        if d[a] == 0.0 || d[a].abs() * reach <= slack {
+            if o[a] < -slack || o[a] > 1.0 + slack {
                 return None;
             }
             continue;
         }
-        let (ta, tb) = ((lo - o[a]) / d[a], (hi - o[a]) / d[a]);
+        let (ta, tb) = ((0.0 - o[a]) / d[a], (1.0 - o[a]) / d[a]);
         t_near = t_near.max(ta.min(tb));
         t_far = t_far.min(ta.max(tb));
     }
