@@ -21,6 +21,16 @@ struct Cli {
 enum Command {
     /// Render a scene to a PNG (or a .pfm float image) in this process.
     Render(RenderArgs),
+    /// Run a benchmark and write its CSV, plot and summary.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// Error against closed-form reference scenes versus render time, over sampling distance,
+    /// interpolation and opacity correction (docs/accuracy.*).
+    Accuracy(crate::bench::accuracy::AccuracyArgs),
 }
 
 #[derive(clap::Args)]
@@ -56,6 +66,7 @@ impl From<AlgorithmArg> for Algorithm {
 pub fn run() -> Result<()> {
     match Cli::parse().command {
         Command::Render(args) => render_command(args),
+        Command::Bench(BenchCommand::Accuracy(args)) => crate::bench::accuracy::run(args),
     }
 }
 

@@ -65,6 +65,10 @@ pub struct Placement {
 /// chords 5e-11 too long at unit scale and 1e-6 too long with the camera 10⁶ away).
 const BOX_SLACK: f64 = 64.0 * f64::EPSILON;
 
+/// Points per axis, minus one, of the grid on which a distorted box's conditioning is
+/// estimated ([`Placement::check_inversion_precision`]).
+const CONDITION_GRID: usize = 8;
+
 impl Placement {
     /// A placement; the shape and extent were validated by the scene loader.
     pub fn new(shape: Shape, extent: Extent, dims: Dims) -> Placement {
@@ -107,6 +111,53 @@ impl Placement {
     #[inline]
     pub fn vc_of_box(&self, q: DVec3) -> DVec3 {
         self.vc_scale * q + self.vc_offset
+    }
+
+    /// For a distorted box, whether f64 can invert its world map to the SPEC §4.2 tolerance
+    /// (10⁻⁶ voxel) everywhere in it; `Err` says where it cannot. Affine boxes always can.
+    ///
+    /// A box that does not fold (which [`Hexahedron::new`] proves) can still come so close
+    /// to folding that its Jacobian is nearly singular somewhere: the world point W(q) is
+    /// only known to about ε·(coordinate size), so q is only known to about that times
+    /// ‖J⁻¹‖, however well Newton converges. Where that exceeds the tolerance the sampled
+    /// voxels would be wrong by more than the SPEC allows, so the scene is refused at load
+    /// instead of rendering a wrong image. ‖J⁻¹‖ is estimated on a grid of 9³ points,
+    /// corners and faces included (the polynomial det J is smallest on the boundary unless
+    /// the box bends inward, and the grid then still brackets it to a fraction of its
+    /// variation); the factor 4 was measured on boxes approaching a fold at a corner.
+    pub fn check_inversion_precision(&self) -> Result<(), String> {
+        let Shape::Distorted { hex, .. } = &self.shape else { return Ok(()) };
+        let scale = hex.size() + hex.corners().iter().map(|c| c.abs().max_element()).fold(0.0, f64::max);
+        let mut worst = (0.0f64, DVec3::ZERO);
+        for i in 0..=CONDITION_GRID {
+            for j in 0..=CONDITION_GRID {
+                for k in 0..=CONDITION_GRID {
+                    let q = DVec3::new(i as f64, j as f64, k as f64) / CONDITION_GRID as f64;
+                    let inv = hex.jacobian(q).inverse();
+                    let norm =
+                        (inv.x_axis.length_squared() + inv.y_axis.length_squared() + inv.z_axis.length_squared())
+                            .sqrt();
+                    let norm = if norm.is_finite() { norm } else { f64::INFINITY };
+                    if norm > worst.0 {
+                        worst = (norm, q);
+                    }
+                }
+            }
+        }
+        let attainable_q = 4.0 * f64::EPSILON * scale * worst.0;
+        if attainable_q <= self.tol_q {
+            return Ok(());
+        }
+        let q = worst.1;
+        Err(format!(
+            "the box is too close to folding near box coordinates ({:.3}, {:.3}, {:.3}): its map cannot be \
+             inverted there to better than about {:.1e} voxel in f64 (1e-6 is required); move the corners \
+             further from folding",
+            q.x,
+            q.y,
+            q.z,
+            attainable_q / self.tol_q * 1e-6
+        ))
     }
 
     /// The first and last t ≥ 0 at which the ray is inside the closed box (SPEC §4.2).
@@ -181,6 +232,8 @@ fn slab_segment(o: DVec3, d: DVec3) -> Option<(f64, f64)> {
     // |o + t·d| ≤ √3 inside the box, so t ≤ (|o| + √3)/|d| there.
     let reach = (o.length() + 2.0) / d.length();
     let (mut t_near, mut t_far) = (0.0f64, f64::INFINITY);
+    // How far rounding of the box coordinates can move a crossing parameter.
+    let mut t_tol = 0.0f64;
     for a in 0..3 {
         if d[a] == 0.0 || d[a].abs() * reach <= slack {
             if o[a] < -slack || o[a] > 1.0 + slack {
@@ -191,6 +244,13 @@ fn slab_segment(o: DVec3, d: DVec3) -> Option<(f64, f64)> {
         let (ta, tb) = ((0.0 - o[a]) / d[a], (1.0 - o[a]) / d[a]);
         t_near = t_near.max(ta.min(tb));
         t_far = t_far.min(ta.max(tb));
+        t_tol = t_tol.max(slack / d[a].abs());
+    }
+    // A ray that only touches an edge or a corner meets the closed box in one point, and
+    // rounding may put the entry a hair after the exit: keep that point (a zero-length
+    // segment, which the renderer then drops) rather than report a miss.
+    if t_near > t_far && t_near - t_far <= t_tol {
+        t_far = t_near;
     }
     (t_near <= t_far && t_far.is_finite()).then_some((t_near, t_far))
 }
