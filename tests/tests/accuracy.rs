@@ -70,18 +70,3 @@ fn the_representation_error_shrinks_as_the_resolution_grows() {
     }
 }
 
-#[test]
-fn debug_ramp() {
-    for n in [16u32, 64] {
-        let g = Reference::Ramp;
-        let mut s = setup(n, Interpolation::Trilinear, 1.0 / 256.0, true);
-        s.image_side = 32;
-        let converged = render_alpha(g, &s);
-        for step in [1.0, 0.5, 0.25, 0.125, 0.0625, 1.0 / 32.0] {
-            s.step_voxels = step;
-            let img = render_alpha(g, &s);
-            let (r, m) = rmse_and_max(img.iter().copied(), converged.iter().copied());
-            eprintln!("n {n} step {step}: rmse {r:.3e} max {m:.3e}");
-        }
-    }
-}

@@ -159,6 +159,26 @@ proptest! {
             "forward [{t0}, {t1}] reverse [{r0}, {r1}] from {far}");
     }
 
+    /// The same for distorted boxes (the exact ray/bilinear-patch path): a ray through any
+    /// point of the closed box, faces, edges and corners included, hits it without NaN.
+    #[test]
+    fn a_ray_through_any_point_of_a_distorted_box_hits_it(
+        offsets in prop::collection::vec((-0.2f64..0.2, -0.2f64..0.2, -0.2f64..0.2), 8),
+        q in box_point(), d in direction(), back in 0.5f64..20.0,
+    ) {
+        let corners: [DVec3; 8] = std::array::from_fn(|i| {
+            let c = DVec3::new((i & 1) as f64, (i >> 1 & 1) as f64, (i >> 2 & 1) as f64);
+            c + DVec3::new(offsets[i].0, offsets[i].1, offsets[i].2)
+        });
+        let Ok(hex) = Hexahedron::new(corners) else { return Ok(()) };
+        let target = hex.world(q);
+        let origin = target - back * d;
+        let (t0, t1) = hex.segment(origin, d).expect("a ray through a point of the closed box must hit it");
+        prop_assert!(t0.is_finite() && t1.is_finite() && t0 >= 0.0 && t1 >= t0, "{t0} {t1}");
+        let tol = 1e-9 * (1.0 + back);
+        prop_assert!(t0 <= back + tol && back <= t1 + tol, "point at {back} outside [{t0}, {t1}]");
+    }
+
     /// Newton inversion of a distorted box: either the box is refused at load, or every
     /// point maps back to its box coordinates to 1e-6 voxel (for 256 voxels per axis), with
     /// ‖W(q(p)) − p‖ within what that tolerance allows.
