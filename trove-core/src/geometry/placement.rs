@@ -24,6 +24,9 @@ impl Extent {
 }
 
 /// The shape of an object's box.
+// Built once per object and read per ray: the affine variant's two inline matrices are the
+// hot path, so it is not boxed.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug)]
 pub enum Shape {
     /// A parallelepiped (from a matrix, or eight corners that form one).

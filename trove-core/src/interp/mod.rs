@@ -63,6 +63,8 @@ fn cell_axis(u: f64, n: u32) -> (usize, f64) {
 }
 
 /// The voxels a sample reads and their weights.
+// Built on the stack once per sample: boxing the cubic variant would allocate per sample.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug)]
 pub enum Stencil {
     /// One voxel.
