@@ -803,3 +803,51 @@ fn report(
     }
     s
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_quick_run_writes_the_csv_the_plot_and_the_summary() {
+        let out = std::env::temp_dir().join(format!("trove-bench-accuracy-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&out);
+        let result = run(AccuracyArgs { out: out.clone(), quick: true });
+        let csv = std::fs::read_to_string(out.join("accuracy.csv")).expect("accuracy.csv");
+        // 5 scenes × 4 interpolations × 2 corrections × 6 steps, plus trilinear's 2 fine steps.
+        assert_eq!(csv.lines().count(), 1 + 5 * (4 * 2 * 6 + 2), "{csv}");
+        assert!(csv.lines().skip(1).all(|l| l.split(',').count() == 11));
+        assert!(out.join("accuracy_representation.csv").is_file());
+        match result {
+            Ok(()) => {
+                assert!(out.join("accuracy.png").is_file());
+                let md = std::fs::read_to_string(out.join("accuracy.md")).unwrap();
+                assert!(md.contains("README paragraph") && md.contains("BENCHMARKS section"));
+            }
+            // A machine without any of the known fonts still gets the CSV files.
+            Err(e) => assert!(e.to_string().contains("TrueType font"), "{e:#}"),
+        }
+        let _ = std::fs::remove_dir_all(&out);
+    }
+
+    #[test]
+    fn pareto_marks_exactly_the_undominated_points() {
+        let p = |seconds: f64, rmse: f64| Point {
+            scene: Reference::Gaussian,
+            interpolation: Interpolation::Trilinear,
+            correction: true,
+            step: 1.0,
+            samples: 0,
+            seconds,
+            rmse,
+            max: rmse,
+            sampling_rmse: rmse,
+            sampling_max: rmse,
+            pareto: false,
+        };
+        let mut points = vec![p(1.0, 1.0), p(2.0, 0.5), p(2.0, 0.8), p(3.0, 0.5), p(0.5, 2.0)];
+        mark_pareto(&mut points);
+        let front: Vec<bool> = points.iter().map(|p| p.pareto).collect();
+        assert_eq!(front, vec![true, true, false, false, true]);
+    }
+}
