@@ -19,6 +19,7 @@ pub mod error;
 pub mod geometry;
 pub mod interp;
 pub mod mapping;
+pub mod reference;
 pub mod render;
 pub mod sampling;
 pub mod scene;

@@ -3,6 +3,7 @@
 //! Each experiment is one variant of [`BenchCommand`] and one module; adding one is a
 //! variant, a `mod` line and a match arm.
 
+pub mod accuracy;
 mod distorted;
 mod table1;
 
@@ -17,6 +18,9 @@ pub enum BenchCommand {
     /// Distorted boxes: exact inversion (SPEC default) against the paper's straight-line
     /// approximation, in time and in image error.
     Distorted(distorted::Args),
+    /// What accuracy costs in time: sampling distance × interpolation × opacity correction
+    /// on reference scenes with closed-form ray integrals; writes a CSV and a plot.
+    Accuracy(accuracy::AccuracyArgs),
 }
 
 impl BenchCommand {
@@ -25,6 +29,7 @@ impl BenchCommand {
         match self {
             BenchCommand::Table1(args) => table1::run(args),
             BenchCommand::Distorted(args) => distorted::run(args),
+            BenchCommand::Accuracy(args) => accuracy::run(args),
         }
     }
 }

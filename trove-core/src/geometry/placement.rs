@@ -60,9 +60,17 @@ pub struct Placement {
     tol_q: f64,
 }
 
-/// Relative slack when testing a point against the closed unit box, so a ray in a face
-/// plane stays inside despite rounding in the world → box transform (SPEC §4.5).
-const BOX_SLACK: f64 = 1e-12;
+/// Relative slack (64 ulps of the largest box coordinate involved) within which a ray that
+/// runs along a face plane counts as lying in it, so that rounding in the world → box
+/// transform cannot push a ray in a face plane out of the closed box (SPEC §4.5). The slack
+/// applies only to axes the ray is parallel to within that rounding: on every other axis the
+/// entry and exit are exact, so no chord is lengthened by it (a fixed 1e-12·|o| slack made
+/// chords 5e-11 too long at unit scale and 1e-6 too long with the camera 10⁶ away).
+const BOX_SLACK: f64 = 64.0 * f64::EPSILON;
+
+/// Points per axis, minus one, of the grid on which a distorted box's conditioning is
+/// estimated ([`Placement::check_inversion_precision`]).
+const CONDITION_GRID: usize = 8;
 
 impl Placement {
     /// A placement; the shape and extent were validated by the scene loader.
@@ -114,6 +122,53 @@ impl Placement {
     #[inline]
     pub fn vc_of_box(&self, q: DVec3) -> DVec3 {
         self.vc_scale * q + self.vc_offset
+    }
+
+    /// For a distorted box, whether f64 can invert its world map to the SPEC §4.2 tolerance
+    /// (10⁻⁶ voxel) everywhere in it; `Err` says where it cannot. Affine boxes always can.
+    ///
+    /// A box that does not fold (which [`Hexahedron::new`] proves) can still come so close
+    /// to folding that its Jacobian is nearly singular somewhere: the world point W(q) is
+    /// only known to about ε·(coordinate size), so q is only known to about that times
+    /// ‖J⁻¹‖, however well Newton converges. Where that exceeds the tolerance the sampled
+    /// voxels would be wrong by more than the SPEC allows, so the scene is refused at load
+    /// instead of rendering a wrong image. ‖J⁻¹‖ is estimated on a grid of 9³ points,
+    /// corners and faces included (the polynomial det J is smallest on the boundary unless
+    /// the box bends inward, and the grid then still brackets it to a fraction of its
+    /// variation); the factor 4 was measured on boxes approaching a fold at a corner.
+    pub fn check_inversion_precision(&self) -> Result<(), String> {
+        let Shape::Distorted { hex, .. } = &self.shape else { return Ok(()) };
+        let scale = hex.size() + hex.corners().iter().map(|c| c.abs().max_element()).fold(0.0, f64::max);
+        let mut worst = (0.0f64, DVec3::ZERO);
+        for i in 0..=CONDITION_GRID {
+            for j in 0..=CONDITION_GRID {
+                for k in 0..=CONDITION_GRID {
+                    let q = DVec3::new(i as f64, j as f64, k as f64) / CONDITION_GRID as f64;
+                    let inv = hex.jacobian(q).inverse();
+                    let norm =
+                        (inv.x_axis.length_squared() + inv.y_axis.length_squared() + inv.z_axis.length_squared())
+                            .sqrt();
+                    let norm = if norm.is_finite() { norm } else { f64::INFINITY };
+                    if norm > worst.0 {
+                        worst = (norm, q);
+                    }
+                }
+            }
+        }
+        let attainable_q = 4.0 * f64::EPSILON * scale * worst.0;
+        if attainable_q <= self.tol_q {
+            return Ok(());
+        }
+        let q = worst.1;
+        Err(format!(
+            "the box is too close to folding near box coordinates ({:.3}, {:.3}, {:.3}): its map cannot be \
+             inverted there to better than about {:.1e} voxel in f64 (1e-6 is required); move the corners \
+             further from folding",
+            q.x,
+            q.y,
+            q.z,
+            attainable_q / self.tol_q * 1e-6
+        ))
     }
 
     /// The first and last t ≥ 0 at which the ray is inside the closed box (SPEC §4.2).
@@ -177,22 +232,36 @@ pub fn sample_count(world_len: f64, sampling_distance: f64, vc_len: f64) -> u64 
     (x.round() as u64).max(1)
 }
 
-/// The slab test against the closed unit box in box coordinates. A zero direction
-/// component (+0.0 or −0.0) is handled without dividing, so it never makes NaN.
+/// The slab test against the closed unit box in box coordinates. An axis along which the
+/// ray moves less than the rounding slack over every t at which it could be in the box
+/// (`reach` bounds those t) is treated as parallel: the ray is inside that slab for all t
+/// or for none, decided on its origin with the slack. A zero direction component (+0.0 or
+/// −0.0) takes that branch, so it never divides and never makes NaN. Other axes give the
+/// exact crossing parameters.
 fn slab_segment(o: DVec3, d: DVec3) -> Option<(f64, f64)> {
-    let (mut t_near, mut t_far) = (0.0f64, f64::INFINITY);
     let slack = BOX_SLACK * (1.0 + o.abs().max_element());
+    // |o + t·d| ≤ √3 inside the box, so t ≤ (|o| + √3)/|d| there.
+    let reach = (o.length() + 2.0) / d.length();
+    let (mut t_near, mut t_far) = (0.0f64, f64::INFINITY);
+    // How far rounding of the box coordinates can move a crossing parameter.
+    let mut t_tol = 0.0f64;
     for a in 0..3 {
-        let (lo, hi) = (-slack, 1.0 + slack);
-        if d[a] == 0.0 {
-            if o[a] < lo || o[a] > hi {
+        if d[a] == 0.0 || d[a].abs() * reach <= slack {
+            if o[a] < -slack || o[a] > 1.0 + slack {
                 return None;
             }
             continue;
         }
-        let (ta, tb) = ((lo - o[a]) / d[a], (hi - o[a]) / d[a]);
+        let (ta, tb) = ((0.0 - o[a]) / d[a], (1.0 - o[a]) / d[a]);
         t_near = t_near.max(ta.min(tb));
         t_far = t_far.min(ta.max(tb));
+        t_tol = t_tol.max(slack / d[a].abs());
+    }
+    // A ray that only touches an edge or a corner meets the closed box in one point, and
+    // rounding may put the entry a hair after the exit: keep that point (a zero-length
+    // segment, which the renderer then drops) rather than report a miss.
+    if t_near > t_far && t_near - t_far <= t_tol {
+        t_far = t_near;
     }
     (t_near <= t_far && t_far.is_finite()).then_some((t_near, t_far))
 }

@@ -8,7 +8,10 @@ use glam::{DMat3, DMat4, DVec3, DVec4};
 
 use super::file::{ChannelFile, DatasetFile, ObjectFile, SceneFile, TransformFile};
 use super::mappings::{self, KeyError};
-use super::{ImageSettings, Object, RenderSettings, Scene, MAX_IMAGE_SIDE, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE};
+use super::{
+    ImageSettings, Object, RenderSettings, Scene, MAX_IMAGE_SIDE, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE,
+    MAX_SAMPLES_PER_RENDER,
+};
 use crate::dataset::raw::StoredType;
 use crate::dataset::{
     image_file, nifti_file, nrrd, raw, ChannelName, ChannelSource, DatasetInfo, Dims, Endian, VoxelType,
@@ -77,7 +80,50 @@ pub(super) fn scene(text: &str, path: &Path) -> Result<Scene, SceneError> {
         };
         objects.push(object(o, &key, ds, &datasets[ds], straight).map_err(fail)?);
     }
+    render_budget(&image, &objects, &datasets).map_err(fail)?;
     Ok(Scene { path: path.to_path_buf(), image, camera, render, datasets, objects })
+}
+
+/// The diagonal of the axis-aligned bounding box of an object's corners (world units).
+fn world_diagonal(placement: &Placement) -> f64 {
+    let c = placement.corners();
+    let (lo, hi) = c.iter().fold((c[0], c[0]), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
+    (hi - lo).length()
+}
+
+/// Refuses a scene whose worst-case sample count exceeds [`MAX_SAMPLES_PER_RENDER`]: every
+/// pixel's ray through every object's bounding-box diagonal, at the object's step (its
+/// world sampling distance, or one voxel: the VC diagonal of its extent). A clear refusal
+/// beats a render that cannot finish; termination 1.0 cannot shorten it either.
+fn render_budget(image: &ImageSettings, objects: &[Object], datasets: &[DatasetInfo]) -> Result<(), KeyError> {
+    let per_ray: Vec<f64> = objects
+        .iter()
+        .map(|o| {
+            if o.sampling_distance > 0.0 {
+                world_diagonal(&o.placement) / o.sampling_distance
+            } else {
+                let e = o.placement.extent();
+                let d = datasets[o.dataset].dims;
+                let n = DVec3::new(d.axis(0) as f64, d.axis(1) as f64, d.axis(2) as f64);
+                ((e.max - e.min) * n).length()
+            }
+        })
+        .collect();
+    let pixels = image.width as f64 * image.height as f64;
+    let total = pixels * per_ray.iter().sum::<f64>();
+    if total <= MAX_SAMPLES_PER_RENDER {
+        return Ok(());
+    }
+    let (worst, most) =
+        per_ray.iter().enumerate().fold((0, 0.0), |(i, m), (j, &v)| if v > m { (j, v) } else { (i, m) });
+    Err((
+        format!("objects[{worst}].sampling_distance"),
+        format!(
+            "the render could take up to {total:.3e} samples ({}×{} pixels, up to {most:.3e} per ray in this object); \
+             at most {MAX_SAMPLES_PER_RENDER:.3e} are allowed: use a larger sampling distance or a smaller image",
+            image.width, image.height
+        ),
+    ))
 }
 
 /// TOML → plain structs, with serde's errors turned into key paths and plain words.
@@ -444,12 +490,9 @@ fn object(o: &ObjectFile, key: &str, ds: usize, info: &DatasetInfo, straight: bo
     let extent = extent(o, key)?;
     let shape = shape(o.transform.as_ref(), &format!("{key}.transform"), straight)?;
     let placement = Placement::new(shape, extent, info.dims);
+    placement.check_inversion_precision().map_err(|m| (format!("{key}.transform.corners"), m))?;
     // Refuse sampling so fine that one ray would take millions of samples per object.
-    let diagonal = {
-        let c = placement.corners();
-        let (lo, hi) = c.iter().fold((c[0], c[0]), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
-        (hi - lo).length()
-    };
+    let diagonal = world_diagonal(&placement);
     if sampling_distance > 0.0 && diagonal / sampling_distance > MAX_SAMPLES_PER_PIECE {
         return Err((
             format!("{key}.sampling_distance"),
