@@ -7,8 +7,8 @@
 //! against the exact integral (*total* error) and against a converged render of the same
 //! voxels with the same interpolation (*sampling* error, see the reference module for why
 //! the two differ). A second sweep grows the resolution at a fine step to isolate the
-//! *representation* error. The renderer accumulates in f64 only, so there is no f32/f64
-//! axis.
+//! *representation* error. Renders use the per-ray algorithm, which accumulates in f64
+//! only, so there is no f32/f64 axis.
 //!
 //! Outputs in `--out` (default `docs/`): `accuracy.csv` (the sweep),
 //! `accuracy_representation.csv`, `accuracy.png` (error against time, log-log, one curve per
@@ -706,8 +706,9 @@ fn report(
          white objects on black so a pixel is 1 − T; sampling distance {{4, 2, 1, ½, ¼, ⅛}} voxel × \
          {{nearest, trilinear, nonlinear ω = [0, ½, ½], cubic}} × opacity correction on/off; the median of {r} \
          renders per point (render time without dataset generation). *Total* error is against the exact \
-         integral; *sampling* error against a render of the same voxels at 1/{c} voxel. The renderer \
-         accumulates in f64 only, so f32 accumulation is not an axis (its error over 10⁵ samples is bounded \
+         integral; *sampling* error against a render of the same voxels at 1/{c} voxel. Renders use \
+         the per-ray algorithm, which accumulates in f64 only (the grouped algorithm's piece results are \
+         f32 on the wire), so f32 accumulation is not an axis (its error over 10⁵ samples is bounded \
          in `tests/tests/numerics.rs`, see `docs/numerics.md`).\n",
         d = cfg.dims,
         p = cfg.image_side,
