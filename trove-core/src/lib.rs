@@ -1,5 +1,5 @@
 //! TROVE core: the two-level scene model of Leu & Chen (1997) and the ray casting that
-//! renders it, with no networking and no knowledge of any wire format.
+//! renders it, with no networking and no protocol types (the farm translates at its edge).
 //!
 //! The data flow of one render is visible in the modules, in order:
 //! [`scene`] (TOML → validated model) → [`geometry`] (camera rays → per-object segments →
@@ -10,7 +10,8 @@
 //! front-to-back waves, composition — over a volume store with a memory budget; the image
 //! and statistics they yield).
 //! [`dataset`] is the voxel level: channels stored once and shared by every object that
-//! names them.
+//! names them. [`reference`] builds scenes whose ray integrals have closed forms, against
+//! which the accuracy benchmark and tests measure the renderer.
 #![deny(missing_docs)]
 
 pub mod composite;
