@@ -2,50 +2,18 @@
 //! a one-paragraph message naming the file and key, never a panic; good input writes a PNG,
 //! a PFM that agrees with it, and `--stats` JSON with the documented keys.
 //!
-//! **Finding the binary.** Cargo sets `CARGO_BIN_EXE_trove` only for the tests of the package
-//! that defines `trove` (`trove-coordinator`), and a binary crate cannot be a dependency, so
-//! this test builds it: once per test process, with the cargo that runs the tests (`$CARGO`
-//! at compile time), into the same target folder and profile as this test executable. Both
-//! are read from where this executable lives (`<target-dir>/<profile-dir>/deps/cli-*`), which
-//! holds whatever `CARGO_TARGET_DIR`, `--target-dir` or `--profile` said; the build is a
-//! no-op when `trove` is up to date. (Cross-compiling with `--target` puts test binaries
-//! under `<target-dir>/<triple>/`; the binary then lands beside them only if the same
-//! `CARGO_BUILD_TARGET` is set in the environment, which cargo then reads for this build too.)
+//! Cargo builds the `trove` binary for this package's integration tests and names it in
+//! `CARGO_BIN_EXE_trove`, with the same features as the test run, so no rebuild happens here.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
-use std::sync::OnceLock;
 
 use trove_core::render::Image;
-use trove_tests::{repo_root, scratch};
+use trove_tests::scratch;
 
-/// The `trove` binary, built on first use.
+/// The `trove` binary that cargo built for these tests.
 fn trove() -> &'static Path {
-    static BIN: OnceLock<PathBuf> = OnceLock::new();
-    BIN.get_or_init(|| {
-        let exe = std::env::current_exe().expect("the test executable's path");
-        let deps = exe.parent().expect("deps folder");
-        let profile_dir = deps.parent().expect("profile folder");
-        let target_dir = profile_dir.parent().expect("target folder");
-        // `debug` is the folder of the `dev` and `test` profiles; others are named as is.
-        let profile = match profile_dir.file_name().and_then(|n| n.to_str()) {
-            Some("debug") | None => "dev",
-            Some(name) => name,
-        };
-        let cargo = option_env!("CARGO").unwrap_or("cargo");
-        let status = Command::new(cargo)
-            .args(["build", "-q", "-p", "trove-coordinator", "--bin", "trove", "--profile", profile])
-            .arg("--manifest-path")
-            .arg(repo_root().join("Cargo.toml"))
-            .arg("--target-dir")
-            .arg(target_dir)
-            .status()
-            .expect("run cargo to build `trove`");
-        assert!(status.success(), "building `trove` failed");
-        let bin = profile_dir.join(format!("trove{}", std::env::consts::EXE_SUFFIX));
-        assert!(bin.is_file(), "`trove` was built but is not at {}", bin.display());
-        bin
-    })
+    Path::new(env!("CARGO_BIN_EXE_trove"))
 }
 
 /// Runs `trove` with `args`, with backtraces enabled so that a panic could not hide.
