@@ -229,15 +229,31 @@ fn a_short_budget_makes_per_ray_reload_while_grouped_loads_each_voxel_once() {
 
 #[test]
 fn a_budget_of_exactly_one_dataset_renders_on_many_threads_without_deadlock() {
-    let (scene, total) = budget_scene(&scratch("alg-tight"));
-    let budget = total / 4;
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(4).build().unwrap();
-    let (a, b) = pool.install(|| both(&scene, Some(budget)));
-    for r in [&a, &b] {
-        assert!(r.stats.peak_resident_bytes <= budget);
+    // Loads run inside rayon jobs while other jobs wait for them; a loader that used rayon
+    // itself once deadlocked here, so a watchdog turns a hang into a failure, and a few
+    // repetitions give the thread interleavings a chance to show it.
+    let (done_tx, done_rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let (scene, total) = budget_scene(&scratch("alg-tight"));
+        let budget = total / 4;
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(4).build().unwrap();
+        for _ in 0..5 {
+            let (a, b) = pool.install(|| both(&scene, Some(budget)));
+            for r in [&a, &b] {
+                assert!(r.stats.peak_resident_bytes <= budget);
+            }
+            assert!(a.stats.dataset_loads > 4);
+            assert!(a.image.max_byte_difference(&b.image) <= 1);
+        }
+        let _ = done_tx.send(());
+    });
+    match done_rx.recv_timeout(std::time::Duration::from_secs(120)) {
+        Ok(()) => {}
+        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => panic!("rendering under a one-dataset budget deadlocked"),
+        Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
+            panic!("the render thread failed (see its panic above)")
+        }
     }
-    assert!(a.stats.dataset_loads > 4);
-    assert!(a.image.max_byte_difference(&b.image) <= 1);
 }
 
 #[test]

@@ -31,7 +31,6 @@
 
 use std::sync::Arc;
 
-use rayon::prelude::*;
 use serde::Deserialize;
 
 use super::{Channel, Dims, Endian, VoxelBytes, VoxelType};
@@ -413,6 +412,11 @@ impl Generator {
 
     /// Generates the channel. Call [`Generator::check`] first: unchecked parameters still give
     /// a channel, but a non-finite or out-of-range value is clamped (NaN stores as 0).
+    ///
+    /// Sequential on purpose: the per-ray renderer loads datasets from inside its rayon jobs
+    /// while other jobs wait on the store for that very load. A parallel loop here would let
+    /// the loading thread, idle in a join, steal one of those waiting jobs and block on its
+    /// own unfinished load — a deadlock seen in the budget tests.
     pub fn generate(&self, dims: Dims) -> Channel {
         let ty = self.voxel_type();
         let [nx, ny, nz] = dims.as_array().map(|n| n as usize);
@@ -427,7 +431,7 @@ impl Generator {
         let bytes = if ty == VoxelType::Bit {
             let count = nx * ny * nz;
             let mut out = vec![0u8; count.div_ceil(8)];
-            out.par_iter_mut().enumerate().for_each(|(byte, b)| {
+            out.iter_mut().enumerate().for_each(|(byte, b)| {
                 for bit in 0..8 {
                     let idx = byte * 8 + bit;
                     if idx >= count {
@@ -448,7 +452,7 @@ impl Generator {
                 4
             };
             let mut out = vec![0u8; nx * ny * nz * bpv];
-            out.par_chunks_mut(nx * bpv).enumerate().for_each(|(row, line)| {
+            out.chunks_mut(nx * bpv).enumerate().for_each(|(row, line)| {
                 let (j, k) = (row % ny, row / ny);
                 let (py, pz) = (centre(j, ny), centre(k, nz));
                 for (i, dst) in line.chunks_exact_mut(bpv).enumerate() {

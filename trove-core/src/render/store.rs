@@ -143,7 +143,10 @@ impl<'s> VolumeStore<'s> {
     }
 
     /// Dataset `index`'s voxels, loading them (and evicting others) when needed. Blocks
-    /// while the budget is held by datasets other threads still read.
+    /// while the budget is held by datasets other threads still read, or while another
+    /// thread loads this dataset. The load runs on the calling thread, often a rayon worker,
+    /// so loaders must never use rayon themselves: a worker idle in a nested join may steal a
+    /// job that waits here for the load on its own stack (see `Generator::generate`).
     pub fn get(&self, index: usize) -> Result<Pinned<'_>, RenderError> {
         let info = &self.scene.datasets[index];
         let needed = info.resident_bytes();
