@@ -43,8 +43,7 @@ pub fn render_text(dir: &Path, toml: &str) -> Image {
 
 /// Largest per-channel difference between two images' linear values.
 pub fn max_abs_difference(a: &Image, b: &Image) -> f64 {
-    assert_eq!((a.width(), a.height()), (b.width(), b.height()), "image sizes");
-    a.pixels().iter().zip(b.pixels()).flat_map(|(p, q)| (0..3).map(move |i| (p[i] - q[i]).abs())).fold(0.0, f64::max)
+    a.max_abs_difference(b)
 }
 
 /// Every example scene in `scenes/`, sorted, loaded and shrunk so that its longer side is

@@ -2,7 +2,6 @@
 //! placements, convergence as the distortion vanishes, and refusal of folded boxes.
 
 use trove_core::geometry::Shape;
-use trove_core::render::Image;
 use trove_core::scene::Scene;
 use trove_tests::{render_text, scratch};
 
@@ -66,16 +65,16 @@ fn corners_text(c: [[f64; 3]; 8]) -> String {
     format!("{{ corners = [{}] }}", pts.join(", "))
 }
 
-fn max_abs(a: &Image, b: &Image) -> f64 {
-    a.pixels().iter().zip(b.pixels()).flat_map(|(p, q)| (0..3).map(move |i| (p[i] - q[i]).abs())).fold(0.0, f64::max)
-}
-
 #[test]
 fn a_matrix_and_its_eight_corners_render_the_same_image() {
     let dir = scratch("corners-vs-matrix");
     let by_matrix = render_text(&dir, &scene(&matrix_text(), ""));
     let by_corners = render_text(&dir, &scene(&corners_text(corners(0.0)), ""));
-    assert!(max_abs(&by_matrix, &by_corners) < 1e-9, "{}", max_abs(&by_matrix, &by_corners));
+    assert!(
+        trove_tests::max_abs_difference(&by_matrix, &by_corners) < 1e-9,
+        "{}",
+        trove_tests::max_abs_difference(&by_matrix, &by_corners)
+    );
     assert!(by_matrix.pixels().iter().any(|p| *p != [0.1, 0.1, 0.1]));
 }
 
@@ -91,7 +90,7 @@ fn a_slightly_distorted_box_converges_to_the_affine_one() {
             matches!(parsed.objects[0].placement.shape(), Shape::Distorted { .. }),
             "ε = {eps} must take the distorted path"
         );
-        let err = max_abs(&render_text(&dir, &text), &affine);
+        let err = trove_tests::max_abs_difference(&render_text(&dir, &text), &affine);
         // The image depends smoothly on the corners: the error is first order in ε.
         assert!(err < last * if eps < 1e-2 { 0.2 } else { 1.0 }, "ε = {eps}: error {err} did not shrink from {last}");
         last = err;
@@ -104,7 +103,7 @@ fn the_paper_straight_line_mode_approximates_the_exact_inversion() {
     let dir = scratch("straight");
     let exact = render_text(&dir, &scene(&corners_text(corners(0.15)), ""));
     let straight = render_text(&dir, &scene(&corners_text(corners(0.15)), "distorted_sampling = \"straight\""));
-    let diff = max_abs(&exact, &straight);
+    let diff = trove_tests::max_abs_difference(&exact, &straight);
     assert!(diff > 1e-4, "straight-line sampling should differ visibly on a distorted box, got {diff}");
     assert!(
         exact.psnr(&straight) > 20.0,

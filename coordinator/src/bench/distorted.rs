@@ -7,7 +7,7 @@
 //! image is the reference.
 
 use anyhow::{Context, Result};
-use trove_core::render::{self, Algorithm, Image, RenderOptions, Rendered};
+use trove_core::render::{Algorithm, Image, RenderOptions, Rendered};
 use trove_core::scene::Scene;
 
 /// `trove bench distorted` options.
@@ -64,13 +64,7 @@ transform = {{ corners = [[1.05, -0.5, -0.5], [1.95, -0.5, -0.5], [1.05, 0.5, -0
 
 fn median_run(scene: &Scene, repeat: u32) -> Result<Rendered> {
     let options = RenderOptions { algorithm: Algorithm::Grouped, ..Default::default() };
-    let mut runs = Vec::new();
-    for _ in 0..repeat.max(1) {
-        runs.push(render::render(scene, &options)?);
-    }
-    runs.sort_by(|a, b| a.stats.seconds.total.total_cmp(&b.stats.seconds.total));
-    let middle = runs.len() / 2;
-    Ok(runs.swap_remove(middle))
+    super::median_render(scene, &options, repeat, |_| {})
 }
 
 /// Runs the comparison and prints a table.

@@ -8,6 +8,8 @@ mod distorted;
 mod table1;
 
 use anyhow::Result;
+use trove_core::render::{self, RenderOptions, Rendered};
+use trove_core::scene::Scene;
 
 /// The experiments.
 #[derive(clap::Subcommand)]
@@ -32,4 +34,24 @@ impl BenchCommand {
             BenchCommand::Accuracy(args) => accuracy::run(args),
         }
     }
+}
+
+/// Renders `repeat` times (at least once) and keeps the run with the median total time: the
+/// machines are shared and noisy, so one fast run proves little. `each` sees every run as it
+/// finishes (for progress lines).
+pub(crate) fn median_render(
+    scene: &Scene,
+    options: &RenderOptions,
+    repeat: u32,
+    mut each: impl FnMut(&Rendered),
+) -> Result<Rendered> {
+    let mut runs = Vec::new();
+    for _ in 0..repeat.max(1) {
+        let r = render::render(scene, options)?;
+        each(&r);
+        runs.push(r);
+    }
+    runs.sort_by(|a, b| a.stats.seconds.total.total_cmp(&b.stats.seconds.total));
+    let middle = runs.len() / 2;
+    Ok(runs.swap_remove(middle))
 }

@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use trove_core::render::workunit::{RESULT_BYTES, TASK_BYTES};
-use trove_core::render::{self, Algorithm, RenderOptions, Rendered};
+use trove_core::render::{Algorithm, RenderOptions, Rendered};
 use trove_core::scene::Scene;
 
 /// `trove bench table1` options.
@@ -171,23 +171,16 @@ fn load_scene(dir: &Path, text: &str) -> Result<Scene> {
     Scene::parse(text, dir.join("scene.toml")).context("building the benchmark scene")
 }
 
-/// Renders `repeat` times and keeps the run with the median total time (the machines are
-/// shared and noisy, so one fast run proves little); progress goes to standard error.
+/// The median of `repeat` renders, each reported on standard error as it finishes.
 fn median_of(label: &str, scene: &Scene, options: &RenderOptions, repeat: u32) -> Result<Rendered> {
-    let mut runs: Vec<Rendered> = Vec::new();
-    for _ in 0..repeat.max(1) {
-        let r = render::render(scene, options)?;
+    super::median_render(scene, options, repeat, |r| {
         eprintln!(
             "  {} {label}: {:.2} s, {} loads",
             options.algorithm.name(),
             r.stats.seconds.total,
             r.stats.dataset_loads
-        );
-        runs.push(r);
-    }
-    runs.sort_by(|a, b| a.stats.seconds.total.total_cmp(&b.stats.seconds.total));
-    let middle = runs.len() / 2;
-    Ok(runs.swap_remove(middle))
+        )
+    })
 }
 
 /// The paper's table with our seconds and, in brackets, the paper's.

@@ -114,6 +114,16 @@ impl Image {
         Ok(Image::new(w, h, pixels))
     }
 
+    /// Largest per-channel difference between two images' linear values.
+    pub fn max_abs_difference(&self, other: &Image) -> f64 {
+        assert_eq!((self.width, self.height), (other.width, other.height), "image sizes");
+        self.pixels
+            .iter()
+            .zip(&other.pixels)
+            .flat_map(|(p, q)| (0..3).map(move |i| (p[i] - q[i]).abs()))
+            .fold(0.0, f64::max)
+    }
+
     /// Largest per-channel difference in 8-bit levels between two images' PNG bytes.
     pub fn max_byte_difference(&self, other: &Image) -> u8 {
         self.to_rgb8().iter().zip(other.to_rgb8()).map(|(a, b)| a.abs_diff(b)).max().unwrap_or(0)
