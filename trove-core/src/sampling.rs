@@ -76,13 +76,16 @@ impl<'a> ObjectCaster<'a> {
         }
         let dims = self.volume.dims();
         let interp = &self.object.interpolation;
+        // Maps that read no channel (constant colour and opacity) need no stencil at all.
+        let reads_channels = self.voxel.is_some() || self.raw_rgb.is_some() || self.alpha.is_some();
         for (vc, ell) in self.object.placement.walk(ray, t0, t1, self.object.sampling_distance) {
             let Some(vc) = vc else { continue };
             samples += 1;
-            let stencil = Stencil::new(interp, dims, vc);
+            let stencil = reads_channels.then(|| Stencil::new(interp, dims, vc));
+            let read = |r: &ChannelReader<'_>| stencil.as_ref().map_or(0.0, |s| s.apply(r));
             let v = match &self.voxel {
                 Some(r) => {
-                    let v = stencil.apply(r);
+                    let v = read(r);
                     if !v.is_finite() {
                         continue;
                     }
@@ -91,12 +94,12 @@ impl<'a> ObjectCaster<'a> {
                 None => 0.0,
             };
             let colour = match (&self.raw_rgb, self.constant_colour) {
-                (Some((kind, rgb)), _) => ColourMap::map_raw(*kind, rgb.each_ref().map(|r| stencil.apply(r))),
+                (Some((kind, rgb)), _) => ColourMap::map_raw(*kind, rgb.each_ref().map(read)),
                 (None, Some(c)) => Some(c),
                 (None, None) => self.object.colour.map(v),
             };
             let opacity = match &self.alpha {
-                Some(a) => OpacityMap::map_raw(stencil.apply(a)),
+                Some(a) => OpacityMap::map_raw(read(a)),
                 None => self.object.opacity.map(v),
             };
             let (Some(colour), Some(opacity)) = (colour, opacity) else { continue };
