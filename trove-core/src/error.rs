@@ -96,6 +96,15 @@ pub enum RenderError {
         /// The budget.
         budget: u64,
     },
+    /// An object could not be bound to the volume loaded for its dataset.
+    #[error("object `{object}`: {source}")]
+    Bind {
+        /// The object's name.
+        object: String,
+        /// Why.
+        #[source]
+        source: crate::sampling::BindError,
+    },
     /// Writing the output failed.
     #[error("cannot write {}: {message}", path.display())]
     Output {

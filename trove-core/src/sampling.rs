@@ -9,6 +9,28 @@ use crate::interp::Stencil;
 use crate::mapping::{ColourMap, OpacityMap, RawColour};
 use crate::scene::Object;
 
+/// Why an object cannot be bound to a volume: the volume is not the object's dataset (a
+/// worker handed the wrong dataset, or a stale one). The scene validator guarantees that an
+/// object's own dataset has every channel its maps read, so a scene renderer never sees this;
+/// a farm worker fed a bad message does, and answers with an error instead of panicking.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum BindError {
+    /// A channel the object's maps read is missing from the volume.
+    #[error("the volume has no `{channel}` channel, which the object's maps read")]
+    MissingChannel {
+        /// The missing channel.
+        channel: ChannelName,
+    },
+    /// The volume's dims differ from the dims the object was placed with.
+    #[error("the volume's dims {found} differ from the dims {expected} the object was placed with")]
+    DimsMismatch {
+        /// Dims the placement assumes.
+        expected: crate::dataset::Dims,
+        /// Dims of the volume handed in.
+        found: crate::dataset::Dims,
+    },
+}
+
 /// What one object contributed over one piece.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PieceResult {
@@ -31,15 +53,25 @@ pub struct ObjectCaster<'a> {
 }
 
 impl<'a> ObjectCaster<'a> {
-    /// Binds `object` to `volume` (its dataset's voxels). The scene validator guaranteed
-    /// that every channel a map reads exists.
-    pub fn new(object: &'a Object, volume: &'a Volume, opacity_correction: bool) -> ObjectCaster<'a> {
-        let reader = |c: ChannelName| volume.channel(c).map(|ch| ch.reader());
+    /// Binds `object` to `volume`, its dataset's voxels; refuses a volume that lacks a
+    /// channel the object's maps read or has other dims than the object was placed with.
+    pub fn new(
+        object: &'a Object,
+        volume: &'a Volume,
+        opacity_correction: bool,
+    ) -> Result<ObjectCaster<'a>, BindError> {
+        let expected = object.placement.dims();
+        if volume.dims() != expected {
+            return Err(BindError::DimsMismatch { expected, found: volume.dims() });
+        }
+        let reader = |channel: ChannelName| {
+            volume.channel(channel).map(|ch| ch.reader()).ok_or(BindError::MissingChannel { channel })
+        };
         let needs_voxel = object.colour.reads_voxel() || object.opacity.reads_voxel();
         let raw_rgb = match &object.colour {
             ColourMap::Raw(kind) => {
-                let [r, g, b] = kind.channels().map(|c| reader(c).expect("validated: raw colour channels exist"));
-                Some((*kind, [r, g, b]))
+                let [r, g, b] = kind.channels();
+                Some((*kind, [reader(r)?, reader(g)?, reader(b)?]))
             }
             _ => None,
         };
@@ -47,20 +79,15 @@ impl<'a> ObjectCaster<'a> {
             ColourMap::Polynomial(_) if !object.colour.reads_voxel() => object.colour.map(0.0),
             _ => None,
         };
-        ObjectCaster {
+        Ok(ObjectCaster {
             object,
             volume,
-            voxel: if needs_voxel {
-                Some(reader(ChannelName::Voxel).expect("validated: voxel channel exists"))
-            } else {
-                None
-            },
+            voxel: if needs_voxel { Some(reader(ChannelName::Voxel)?) } else { None },
             raw_rgb,
-            alpha: matches!(object.opacity, OpacityMap::Raw)
-                .then(|| reader(ChannelName::Alpha).expect("validated: alpha channel exists")),
+            alpha: if matches!(object.opacity, OpacityMap::Raw) { Some(reader(ChannelName::Alpha)?) } else { None },
             constant_colour,
             opacity_correction,
-        }
+        })
     }
 
     /// Composites this object's samples over [t0, t1] front to back. The ray arrives with

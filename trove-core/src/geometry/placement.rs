@@ -51,6 +51,8 @@ pub enum Shape {
 pub struct Placement {
     shape: Shape,
     extent: Extent,
+    /// The dataset's dims, which fix VC.
+    dims: Dims,
     /// VC = vc_scale * q + vc_offset (per axis).
     vc_scale: DVec3,
     vc_offset: DVec3,
@@ -89,7 +91,7 @@ impl Placement {
             Shape::Distorted { .. } => DMat4::NAN,
         };
         let tol_q = 1e-6 / vc_scale.max_element();
-        Placement { shape, extent, vc_scale, vc_offset, vc_from_world, tol_q }
+        Placement { shape, extent, dims, vc_scale, vc_offset, vc_from_world, tol_q }
     }
 
     /// Chooses straight-line sampling (true) or exact inversion for a distorted box; affine
@@ -108,6 +110,11 @@ impl Placement {
     /// The extent.
     pub fn extent(&self) -> Extent {
         self.extent
+    }
+
+    /// The dims of the dataset this placement maps into.
+    pub fn dims(&self) -> Dims {
+        self.dims
     }
 
     /// The eight world corners, index x + 2y + 4z.

@@ -118,8 +118,7 @@ fn trace(scene: &Scene, store: &VolumeStore, ray: &Ray, band: &mut Band) -> Resu
         if let [only] = cover {
             let object = &scene.objects[*only as usize];
             let volume = get(store, object.dataset, &mut band.loading_nanos)?;
-            let r =
-                ObjectCaster::new(object, &volume, correction).cast(ray, piece.t0, piece.t1, acc.alpha, termination);
+            let r = bind(object, &volume, correction)?.cast(ray, piece.t0, piece.t1, acc.alpha, termination);
             band.samples += r.samples;
             acc.over(r.rgba);
         } else {
@@ -127,8 +126,7 @@ fn trace(scene: &Scene, store: &VolumeStore, ray: &Ray, band: &mut Band) -> Resu
             for &o in cover {
                 let object = &scene.objects[o as usize];
                 let volume = get(store, object.dataset, &mut band.loading_nanos)?;
-                let r =
-                    ObjectCaster::new(object, &volume, correction).cast(ray, piece.t0, piece.t1, 0.0, f64::INFINITY);
+                let r = bind(object, &volume, correction)?.cast(ray, piece.t0, piece.t1, 0.0, f64::INFINITY);
                 band.samples += r.samples;
                 band.parts.push(r.rgba);
             }
@@ -137,6 +135,17 @@ fn trace(scene: &Scene, store: &VolumeStore, ray: &Ray, band: &mut Band) -> Resu
     }
     band.casting_nanos += t_cast.elapsed().as_nanos() as u64;
     Ok(acc)
+}
+
+/// The caster of `object` over its own dataset's volume. The scene guarantees the volume
+/// has the channels the object's maps read, so this fails only if a file changed since.
+fn bind<'a>(
+    object: &'a crate::scene::Object,
+    volume: &'a crate::dataset::Volume,
+    correction: bool,
+) -> Result<ObjectCaster<'a>, RenderError> {
+    ObjectCaster::new(object, volume, correction)
+        .map_err(|e| RenderError::Bind { object: object.name.clone(), source: e })
 }
 
 /// Dataset `index` from the store, timing the call (loading and waiting for room).

@@ -173,8 +173,10 @@ pub fn cast_batch(scene: &Scene, volume: &Volume, tasks: &[PieceTask], out: &mut
         let slot = match casters.iter().position(|(o, _)| *o == task.object) {
             Some(i) => i,
             None => {
-                casters
-                    .push((task.object, ObjectCaster::new(&scene.objects[task.object as usize], volume, correction)));
+                let object = &scene.objects[task.object as usize];
+                let caster = ObjectCaster::new(object, volume, correction)
+                    .unwrap_or_else(|e| panic!("object `{}`: {e}", object.name));
+                casters.push((task.object, caster));
                 casters.len() - 1
             }
         };
