@@ -135,7 +135,13 @@ fn render_command(args: RenderArgs) -> Result<()> {
         memory_budget: args.memory_budget,
         progress: bar.clone().map(|b| Arc::new(move |rows: u64| b.set_position(rows)) as render::Progress),
     };
-    let rendered = render::render(&scene, &options).with_context(|| format!("rendering {}", args.scene.display()))?;
+    let rendered = render::render(&scene, &options).map_err(|e| {
+        let hint = match &e {
+            render::RenderError::Store(render::StoreError::BudgetTooSmall { .. }) => " (see --memory-budget)",
+            _ => "",
+        };
+        anyhow::Error::new(e).context(format!("rendering {}{hint}", args.scene.display()))
+    })?;
     if let Some(b) = bar {
         b.finish_and_clear();
     }

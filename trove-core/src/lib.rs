@@ -25,4 +25,5 @@ pub mod render;
 pub mod sampling;
 pub mod scene;
 
-pub use error::{DatasetError, RenderError, SceneError};
+pub use error::{DatasetError, SceneError};
+pub use render::RenderError;

@@ -13,7 +13,7 @@ use crate::scene::Object;
 /// worker handed the wrong dataset, or a stale one). The scene validator guarantees that an
 /// object's own dataset has every channel its maps read, so a scene renderer never sees this;
 /// a farm worker fed a bad message does, and answers with an error instead of panicking.
-#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+#[derive(Debug, thiserror::Error, Clone, PartialEq, Eq)]
 pub enum BindError {
     /// A channel the object's maps read is missing from the volume.
     #[error("the volume has no `{channel}` channel, which the object's maps read")]

@@ -1,10 +1,9 @@
 //! The rendered image and its two file forms: an 8-bit PNG (SPEC §4.4's quantisation) and
 //! an unquantised Portable FloatMap.
 
-use std::io::Write;
 use std::path::Path;
 
-use crate::RenderError;
+use super::error::{OutputError, RenderError};
 
 /// Linear RGB pixels, row 0 at the top.
 #[derive(Clone, Debug, PartialEq)]
@@ -43,33 +42,26 @@ impl Image {
 
     /// round(255 · clamp(C, 0, 1)) per channel, half away from zero, no gamma.
     pub fn to_rgb8(&self) -> Vec<u8> {
-        self.pixels.iter().flat_map(|p| p.map(|c| (255.0 * c.clamp(0.0, 1.0)).round() as u8)).collect()
+        self.pixels.iter().flat_map(|p| p.map(quantize)).collect()
+    }
+
+    /// The linear values as f32, row-major: what a PFM stores.
+    pub fn to_rgb32f(&self) -> Vec<f32> {
+        self.pixels.iter().flat_map(|p| p.map(|c| c as f32)).collect()
     }
 
     /// Writes a PNG, or a PFM when the path ends in `.pfm`.
     pub fn save(&self, path: &Path) -> Result<(), RenderError> {
         let is_pfm = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("pfm"));
-        let result = if is_pfm { self.write_pfm(path) } else { self.write_png(path) };
-        result.map_err(|message| RenderError::Output { path: path.to_path_buf(), message })
+        let bytes = if is_pfm { Ok(encode_pfm(self.width, self.height, &self.to_rgb32f())) } else { self.encode_png() };
+        bytes
+            .and_then(|b| std::fs::write(path, b).map_err(OutputError::from))
+            .map_err(|source| RenderError::Output { path: path.to_path_buf(), source })
     }
 
-    fn write_png(&self, path: &Path) -> Result<(), String> {
-        image::save_buffer(path, &self.to_rgb8(), self.width, self.height, image::ExtendedColorType::Rgb8)
-            .map_err(|e| e.to_string())
-    }
-
-    /// PFM: "PF", dimensions, a negative scale for little-endian, then rows bottom to top.
-    fn write_pfm(&self, path: &Path) -> Result<(), String> {
-        let mut out = Vec::with_capacity(self.pixels.len() * 12 + 32);
-        write!(out, "PF\n{} {}\n-1.0\n", self.width, self.height).map_err(|e| e.to_string())?;
-        for row in self.pixels.chunks(self.width as usize).rev() {
-            for p in row {
-                for c in p {
-                    out.extend_from_slice(&(*c as f32).to_le_bytes());
-                }
-            }
-        }
-        std::fs::write(path, out).map_err(|e| e.to_string())
+    /// The PNG file's bytes.
+    pub fn encode_png(&self) -> Result<Vec<u8>, OutputError> {
+        encode_png(self.width, self.height, &self.to_rgb8())
     }
 
     /// Reads a PFM written by [`Image::save`] (or any RGB PFM), for tests and comparisons.
@@ -145,6 +137,34 @@ impl Image {
             -10.0 * mse.log10()
         }
     }
+}
+
+/// The PNG byte of a linear value (SPEC §4.4): round(255 · clamp(c, 0, 1)), half away from
+/// zero. Every output path uses this one function, so local mode and the farm agree.
+#[inline]
+pub fn quantize(c: f64) -> u8 {
+    (255.0 * c.clamp(0.0, 1.0)).round() as u8
+}
+
+/// An 8-bit RGB PNG of `rgb` (row-major, row 0 at the top).
+pub fn encode_png(width: u32, height: u32, rgb: &[u8]) -> Result<Vec<u8>, OutputError> {
+    let mut out = Vec::new();
+    let encoder = image::codecs::png::PngEncoder::new(&mut out);
+    image::ImageEncoder::write_image(encoder, rgb, width, height, image::ExtendedColorType::Rgb8)?;
+    Ok(out)
+}
+
+/// A PFM of `rgb` (row-major, row 0 at the top): "PF", dimensions, a negative scale for
+/// little-endian, then rows bottom to top, as pbrt and other renderers write it.
+pub fn encode_pfm(width: u32, height: u32, rgb: &[f32]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(rgb.len() * 4 + 32);
+    out.extend_from_slice(format!("PF\n{width} {height}\n-1.0\n").as_bytes());
+    for row in rgb.chunks(width as usize * 3).rev() {
+        for c in row {
+            out.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    out
 }
 
 #[cfg(test)]
