@@ -17,11 +17,12 @@
 //! the precision of the PFM output itself (f32). `tests/tests/algorithms.rs` checks it.
 //!
 //! # Why the front opacity is 16 bits
-//! A task also carries what the scheduler knows of the ray's opacity in front of the piece,
-//! so the cast can stop early inside the piece (SPEC §4.5). It is only ever a *lower bound*
-//! (pieces in front may not be cast yet), and a lower bound may be rounded down freely: the
-//! cast then takes at most a sample more, never fewer. So it is stored as a 16-bit fraction
-//! rounded down, which keeps the task at 24 bytes.
+//! A task also carries an opacity in front of the piece, so the cast can stop early inside
+//! the piece (SPEC §4.5). The scheduler computes it by a rule every schedule agrees on (see
+//! [`super::schedule`]); it is only ever a *lower bound* on the ray's true front, and a lower
+//! bound may be rounded down freely: the cast then takes at most a sample more, never
+//! fewer. So it is stored as a 16-bit fraction rounded down, which keeps the task at 24
+//! bytes.
 
 use super::error::CastError;
 use crate::composite::Rgba;
@@ -302,7 +303,123 @@ pub fn decode_results(bytes: &[u8]) -> Option<Vec<PieceRgba>> {
 
 #[cfg(test)]
 mod tests {
+    use std::collections::BTreeMap;
+
+    use proptest::prelude::*;
+
     use super::*;
+    use crate::dataset::{Channel, ChannelName, Dims};
+
+    /// Two datasets: "v" (3×4×5, voxel channel) with two objects, "rgba" (2×2×1: red,
+    /// green, blue, alpha) with one raw object.
+    fn scene() -> Scene {
+        let text = "[image]\nwidth = 6\nheight = 5\nbackground = [0, 0, 0]\n\
+            [camera]\neye = [0.5, 0.5, 4.0]\ntarget = [0.5, 0.5, 0.0]\nup = [0, 1, 0]\nfov_y = 30.0\n\
+            [[datasets]]\nname = \"v\"\ndims = [3, 4, 5]\n[datasets.channels.voxel]\n\
+            generator = { kind = \"ramp\", axis = \"x\", from = 0.0, to = 1.0 }\n\
+            [[datasets]]\nname = \"rgba\"\ndims = [2, 2, 1]\n\
+            [datasets.channels.red]\ngenerator = { kind = \"constant\", value = 200, type = \"u8\" }\n\
+            [datasets.channels.green]\ngenerator = { kind = \"constant\", value = 100, type = \"u8\" }\n\
+            [datasets.channels.blue]\ngenerator = { kind = \"constant\", value = 50, type = \"u8\" }\n\
+            [datasets.channels.alpha]\ngenerator = { kind = \"constant\", value = 128, type = \"u8\" }\n\
+            [[objects]]\nname = \"a\"\ndataset = \"v\"\ninterpolation = \"cubic\"\n\
+            colour = { type = \"ramp\", points = [[0, 1, 0, 0], [1, 0, 0, 1]] }\n\
+            opacity = { type = \"ramp\", points = [[0, 0.1], [1, 0.9]] }\n\
+            [[objects]]\nname = \"b\"\ndataset = \"rgba\"\ncolour = { type = \"raw\" }\nopacity = { type = \"raw\" }\n\
+            [[objects]]\nname = \"c\"\ndataset = \"v\"\ninterpolation = \"nearest\"\n\
+            colour = { type = \"lut\", bounds = [0.5], colours = [[0, 1, 0], [1, 1, 1]] }\n\
+            opacity = { type = \"constant\", coefficients = [0.3] }\n";
+        Scene::parse(text, "batch.toml").unwrap()
+    }
+
+    /// A volume of `dims` holding the channels whose flags are set (voxel as f32, the
+    /// colour channels as u8), filled with `fill`.
+    fn volume(dims: [u64; 3], voxel: bool, rgba: bool, fill: f32) -> Volume {
+        let dims = Dims::new(dims).unwrap();
+        let n = dims.voxel_count() as usize;
+        let mut channels = BTreeMap::new();
+        if voxel {
+            channels.insert(ChannelName::Voxel, Channel::from_f32(&vec![fill; n], dims).unwrap());
+        }
+        if rgba {
+            for c in [ChannelName::Red, ChannelName::Green, ChannelName::Blue, ChannelName::Alpha] {
+                channels.insert(c, Channel::from_u8(vec![fill as u8; n], dims).unwrap());
+            }
+        }
+        Volume::new(dims, channels)
+    }
+
+    #[test]
+    fn a_batch_of_another_datasets_tasks_is_refused_before_anything_is_cast() {
+        let s = scene();
+        let v = volume([3, 4, 5], true, false, 0.5);
+        let caster = BatchCaster::new(&s, 0, &v).unwrap();
+        let ok = PieceTask::new(3, 0, 3.5, 3.6, false);
+        let mut out = [PieceRgba::default(); 2];
+        assert_eq!(
+            caster.cast(&[ok, PieceTask::new(3, 1, 3.5, 3.6, false)], &mut out),
+            Err(CastError::WrongDataset { task: 1, object: 1, uses: 1, batch: 0 })
+        );
+        assert_eq!(out, [PieceRgba::default(); 2], "nothing cast");
+        let far = PieceTask::new(3, 0, 0.0, 1e300, false);
+        assert!(matches!(caster.cast(&[far], &mut out[..1]), Err(CastError::BadPiece { task: 0, .. })));
+        assert!(matches!(caster.cast(&[ok], &mut out), Err(CastError::LengthMismatch { tasks: 1, results: 2 })));
+        assert!(matches!(
+            caster.cast(&[PieceTask::new(30, 0, 3.5, 3.6, false)], &mut out[..1]),
+            Err(CastError::RayOutOfRange { ray: 30, pixels: 30, .. })
+        ));
+        assert!(matches!(
+            caster.cast(&[PieceTask::new(3, 7, 3.5, 3.6, false)], &mut out[..1]),
+            Err(CastError::ObjectOutOfRange { object: 7, objects: 3, .. })
+        ));
+        assert_eq!(caster.cast(&[ok], &mut out[..1]).map(|n| n > 0), Ok(true));
+        // The wrong volume for a dataset is refused when binding.
+        assert!(matches!(BatchCaster::new(&s, 1, &v), Err(CastError::Bind { .. })));
+        assert!(matches!(BatchCaster::new(&s, 2, &v), Err(CastError::DatasetOutOfRange { dataset: 2, datasets: 2 })));
+    }
+
+    fn any_t() -> impl Strategy<Value = f64> {
+        prop_oneof![
+            Just(f64::NAN),
+            Just(f64::INFINITY),
+            Just(f64::NEG_INFINITY),
+            Just(-1.0),
+            Just(0.0),
+            Just(1e300),
+            0.0..10.0f64,
+        ]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(256))]
+
+        /// Whatever arrives from the network and whatever volume is resident, casting
+        /// refuses or answers with plausible results; it never panics.
+        #[test]
+        fn random_tasks_and_volumes_never_panic(
+            dataset in 0usize..3,
+            dims in (1u64..6, 1u64..6, 1u64..6),
+            voxel in any::<bool>(),
+            rgba in any::<bool>(),
+            fill in prop_oneof![Just(f32::NAN), Just(f32::INFINITY), -1e30f32..1e30],
+            tasks in proptest::collection::vec((0u32..40, 0u16..5, any_t(), any_t(), any::<u16>()), 0..20),
+        ) {
+            let s = scene();
+            let v = volume([dims.0, dims.1, dims.2], voxel, rgba, fill);
+            let Ok(caster) = BatchCaster::new(&s, dataset, &v) else { return Ok(()) };
+            let tasks: Vec<PieceTask> = tasks
+                .into_iter()
+                .map(|(ray, object, t0, t1, front)| PieceTask { t0, t1, ray, object, front })
+                .collect();
+            let mut out = vec![PieceRgba::default(); tasks.len()];
+            if caster.cast(&tasks, &mut out).is_ok() {
+                for r in &out {
+                    prop_assert!((0.0..=1.0).contains(&r.alpha), "{r:?}");
+                    prop_assert!(r.colour.iter().all(|c| c.is_finite()), "{r:?}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn a_task_is_24_bytes_and_a_result_16() {
