@@ -1,5 +1,5 @@
 //! Reference scenes whose ray integrals are known in closed form, for measuring how close a
-//! render comes to the truth (`trove bench accuracy`, the convergence tests).
+//! render comes to the truth (`trove-bench accuracy`, the convergence tests).
 //!
 //! # From per-voxel opacity to extinction
 //!

@@ -23,7 +23,7 @@ use trove_core::render::workunit::{RESULT_BYTES, TASK_BYTES};
 use trove_core::render::{Algorithm, RenderOptions, Rendered};
 use trove_core::scene::Scene;
 
-/// `trove bench table1` options.
+/// `trove-bench table1` options.
 #[derive(clap::Args)]
 pub struct Args {
     /// Image width and height in pixels (the paper: 512).

@@ -10,7 +10,7 @@ use anyhow::{Context, Result};
 use trove_core::render::{Algorithm, Image, RenderOptions, Rendered};
 use trove_core::scene::Scene;
 
-/// `trove bench distorted` options.
+/// `trove-bench distorted` options.
 #[derive(clap::Args)]
 pub struct Args {
     /// Image width and height in pixels.
