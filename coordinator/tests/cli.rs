@@ -8,8 +8,7 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use trove_core::render::Image;
-use trove_tests::scratch;
+use trove_tests::{read_pfm, scratch};
 
 /// The `trove` binary that cargo built for these tests.
 fn trove() -> &'static Path {
@@ -180,7 +179,7 @@ fn png_and_pfm_agree_to_rounding() {
     }
     let bytes = image::open(&png).expect("a readable PNG").to_rgb8();
     assert_eq!(bytes.dimensions(), SIZE);
-    let float = Image::read_pfm(&pfm).expect("a readable PFM");
+    let float = read_pfm(&pfm);
     assert_eq!((float.width(), float.height()), SIZE);
     let mut object_seen = false;
     for row in 0..SIZE.1 {

@@ -99,3 +99,66 @@ pub fn write_f32(path: &Path, values: &[f32]) {
     let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
     std::fs::write(path, bytes).expect("write raw file");
 }
+
+/// Reads an RGB Portable FloatMap (as `Image::save` writes for `.pfm`), for comparing the
+/// unquantised output with expectations. Panics, naming the file, on anything malformed: a
+/// test that reads a broken PFM has failed.
+pub fn read_pfm(path: &Path) -> Image {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let bad = |what: &str| -> ! { panic!("{}: PFM {what}", path.display()) };
+    // Four whitespace-separated header fields, then exactly one whitespace byte.
+    let mut fields = Vec::new();
+    let mut pos = 0;
+    while fields.len() < 4 {
+        pos += bytes[pos..].iter().take_while(|b| b.is_ascii_whitespace()).count();
+        let len = bytes[pos..].iter().take_while(|b| !b.is_ascii_whitespace()).count();
+        if len == 0 {
+            bad("header is truncated");
+        }
+        fields.push(String::from_utf8_lossy(&bytes[pos..pos + len]).into_owned());
+        pos += len;
+    }
+    if fields[0] != "PF" {
+        bad("magic is not PF (only RGB PFM is read)");
+    }
+    let w: usize = fields[1].parse().unwrap_or_else(|_| bad("width"));
+    let h: usize = fields[2].parse().unwrap_or_else(|_| bad("height"));
+    let scale: f64 = fields[3].parse().unwrap_or_else(|_| bad("scale"));
+    let data = bytes.get(pos + 1..pos + 1 + w * h * 12).unwrap_or_else(|| bad("data is truncated"));
+    let value = |i: usize| {
+        let b: [u8; 4] = data[i * 4..i * 4 + 4].try_into().expect("4 bytes");
+        (if scale < 0.0 { f32::from_le_bytes(b) } else { f32::from_be_bytes(b) }) as f64
+    };
+    // Rows are stored bottom to top.
+    let pixels = (0..w * h)
+        .map(|i| {
+            let (row, col) = (i / w, i % w);
+            let src = 3 * ((h - 1 - row) * w + col);
+            [value(src), value(src + 1), value(src + 2)]
+        })
+        .collect();
+    Image::new(w as u32, h as u32, pixels)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_saved_pfm_reads_back_to_f32_precision_with_row_zero_on_top() {
+        let img = Image::new(
+            2,
+            3,
+            vec![[0.1, 0.2, 0.3], [0.4, 0.5, 0.6], [0.7, 0.8, 0.9], [1.5, -0.5, 0.0], [0.0; 3], [1.0; 3]],
+        );
+        let path = scratch("pfm").join("img.pfm");
+        img.save(&path).expect("save");
+        let back = read_pfm(&path);
+        assert_eq!((back.width(), back.height()), (2, 3));
+        for (a, b) in img.pixels().iter().zip(back.pixels()) {
+            for i in 0..3 {
+                assert!((a[i] - b[i]).abs() < 1e-7, "{a:?} vs {b:?}");
+            }
+        }
+    }
+}
