@@ -1,6 +1,6 @@
 //! `trove-bench accuracy`: what accuracy costs in time.
 //!
-//! Every reference scene of [`trove_core::reference`] is rendered over the sweep sampling
+//! Every reference scene of [`trove_tests::reference`] is rendered over the sweep sampling
 //! distance (4, 2, 1, ½, ¼, ⅛ voxel) × interpolation (nearest, trilinear, nonlinear,
 //! cubic) × opacity correction on/off. Each point records the median render time of
 //! several renders and two errors over the image (RMSE and max, in linear pixel values):
@@ -25,8 +25,8 @@ use anyhow::{anyhow, bail, Context, Result};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use trove_core::interp::Interpolation;
-use trove_core::reference::{log_log_slope, rmse_and_max, Reference, Setup};
 use trove_core::render::{render, Algorithm, RenderOptions};
+use trove_tests::reference::{log_log_slope, rmse_and_max, Reference, Setup};
 
 /// The lowest acceptable convergence order of trilinear + opacity correction on smooth fields.
 pub const MIN_ORDER: f64 = 1.8;
@@ -721,7 +721,7 @@ fn report(
          O = 1 − e^(−σh); with opacity correction a sample over ℓ voxels then has α = 1 − (1 − O)^ℓ = \
          1 − e^(−σ·hℓ), and hℓ is the sample's world length, so T = exp(−Σ σₖΔsₖ), the midpoint rule for \
          ∫σ ds. Fields with σ = κ·v use a `polynomial` opacity map holding the Taylor series of 1 − e^(−κhv). \
-         See `trove-core/src/reference.rs`.\n"
+         See `tests/src/reference.rs`.\n"
     );
 
     let _ = writeln!(s, "### Convergence order of the sampling error (opacity correction on)\n");

@@ -1,5 +1,10 @@
 //! Helpers shared by the integration tests: scratch folders, rendering scene text, and the
-//! location of the shared real data (tests that need it skip with a message when absent).
+//! location of the shared real data (tests that need it skip with a message when absent);
+//! [`reference`] holds the scenes with closed-form ray integrals that the accuracy tests and
+//! `trove-bench accuracy` measure the renderer against. None of this belongs in
+//! `trove-core`: the library ships only what renders.
+
+pub mod reference;
 
 use std::path::{Path, PathBuf};
 

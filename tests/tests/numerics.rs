@@ -6,10 +6,10 @@ use proptest::prelude::*;
 use trove_core::dataset::Dims;
 use trove_core::geometry::hexahedron::Hexahedron;
 use trove_core::geometry::{Extent, Placement, Ray, Shape};
-use trove_core::reference::unit_cube_chord;
 use trove_core::render::{render, Image, RenderOptions};
 use trove_core::sampling::corrected_opacity;
 use trove_core::scene::Scene;
+use trove_tests::reference::unit_cube_chord;
 
 /// Scene text: an image, a camera and `body` (datasets and objects).
 struct View {
