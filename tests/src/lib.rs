@@ -20,6 +20,68 @@ pub fn scratch(name: &str) -> PathBuf {
     dir
 }
 
+/// The `[image]` and `[camera]` tables a test scene starts with. [`Header::new`] fixes
+/// what every test states (size, eye, target, field of view) and defaults the rest (black
+/// background, +y up); the builder methods change those where a test depends on them.
+/// `Display` writes the two tables as TOML, numbers in Rust's round-trip form (`25.0`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Header {
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Linear RGB background.
+    pub background: [f64; 3],
+    /// The camera's position.
+    pub eye: [f64; 3],
+    /// The point the camera looks at.
+    pub target: [f64; 3],
+    /// The camera's up direction.
+    pub up: [f64; 3],
+    /// Vertical field of view in degrees.
+    pub fov_y: f64,
+}
+
+impl Header {
+    /// A `side`×`side` image on black, seen from `eye` looking at `target` with +y up.
+    pub fn new(side: u32, eye: [f64; 3], target: [f64; 3], fov_y: f64) -> Header {
+        Header { width: side, height: side, background: [0.0; 3], eye, target, up: [0.0, 1.0, 0.0], fov_y }
+    }
+
+    /// The same with another image size.
+    pub fn size(self, width: u32, height: u32) -> Header {
+        Header { width, height, ..self }
+    }
+
+    /// The same on another background.
+    pub fn background(self, background: [f64; 3]) -> Header {
+        Header { background, ..self }
+    }
+
+    /// The same with another up direction.
+    pub fn up(self, up: [f64; 3]) -> Header {
+        Header { up, ..self }
+    }
+}
+
+impl std::fmt::Display for Header {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let v = |p: [f64; 3]| format!("[{:?}, {:?}, {:?}]", p[0], p[1], p[2]);
+        write!(
+            f,
+            "[image]\nwidth = {}\nheight = {}\nbackground = {}\n\n\
+             [camera]\neye = {}\ntarget = {}\nup = {}\nfov_y = {:?}\n\n",
+            self.width,
+            self.height,
+            v(self.background),
+            v(self.eye),
+            v(self.target),
+            v(self.up),
+            self.fov_y
+        )
+    }
+}
+
 /// Parses `toml` as if it were `dir/scene.toml` and renders it with `algorithm`.
 pub fn render_in(dir: &Path, toml: &str, algorithm: Algorithm) -> Rendered {
     let scene = Scene::parse(toml, dir.join("scene.toml")).unwrap_or_else(|e| panic!("scene: {e}"));
@@ -148,6 +210,18 @@ pub fn read_pfm(path: &Path) -> Image {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_header_is_the_scene_format_s_image_and_camera() {
+        let h = Header::new(7, [0.5, 0.5, 3.0], [0.5, 0.5, 0.5], 25.0).size(7, 5).background([0.2, 0.4, 0.6]);
+        let text = h.to_string();
+        assert!(text.contains("width = 7\nheight = 5\n") && text.contains("fov_y = 25.0\n"), "{text}");
+        let scene = trove_core::scene::Scene::parse(&text, "header.toml").unwrap_or_else(|e| panic!("{e}\n{text}"));
+        assert_eq!((scene.image.width, scene.image.height, scene.image.background), (7, 5, [0.2, 0.4, 0.6]));
+        let ray = scene.camera.ray(3, 2, 7, 5);
+        assert_eq!(ray.origin.to_array(), [0.5, 0.5, 3.0]);
+        assert!((ray.dir.to_array()[2] + 1.0).abs() < 1e-12, "the centre ray looks down −z: {:?}", ray.dir);
+    }
 
     #[test]
     fn a_saved_pfm_reads_back_to_f32_precision_with_row_zero_on_top() {

@@ -137,14 +137,8 @@ impl Reference {
         let delta = s.step_voxels * h;
         let eye = DVec3::splat(0.5) + 1.6 * DVec3::new(0.35, 0.45, 1.0).normalize();
         let interp = interpolation_toml(&s.interpolation);
-        let mut out = format!(
-            "[image]\nwidth = {side}\nheight = {side}\nbackground = [0.0, 0.0, 0.0]\n\n\
-             [camera]\neye = {eye}\ntarget = [0.5, 0.5, 0.5]\nup = [0.0, 1.0, 0.0]\nfov_y = 70.0\n\n\
-             [render]\ntermination = 1.0\nopacity_correction = {corr}\n",
-            side = s.image_side,
-            eye = vec_toml(eye),
-            corr = s.opacity_correction,
-        );
+        let header = crate::Header::new(s.image_side, eye.to_array(), [0.5; 3], 70.0);
+        let mut out = format!("{header}[render]\ntermination = 1.0\nopacity_correction = {}\n", s.opacity_correction);
         let white = r#"{ type = "constant", red = [1.0], green = [1.0], blue = [1.0] }"#;
         let mut object = |name: &str, dims: u32, generator: String, opacity: String, transform: Option<DMat4>| {
             out += &format!(

@@ -8,7 +8,7 @@ use std::path::Path;
 use trove_core::render::{Algorithm, Rendered};
 use trove_core::scene::Scene;
 use trove_core::RenderError;
-use trove_tests::{example_scenes, max_abs_difference, render_with, scratch, write_f32};
+use trove_tests::{example_scenes, max_abs_difference, render_with, scratch, write_f32, Header};
 
 fn parse(dir: &Path, text: &str) -> Scene {
     Scene::parse(text, dir.join("scene.toml")).unwrap_or_else(|e| panic!("scene: {e}"))
@@ -21,21 +21,8 @@ fn both(scene: &Scene, budget: Option<u64>) -> (Rendered, Rendered) {
 }
 
 fn header(size: u32, termination: f64) -> String {
-    format!(
-        r#"
-[image]
-width = {size}
-height = {size}
-background = [0.1, 0.2, 0.3]
-[camera]
-eye = [0.0, 0.6, 4.0]
-target = [0.0, 0.0, 0.0]
-up = [0, 1, 0]
-fov_y = 40.0
-[render]
-termination = {termination}
-"#
-    )
+    let header = Header::new(size, [0.0, 0.6, 4.0], [0.0, 0.0, 0.0], 40.0).background([0.1, 0.2, 0.3]);
+    format!("{header}[render]\ntermination = {termination}\n")
 }
 
 /// `count` generated datasets `d0..`, each `n`³ f32 (a radial sphere of a different size).
