@@ -1,4 +1,4 @@
-//! The command line: argument parsing, the `render` command and the `bench` experiments.
+//! The command line: argument parsing and the `render` command.
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -21,9 +21,6 @@ struct Cli {
 enum Command {
     /// Render a scene to a PNG (or a .pfm float image) in this process.
     Render(RenderArgs),
-    /// Run one of the paper's experiments and print its table.
-    #[command(subcommand)]
-    Bench(crate::bench::BenchCommand),
 }
 
 #[derive(clap::Args)]
@@ -116,7 +113,6 @@ pub fn parse_bytes(text: &str) -> Result<u64, String> {
 pub fn run() -> Result<()> {
     match Cli::parse().command {
         Command::Render(args) => render_command(args),
-        Command::Bench(bench) => bench.run(),
     }
 }
 

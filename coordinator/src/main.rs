@@ -1,7 +1,6 @@
 //! `trove`: renders TROVE scenes (SPEC §5). Local mode runs the whole pipeline in this
 //! process; the farm's coordinator will live here too.
 
-mod bench;
 mod cli;
 
 use std::process::ExitCode;

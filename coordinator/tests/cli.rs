@@ -8,8 +8,7 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use trove_core::render::Image;
-use trove_tests::scratch;
+use trove_tests::{read_pfm, scratch, Header};
 
 /// The `trove` binary that cargo built for these tests.
 fn trove() -> &'static Path {
@@ -51,19 +50,10 @@ const SIZE: (u32, u32) = (7, 5);
 
 /// A tiny valid scene from generators: an opaque-ish graded sphere over a coloured background.
 fn tiny_scene() -> String {
+    let header =
+        Header::new(SIZE.0, [0.5, 0.5, 3.0], [0.5, 0.5, 0.5], 25.0).size(SIZE.0, SIZE.1).background([0.2, 0.4, 0.6]);
     format!(
-        r#"
-[image]
-width = {}
-height = {}
-background = [0.2, 0.4, 0.6]
-
-[camera]
-eye = [0.5, 0.5, 3.0]
-target = [0.5, 0.5, 0.5]
-up = [0, 1, 0]
-fov_y = 25.0
-
+        r#"{header}
 [[datasets]]
 name = "ball"
 dims = [8, 8, 8]
@@ -75,8 +65,7 @@ name = "ball"
 dataset = "ball"
 colour = {{ type = "linear", red = [0.1, 0.9], green = [0.7, -0.3], blue = [0.05, 0.2] }}
 opacity = {{ type = "ramp", points = [[0.0, 0.0], [1.0, 0.4]] }}
-"#,
-        SIZE.0, SIZE.1
+"#
     )
 }
 
@@ -180,7 +169,7 @@ fn png_and_pfm_agree_to_rounding() {
     }
     let bytes = image::open(&png).expect("a readable PNG").to_rgb8();
     assert_eq!(bytes.dimensions(), SIZE);
-    let float = Image::read_pfm(&pfm).expect("a readable PFM");
+    let float = read_pfm(&pfm);
     assert_eq!((float.width(), float.height()), SIZE);
     let mut object_seen = false;
     for row in 0..SIZE.1 {

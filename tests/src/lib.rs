@@ -1,5 +1,10 @@
 //! Helpers shared by the integration tests: scratch folders, rendering scene text, and the
-//! location of the shared real data (tests that need it skip with a message when absent).
+//! location of the shared real data (tests that need it skip with a message when absent);
+//! [`reference`] holds the scenes with closed-form ray integrals that the accuracy tests and
+//! `trove-bench accuracy` measure the renderer against. None of this belongs in
+//! `trove-core`: the library ships only what renders.
+
+pub mod reference;
 
 use std::path::{Path, PathBuf};
 
@@ -13,6 +18,68 @@ pub fn scratch(name: &str) -> PathBuf {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).expect("create scratch folder");
     dir
+}
+
+/// The `[image]` and `[camera]` tables a test scene starts with. [`Header::new`] fixes
+/// what every test states (size, eye, target, field of view) and defaults the rest (black
+/// background, +y up); the builder methods change those where a test depends on them.
+/// `Display` writes the two tables as TOML, numbers in Rust's round-trip form (`25.0`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Header {
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Linear RGB background.
+    pub background: [f64; 3],
+    /// The camera's position.
+    pub eye: [f64; 3],
+    /// The point the camera looks at.
+    pub target: [f64; 3],
+    /// The camera's up direction.
+    pub up: [f64; 3],
+    /// Vertical field of view in degrees.
+    pub fov_y: f64,
+}
+
+impl Header {
+    /// A `side`×`side` image on black, seen from `eye` looking at `target` with +y up.
+    pub fn new(side: u32, eye: [f64; 3], target: [f64; 3], fov_y: f64) -> Header {
+        Header { width: side, height: side, background: [0.0; 3], eye, target, up: [0.0, 1.0, 0.0], fov_y }
+    }
+
+    /// The same with another image size.
+    pub fn size(self, width: u32, height: u32) -> Header {
+        Header { width, height, ..self }
+    }
+
+    /// The same on another background.
+    pub fn background(self, background: [f64; 3]) -> Header {
+        Header { background, ..self }
+    }
+
+    /// The same with another up direction.
+    pub fn up(self, up: [f64; 3]) -> Header {
+        Header { up, ..self }
+    }
+}
+
+impl std::fmt::Display for Header {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let v = |p: [f64; 3]| format!("[{:?}, {:?}, {:?}]", p[0], p[1], p[2]);
+        write!(
+            f,
+            "[image]\nwidth = {}\nheight = {}\nbackground = {}\n\n\
+             [camera]\neye = {}\ntarget = {}\nup = {}\nfov_y = {:?}\n\n",
+            self.width,
+            self.height,
+            v(self.background),
+            v(self.eye),
+            v(self.target),
+            v(self.up),
+            self.fov_y
+        )
+    }
 }
 
 /// Parses `toml` as if it were `dir/scene.toml` and renders it with `algorithm`.
@@ -98,4 +165,79 @@ pub fn repo_root() -> PathBuf {
 pub fn write_f32(path: &Path, values: &[f32]) {
     let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
     std::fs::write(path, bytes).expect("write raw file");
+}
+
+/// Reads an RGB Portable FloatMap (as `Image::save` writes for `.pfm`), for comparing the
+/// unquantised output with expectations. Panics, naming the file, on anything malformed: a
+/// test that reads a broken PFM has failed.
+pub fn read_pfm(path: &Path) -> Image {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let bad = |what: &str| -> ! { panic!("{}: PFM {what}", path.display()) };
+    // Four whitespace-separated header fields, then exactly one whitespace byte.
+    let mut fields = Vec::new();
+    let mut pos = 0;
+    while fields.len() < 4 {
+        pos += bytes[pos..].iter().take_while(|b| b.is_ascii_whitespace()).count();
+        let len = bytes[pos..].iter().take_while(|b| !b.is_ascii_whitespace()).count();
+        if len == 0 {
+            bad("header is truncated");
+        }
+        fields.push(String::from_utf8_lossy(&bytes[pos..pos + len]).into_owned());
+        pos += len;
+    }
+    if fields[0] != "PF" {
+        bad("magic is not PF (only RGB PFM is read)");
+    }
+    let w: usize = fields[1].parse().unwrap_or_else(|_| bad("width"));
+    let h: usize = fields[2].parse().unwrap_or_else(|_| bad("height"));
+    let scale: f64 = fields[3].parse().unwrap_or_else(|_| bad("scale"));
+    let data = bytes.get(pos + 1..pos + 1 + w * h * 12).unwrap_or_else(|| bad("data is truncated"));
+    let value = |i: usize| {
+        let b: [u8; 4] = data[i * 4..i * 4 + 4].try_into().expect("4 bytes");
+        (if scale < 0.0 { f32::from_le_bytes(b) } else { f32::from_be_bytes(b) }) as f64
+    };
+    // Rows are stored bottom to top.
+    let pixels = (0..w * h)
+        .map(|i| {
+            let (row, col) = (i / w, i % w);
+            let src = 3 * ((h - 1 - row) * w + col);
+            [value(src), value(src + 1), value(src + 2)]
+        })
+        .collect();
+    Image::new(w as u32, h as u32, pixels)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_header_is_the_scene_format_s_image_and_camera() {
+        let h = Header::new(7, [0.5, 0.5, 3.0], [0.5, 0.5, 0.5], 25.0).size(7, 5).background([0.2, 0.4, 0.6]);
+        let text = h.to_string();
+        assert!(text.contains("width = 7\nheight = 5\n") && text.contains("fov_y = 25.0\n"), "{text}");
+        let scene = trove_core::scene::Scene::parse(&text, "header.toml").unwrap_or_else(|e| panic!("{e}\n{text}"));
+        assert_eq!((scene.image.width, scene.image.height, scene.image.background), (7, 5, [0.2, 0.4, 0.6]));
+        let ray = scene.camera.ray(3, 2, 7, 5);
+        assert_eq!(ray.origin.to_array(), [0.5, 0.5, 3.0]);
+        assert!((ray.dir.to_array()[2] + 1.0).abs() < 1e-12, "the centre ray looks down −z: {:?}", ray.dir);
+    }
+
+    #[test]
+    fn a_saved_pfm_reads_back_to_f32_precision_with_row_zero_on_top() {
+        let img = Image::new(
+            2,
+            3,
+            vec![[0.1, 0.2, 0.3], [0.4, 0.5, 0.6], [0.7, 0.8, 0.9], [1.5, -0.5, 0.0], [0.0; 3], [1.0; 3]],
+        );
+        let path = scratch("pfm").join("img.pfm");
+        img.save(&path).expect("save");
+        let back = read_pfm(&path);
+        assert_eq!((back.width(), back.height()), (2, 3));
+        for (a, b) in img.pixels().iter().zip(back.pixels()) {
+            for i in 0..3 {
+                assert!((a[i] - b[i]).abs() < 1e-7, "{a:?} vs {b:?}");
+            }
+        }
+    }
 }

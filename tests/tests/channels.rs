@@ -3,20 +3,12 @@
 
 use trove_core::dataset::{ChannelName, VoxelType};
 use trove_core::scene::Scene;
-use trove_tests::scratch;
+use trove_tests::{scratch, Header};
 
 fn scene_with(channels: &str) -> String {
+    let header = Header::new(8, [0.5, 0.5, 3.0], [0.5, 0.5, 0.5], 30.0);
     format!(
-        r#"
-[image]
-width = 8
-height = 8
-background = [0, 0, 0]
-[camera]
-eye = [0.5, 0.5, 3]
-target = [0.5, 0.5, 0.5]
-up = [0, 1, 0]
-fov_y = 30
+        r#"{header}
 [[datasets]]
 name = "all"
 dims = [4, 3, 2]

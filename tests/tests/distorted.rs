@@ -3,7 +3,7 @@
 
 use trove_core::geometry::Shape;
 use trove_core::scene::Scene;
-use trove_tests::{render_text, scratch};
+use trove_tests::{render_text, scratch, Header};
 
 const M: [[f64; 4]; 3] = [[1.2, 0.3, 0.0, -0.7], [-0.2, 1.0, 0.1, -0.5], [0.1, 0.0, 0.9, -0.4]];
 
@@ -26,17 +26,9 @@ fn corners(distortion: f64) -> [[f64; 3]; 8] {
 }
 
 fn scene(transform: &str, extra_render: &str) -> String {
+    let header = Header::new(40, [0.6, 0.8, 3.5], [0.0, 0.0, 0.0], 45.0).background([0.1; 3]);
     format!(
-        r#"
-[image]
-width = 40
-height = 40
-background = [0.1, 0.1, 0.1]
-[camera]
-eye = [0.6, 0.8, 3.5]
-target = [0.0, 0.0, 0.0]
-up = [0, 1, 0]
-fov_y = 45.0
+        r#"{header}
 [render]
 termination = 1.0
 {extra_render}

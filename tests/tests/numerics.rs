@@ -6,10 +6,11 @@ use proptest::prelude::*;
 use trove_core::dataset::Dims;
 use trove_core::geometry::hexahedron::Hexahedron;
 use trove_core::geometry::{Extent, Placement, Ray, Shape};
-use trove_core::reference::unit_cube_chord;
 use trove_core::render::{render, Image, RenderOptions};
 use trove_core::sampling::corrected_opacity;
 use trove_core::scene::Scene;
+use trove_tests::reference::unit_cube_chord;
+use trove_tests::Header;
 
 /// Scene text: an image, a camera and `body` (datasets and objects).
 struct View {
@@ -27,17 +28,9 @@ impl View {
     }
 
     fn text(&self, body: &str) -> String {
-        format!(
-            "[image]\nwidth = {s}\nheight = {s}\nbackground = [0.0, 0.0, 0.0]\n\
-             [camera]\neye = {}\ntarget = {}\nup = {}\nfov_y = {:?}\n\
-             [render]\ntermination = 1.0\nopacity_correction = {}\n{body}",
-            v(self.eye),
-            v(self.target),
-            v(self.up),
-            self.fov,
-            self.correction,
-            s = self.side
-        )
+        let header =
+            Header::new(self.side, self.eye.to_array(), self.target.to_array(), self.fov).up(self.up.to_array());
+        format!("{header}[render]\ntermination = 1.0\nopacity_correction = {}\n{body}", self.correction)
     }
 }
 

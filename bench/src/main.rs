@@ -1,19 +1,31 @@
-//! `trove bench …`: the paper's experiments, runnable, printed beside the paper's figures.
+//! `trove-bench`: the paper's experiments and TROVE's own measurements, runnable, printed
+//! beside the paper's figures. They live apart from the `trove` binary so that the command
+//! line and the farm never carry what only a benchmark needs (plots, dataset writers).
 //!
-//! Each experiment is one variant of [`BenchCommand`] and one module; adding one is a
-//! variant, a `mod` line and a match arm.
+//! Each experiment is one variant of [`Command`] and one module; adding one is a variant, a
+//! `mod` line and a match arm.
 
-pub mod accuracy;
+mod accuracy;
 mod distorted;
 mod table1;
 
+use std::process::ExitCode;
+
 use anyhow::Result;
+use clap::Parser;
 use trove_core::render::{self, RenderOptions, Rendered};
 use trove_core::scene::Scene;
 
+#[derive(Parser)]
+#[command(name = "trove-bench", version, about = "Runs TROVE's benchmarks and prints their tables")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
 /// The experiments.
 #[derive(clap::Subcommand)]
-pub enum BenchCommand {
+enum Command {
     /// Table 1 (paper §3.3): 15 objects from 15 datasets and from 1, both algorithms,
     /// under a memory budget of a quarter of the 15 datasets.
     Table1(table1::Args),
@@ -25,13 +37,21 @@ pub enum BenchCommand {
     Accuracy(accuracy::AccuracyArgs),
 }
 
-impl BenchCommand {
-    /// Runs the experiment and prints its tables on standard output.
-    pub fn run(self) -> Result<()> {
-        match self {
-            BenchCommand::Table1(args) => table1::run(args),
-            BenchCommand::Distorted(args) => distorted::run(args),
-            BenchCommand::Accuracy(args) => accuracy::run(args),
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    let result = match Cli::parse().command {
+        Command::Table1(args) => table1::run(args),
+        Command::Distorted(args) => distorted::run(args),
+        Command::Accuracy(args) => accuracy::run(args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
         }
     }
 }
@@ -39,7 +59,7 @@ impl BenchCommand {
 /// Renders `repeat` times (at least once) and keeps the run with the median total time: the
 /// machines are shared and noisy, so one fast run proves little. `each` sees every run as it
 /// finishes (for progress lines).
-pub(crate) fn median_render(
+fn median_render(
     scene: &Scene,
     options: &RenderOptions,
     repeat: u32,
