@@ -97,7 +97,7 @@ pub fn open(path: &Path) -> Result<(Dims, ImageChannels), DatasetError> {
     let dec = decoder(path)?;
     let layout = Layout::from_color(path, dec.color_type())?;
     let (w, h) = dec.dimensions();
-    let dims = Dims::new([w as u64, h as u64, 1]).map_err(|m| DatasetError::format(path, m))?;
+    let dims = Dims::new([w as u64, h as u64, 1]).map_err(|e| DatasetError::format(path, e.to_string()))?;
     let mut names = vec![ChannelName::Red, ChannelName::Green, ChannelName::Blue];
     if layout.has_alpha() {
         names.push(ChannelName::Alpha);
@@ -137,7 +137,7 @@ pub fn load(path: &Path, channel: ChannelName, dims: Dims) -> Result<Channel, Da
         let row = &pixels[(h - 1 - y) * w * bpp..(h - y) * w * bpp];
         out.extend(row.chunks_exact(bpp).map(|p| p[component]));
     }
-    Channel::from_u8(out, dims).map_err(|(expected, actual)| DatasetError::SizeMismatch {
+    Channel::from_u8(out, dims).map_err(|super::ChannelSizeError { expected, actual }| DatasetError::SizeMismatch {
         path: path.to_path_buf(),
         expected,
         actual,

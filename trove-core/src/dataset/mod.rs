@@ -17,6 +17,6 @@ pub mod raw;
 mod source;
 mod volume;
 
-pub use channel::{Channel, ChannelName, ChannelReader, Endian, VoxelBytes, VoxelType};
+pub use channel::{Channel, ChannelName, ChannelReader, ChannelSizeError, Endian, VoxelBytes, VoxelType};
 pub use source::{ChannelSource, DatasetInfo, Encoding};
-pub use volume::{Dims, Volume};
+pub use volume::{Dims, DimsError, Volume};

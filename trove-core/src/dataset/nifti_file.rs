@@ -121,9 +121,14 @@ pub fn load(path: &Path, dims: Dims) -> Result<Channel, DatasetError> {
             (VoxelType::F32, Endian::Little, f)
         }
     };
-    Channel::new(ty, endian, VoxelBytes::Owned(Arc::new(bytes)), dims).map_err(|(expected, actual)| {
-        DatasetError::SizeMismatch { path: path.to_path_buf(), expected, actual, what: layout.what() }
-    })
+    Channel::new(ty, endian, VoxelBytes::Owned(Arc::new(bytes)), dims).map_err(
+        |super::ChannelSizeError { expected, actual }| DatasetError::SizeMismatch {
+            path: path.to_path_buf(),
+            expected,
+            actual,
+            what: layout.what(),
+        },
+    )
 }
 
 /// Discards exactly `n` bytes (the header and extensions inside a gzip stream).
@@ -194,7 +199,7 @@ fn read_layout(path: &Path) -> Result<Layout, DatasetError> {
             ));
         }
     }
-    let dims = Dims::new(sizes).map_err(|m| field("dim", m))?;
+    let dims = Dims::new(sizes).map_err(|e| field("dim", e.to_string()))?;
 
     let dt = header.data_type().map_err(|_| field("datatype", format!("unknown datatype code {}", header.datatype)))?;
     let stored = match dt {

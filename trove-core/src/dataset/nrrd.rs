@@ -60,7 +60,7 @@ pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
         return Err(err("sizes", format!("gives {} sizes but `dimension` is {dimension}", sizes.len())));
     }
     sizes.resize(3, 1);
-    let dims = Dims::new([sizes[0], sizes[1], sizes[2]]).map_err(|m| err("sizes", m))?;
+    let dims = Dims::new([sizes[0], sizes[1], sizes[2]]).map_err(|e| err("sizes", e.to_string()))?;
 
     let ty_text = fields.required("type")?;
     let stored = parse_type(ty_text).map_err(|m| err("type", m))?;

@@ -215,7 +215,7 @@ pub fn load(
     };
     let endian = if stored.is_native() { endian } else { Endian::Little };
     Channel::new(stored.loaded_type(), endian, bytes, dims)
-        .map_err(|(e, a)| mismatch(path, e, a, what(dims, stored.loaded_type().into())))
+        .map_err(|e| mismatch(path, e.expected, e.actual, what(dims, stored.loaded_type().into())))
 }
 
 fn mismatch(path: &Path, expected: u64, actual: u64, what: String) -> DatasetError {

@@ -18,6 +18,7 @@
 //!   intersection for the six faces (Reshetov, "Cool Patches", Ray Tracing Gems 2019), backed by ray/edge
 //!   tests so that rays through edges, corners and along face planes are never lost.
 use glam::{DMat3, DMat4, DVec3, DVec4};
+use thiserror::Error;
 
 /// A box counts as degenerate where `|det J|` is below this fraction of `L³` (`L` = the diagonal of the
 /// corners' bounding box): a box 10⁻¹² times thinner than it is wide has no usable volume in f64.
@@ -40,6 +41,75 @@ const PATCH_EPS: f64 = 1e-9;
 
 /// Bernstein coefficients of degree (2,2,2), indexed `[ix][iy][iz]`.
 type Bern = [[[f64; 3]; 3]; 3];
+
+/// Why [`Hexahedron::new`] refused eight corners. Messages follow the key `transform.corners`
+/// (the scene loader adds file and key); box coordinates are `q ∈ [0,1]³`.
+#[derive(Clone, Copy, Debug, PartialEq, Error)]
+pub enum HexahedronError {
+    /// A corner with a NaN or infinite coordinate.
+    #[error("corner {index} is not finite ({corner:?})")]
+    NonFiniteCorner {
+        /// Which corner (`x + 2y + 4z`).
+        index: usize,
+        /// Its coordinates.
+        corner: [f64; 3],
+    },
+    /// The corners' bounding box overflows f64.
+    #[error("the corners are too far apart to be represented")]
+    TooFarApart,
+    /// All eight corners coincide.
+    #[error("degenerate box: all eight corners are the same point")]
+    SinglePoint,
+    /// `det J` is zero everywhere, to rounding: the corners span no volume.
+    #[error("degenerate box: the corners enclose no volume (they lie in a plane, on a line or coincide)")]
+    NoVolume,
+    /// `det J` is zero at corner 0, which fixes the orientation.
+    #[error("degenerate box: the Jacobian determinant is zero at corner 0 (its three edges are coplanar)")]
+    DegenerateAtCorner0,
+    /// `det J` is zero at a point inside the box.
+    #[error(
+        "the hexahedron is degenerate at box coordinates {}: the Jacobian determinant is zero there \
+         (edges collapse or become coplanar)",
+        Q(*at)
+    )]
+    DegenerateAt {
+        /// Where.
+        at: [f64; 3],
+    },
+    /// `det J` changes sign: the box turns inside out.
+    #[error(
+        "the hexahedron folds over itself: the Jacobian determinant is {at_corner0:.3e} at corner 0 but \
+         {value:.3e} at box coordinates {} (check the corner order: i = x + 2y + 4z)",
+        Q(*at)
+    )]
+    Folds {
+        /// `det J` at corner 0.
+        at_corner0: f64,
+        /// `det J` at `at`, of the other sign.
+        value: f64,
+        /// Where.
+        at: [f64; 3],
+    },
+    /// The fold test ran out of depth without a proof either way: `det J` comes too close to 0.
+    #[error(
+        "the hexahedron is too close to folding over itself near box coordinates {}: the Jacobian \
+         determinant comes too close to zero to prove that it keeps its sign",
+        Q(*near)
+    )]
+    TooCloseToFolding {
+        /// Centre of the sub-box where the proof stopped.
+        near: [f64; 3],
+    },
+}
+
+/// Box coordinates as `(0.250, 0.500, 1.000)` in messages.
+pub(crate) struct Q(pub(crate) [f64; 3]);
+
+impl std::fmt::Display for Q {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "({:.3}, {:.3}, {:.3})", self.0[0], self.0[1], self.0[2])
+    }
+}
 
 /// A hexahedral object box with its precomputed data (monomial coefficients, size, orientation, affine
 /// form when it is a parallelepiped). Construct it with [`Hexahedron::new`], which guarantees that the box
@@ -74,8 +144,7 @@ pub fn corners_of_affine(m: &DMat4) -> [DVec3; 8] {
 impl Hexahedron {
     /// Checks and prepares a box from its eight world corners (order `i = x + 2y + 4z`).
     ///
-    /// Refuses, with a message meant to follow the key `transform.corners` (the caller adds file and key):
-    /// non-finite corners; a degenerate box (no volume: `|det J|` below 10⁻¹² of the bounding-box diagonal
+    /// Refuses ([`HexahedronError`]): non-finite corners; a degenerate box (no volume: `|det J|` below 10⁻¹² of the bounding-box diagonal
     /// cubed, e.g. all corners in one plane); and a box that folds over itself, i.e. where `det J` changes
     /// sign or is 0 somewhere in `[0,1]³`. A mirrored box (negative `det J` throughout) is accepted.
     ///
@@ -88,18 +157,18 @@ impl Hexahedron {
     /// the coefficients at a sub-box's corners are actual values of `det J`, so one of the wrong sign (or 0)
     /// proves folding. If the depth or work bound runs out undecided, `det J` comes so close to 0 that the
     /// box is refused as too close to folding: a conservative, never a wrong, acceptance.
-    pub fn new(corners: [DVec3; 8]) -> Result<Hexahedron, String> {
-        if let Some(i) = corners.iter().position(|c| !c.is_finite()) {
-            return Err(format!("corner {i} is not finite ({:?})", corners[i].to_array()));
+    pub fn new(corners: [DVec3; 8]) -> Result<Hexahedron, HexahedronError> {
+        if let Some(index) = corners.iter().position(|c| !c.is_finite()) {
+            return Err(HexahedronError::NonFiniteCorner { index, corner: corners[index].to_array() });
         }
         let bbox_min = corners.iter().fold(DVec3::splat(f64::INFINITY), |m, c| m.min(*c));
         let bbox_max = corners.iter().fold(DVec3::splat(f64::NEG_INFINITY), |m, c| m.max(*c));
         let size = (bbox_max - bbox_min).length();
         if !size.is_finite() {
-            return Err("the corners are too far apart to be represented".to_string());
+            return Err(HexahedronError::TooFarApart);
         }
         if size == 0.0 {
-            return Err("degenerate box: all eight corners are the same point".to_string());
+            return Err(HexahedronError::SinglePoint);
         }
         let tol = DEGENERATE_REL * size * size * size;
         let bern = det_bernstein(&corners);
@@ -596,21 +665,16 @@ fn split(b: &Bern, axis: usize) -> (Bern, Bern) {
 }
 
 /// The sign of `det J` on `[0,1]³` (+1 or −1), or the reason the box is refused. See [`Hexahedron::new`].
-fn check_no_fold(bern: &Bern, tol: f64) -> Result<f64, String> {
+fn check_no_fold(bern: &Bern, tol: f64) -> Result<f64, HexahedronError> {
     let max_abs = bern.iter().flatten().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
     if max_abs <= tol {
-        return Err("degenerate box: the corners enclose no volume (they lie in a plane, on a line or \
-                    coincide)"
-            .to_string());
+        return Err(HexahedronError::NoVolume);
     }
     let first = bern[0][0][0];
     if first.abs() <= tol {
-        return Err("degenerate box: the Jacobian determinant is zero at corner 0 (its three edges are \
-                    coplanar)"
-            .to_string());
+        return Err(HexahedronError::DegenerateAtCorner0);
     }
     let sign = first.signum();
-    let fmt_q = |q: DVec3| format!("({:.3}, {:.3}, {:.3})", q.x, q.y, q.z);
     let mut stack = vec![(*bern, DVec3::ZERO, 1.0f64, 0u32)];
     let mut examined = 0usize;
     while let Some((b, lo, h, depth)) = stack.pop() {
@@ -622,28 +686,16 @@ fn check_no_fold(bern: &Bern, tol: f64) -> Result<f64, String> {
             let (iy, iz) = (2 * iy, 2 * iz);
             let v = b[ix][iy][iz];
             if sign * v <= tol {
-                let q = lo + 0.5 * h * DVec3::new(ix as f64, iy as f64, iz as f64);
+                let at = (lo + 0.5 * h * DVec3::new(ix as f64, iy as f64, iz as f64)).to_array();
                 return Err(if v.abs() <= tol {
-                    format!(
-                        "the hexahedron is degenerate at box coordinates {}: the Jacobian determinant is zero \
-                         there (edges collapse or become coplanar)",
-                        fmt_q(q)
-                    )
+                    HexahedronError::DegenerateAt { at }
                 } else {
-                    format!(
-                        "the hexahedron folds over itself: the Jacobian determinant is {first:.3e} at corner 0 \
-                         but {v:.3e} at box coordinates {} (check the corner order: i = x + 2y + 4z)",
-                        fmt_q(q)
-                    )
+                    HexahedronError::Folds { at_corner0: first, value: v, at }
                 });
             }
         }
         if depth >= FOLD_MAX_DEPTH || examined >= FOLD_MAX_BOXES {
-            return Err(format!(
-                "the hexahedron is too close to folding over itself near box coordinates {}: the Jacobian \
-                 determinant comes too close to zero to prove that it keeps its sign",
-                fmt_q(lo + DVec3::splat(0.5 * h))
-            ));
+            return Err(HexahedronError::TooCloseToFolding { near: (lo + DVec3::splat(0.5 * h)).to_array() });
         }
         let h2 = 0.5 * h;
         let (x0, x1) = split(&b, 0);

@@ -28,8 +28,15 @@ pub(super) fn scene(text: &str, path: &Path) -> Result<Scene, SceneError> {
 
     let image = image_settings(&file).map_err(fail)?;
     let c = &file.camera;
-    let camera = Camera::new(DVec3::from(c.eye), DVec3::from(c.target), DVec3::from(c.up), c.fov_y)
-        .map_err(|(k, m)| fail((k.to_string(), m)))?;
+    let camera = Camera::new(DVec3::from(c.eye), DVec3::from(c.target), DVec3::from(c.up), c.fov_y).map_err(|e| {
+        let key = match e.field() {
+            crate::geometry::CameraField::Eye => "camera.eye",
+            crate::geometry::CameraField::Target => "camera.target",
+            crate::geometry::CameraField::Up => "camera.up",
+            crate::geometry::CameraField::FovY => "camera.fov_y",
+        };
+        fail((key.to_string(), e.to_string()))
+    })?;
     let render = render_settings(&file).map_err(fail)?;
     let straight = match file.render.distorted_sampling.as_str() {
         "exact" => false,
@@ -316,7 +323,7 @@ fn dims_of(d: [i64; 3], key: &str) -> Result<Dims, KeyError> {
     if d.iter().any(|&n| n < 1) {
         return Err((key.into(), format!("expected three voxel counts ≥ 1, got {d:?}")));
     }
-    Dims::new(d.map(|n| n as u64)).map_err(|m| (key.to_string(), m))
+    Dims::new(d.map(|n| n as u64)).map_err(|e| (key.to_string(), e.to_string()))
 }
 
 fn check_channel_type(name: ChannelName, ty: VoxelType, key: &str) -> Result<(), KeyError> {
@@ -490,7 +497,7 @@ fn object(o: &ObjectFile, key: &str, ds: usize, info: &DatasetInfo, straight: bo
     let extent = extent(o, key)?;
     let shape = shape(o.transform.as_ref(), &format!("{key}.transform"), straight)?;
     let placement = Placement::new(shape, extent, info.dims);
-    placement.check_inversion_precision().map_err(|m| (format!("{key}.transform.corners"), m))?;
+    placement.check_inversion_precision().map_err(|e| (format!("{key}.transform.corners"), e.to_string()))?;
     // Refuse sampling so fine that one ray would take millions of samples per object.
     let diagonal = world_diagonal(&placement);
     if sampling_distance > 0.0 && diagonal / sampling_distance > MAX_SAMPLES_PER_PIECE {
@@ -537,7 +544,7 @@ fn shape(t: Option<&TransformFile>, key: &str, straight: bool) -> Result<Shape, 
                 return Err((k, "expected eight [x, y, z] corners, index x + 2y + 4z".into()));
             }
             let corners: [DVec3; 8] = std::array::from_fn(|i| DVec3::new(c[i][0], c[i][1], c[i][2]));
-            let hex = Hexahedron::new(corners).map_err(|m| (k.clone(), m))?;
+            let hex = Hexahedron::new(corners).map_err(|e| (k.clone(), e.to_string()))?;
             match hex.as_affine() {
                 Some(m) => affine_from(m, &k),
                 None => Ok(Shape::Distorted { hex: Box::new(hex), straight }),
