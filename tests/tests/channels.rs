@@ -2,7 +2,7 @@
 //! user channels included, so effects that use them can rely on them.
 
 use trove_core::dataset::{ChannelName, VoxelType};
-use trove_core::scene::Scene;
+use trove_core::scene::{Scene, SceneErrorKind};
 use trove_tests::scratch;
 
 fn scene_with(channels: &str) -> String {
@@ -78,13 +78,17 @@ fn colour_model_channels_must_be_bytes() {
     for name in ["red2", "green2", "blue2", "beta", "interp", "alpha"] {
         let text = scene_with(&channel(name, "{ kind = \"constant\", value = 1.5 }"));
         let err = Scene::parse(&text, dir.join("scene.toml")).unwrap_err();
-        assert_eq!(err.key, format!("datasets[0].channels.{name}.generator"), "{err}");
-        assert!(err.message.contains("u8"), "{err}");
+        assert_eq!(err.key, Some(format!("datasets[0].channels.{name}.generator")), "{err}");
+        assert!(
+            matches!(err.kind, SceneErrorKind::ChannelType { got: VoxelType::F32, .. }),
+            "{name} must be u8: {err}"
+        );
     }
     let err = Scene::parse(
         &scene_with(&channel("bit", "{ kind = \"constant\", value = 1, type = \"u8\" }")),
         dir.join("s.toml"),
     )
     .unwrap_err();
-    assert_eq!(err.key, "datasets[0].channels.bit.generator");
+    assert_eq!(err.key.as_deref(), Some("datasets[0].channels.bit.generator"));
+    assert!(matches!(err.kind, SceneErrorKind::ChannelType { channel: ChannelName::Bit, got: VoxelType::U8 }), "{err}");
 }

@@ -97,7 +97,11 @@ pub fn open(path: &Path) -> Result<(Dims, ImageChannels), DatasetError> {
     let dec = decoder(path)?;
     let layout = Layout::from_color(path, dec.color_type())?;
     let (w, h) = dec.dimensions();
-    let dims = Dims::new([w as u64, h as u64, 1]).map_err(|e| DatasetError::format(path, e.to_string()))?;
+    let dims = Dims::new([w as u64, h as u64, 1]).map_err(|source| DatasetError::Dims {
+        path: path.to_path_buf(),
+        field: "image size",
+        source,
+    })?;
     let mut names = vec![ChannelName::Red, ChannelName::Green, ChannelName::Blue];
     if layout.has_alpha() {
         names.push(ChannelName::Alpha);

@@ -8,6 +8,7 @@
 //! memory-budgeted store can drop and reload them.
 
 mod channel;
+mod error;
 pub mod generator;
 pub mod image_file;
 mod mmap;
@@ -18,5 +19,6 @@ mod source;
 mod volume;
 
 pub use channel::{Channel, ChannelName, ChannelReader, ChannelSizeError, Endian, VoxelBytes, VoxelType};
+pub use error::{DatasetError, KeyProblem};
 pub use source::{ChannelSource, DatasetInfo, Encoding};
 pub use volume::{Dims, DimsError, Volume};

@@ -203,7 +203,7 @@ impl<'s> VolumeStore<'s> {
             }
             Err(e) => {
                 state.resident -= needed;
-                let message = e.to_string();
+                let message = crate::error::with_causes(&e);
                 state.slots[index] = Slot::Failed(message.clone());
                 Err(self.failure(index, message))
             }

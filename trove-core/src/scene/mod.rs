@@ -5,6 +5,7 @@
 //! then checks everything a user can get wrong and builds the model below, in which every
 //! invariant holds: a [`Scene`] is never half-valid, so renderers do not re-check.
 
+mod error;
 mod file;
 mod load;
 mod mappings;
@@ -17,7 +18,8 @@ use crate::dataset::DatasetInfo;
 use crate::geometry::{Camera, Placement};
 use crate::interp::Interpolation;
 use crate::mapping::{ColourMap, OpacityMap};
-use crate::SceneError;
+
+pub use error::{SceneError, SceneErrorKind};
 
 /// Largest image side accepted, in pixels.
 pub const MAX_IMAGE_SIDE: u32 = 16_384;
@@ -94,8 +96,11 @@ impl Scene {
     /// mismatches are reported before anything renders.
     pub fn load(path: impl AsRef<Path>) -> Result<Scene, SceneError> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| SceneError::new(path, "(file)", format!("cannot read the scene file: {e}")))?;
+        let text = std::fs::read_to_string(path).map_err(|e| SceneError {
+            file: path.to_path_buf(),
+            key: None,
+            kind: SceneErrorKind::Read(e),
+        })?;
         Scene::parse(&text, path)
     }
 
