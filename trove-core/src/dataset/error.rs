@@ -10,7 +10,7 @@ use std::path::PathBuf;
 
 use thiserror::Error;
 
-use super::DimsError;
+use super::{DimsError, FileKind};
 
 /// A dataset file that cannot be read, or whose header, size and dims disagree.
 ///
@@ -96,6 +96,16 @@ pub enum DatasetError {
         header: PathBuf,
         /// The `data file` value as written.
         data_file: String,
+    },
+    /// A catalog described a key as another kind of file than the scene expects there.
+    #[error("dataset key \"{key}\" names {found}, not {expected}")]
+    WrongKind {
+        /// The key as written.
+        key: String,
+        /// What the scene expects.
+        expected: FileKind,
+        /// What the catalog found.
+        found: FileKind,
     },
     /// A source held by another process (a farm coordinator describes datasets from the
     /// headers its workers registered and never reads voxels itself).

@@ -468,6 +468,30 @@ impl Generator {
         Ok(())
     }
 
+    /// The kind and every parameter, numbers by their bits: equal exactly when two
+    /// generators make the same channel (`DatasetInfo::id`).
+    pub(crate) fn identity(&self) -> Vec<u64> {
+        let bits = |xs: &[f64]| xs.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let ty = |t: VoxelType| t as u64;
+        match self {
+            Generator::Sphere { centre, radius, value, profile, ty: t } => {
+                let mut v = vec![0, *profile as u64, ty(*t)];
+                v.extend(bits(centre));
+                v.extend(bits(&[*radius, *value]));
+                v
+            }
+            Generator::Chessboard { squares } => vec![1, squares[0] as u64, squares[1] as u64, squares[2] as u64],
+            Generator::Ramp { axis, from, to, ty: t } => {
+                let mut v = vec![2, axis.index() as u64, ty(*t)];
+                v.extend(bits(&[*from, *to]));
+                v
+            }
+            Generator::MarschnerLobb { fm, alpha } => [vec![3], bits(&[*fm, *alpha])].concat(),
+            Generator::Gaussian { centre, sigma, peak } => [vec![4], bits(centre), bits(&[*sigma, *peak])].concat(),
+            Generator::Constant { value, ty: t } => vec![5, ty(*t), value.to_bits()],
+        }
+    }
+
     /// The value at NVC point `p` (before storage rounding).
     fn eval(&self, p: [f64; 3]) -> f64 {
         let dist2 = |c: &[f64; 3]| (0..3).map(|a| (p[a] - c[a]).powi(2)).sum::<f64>();

@@ -26,7 +26,7 @@ use nifti::{NiftiHeader, NiftiType};
 
 use super::nrrd::FileChannel;
 use super::raw::{self, StoredType};
-use super::{Channel, ChannelSource, Dims, Encoding, Endian, VoxelBytes, VoxelType};
+use super::{Channel, ChannelSource, DataFile, Dims, Encoding, Endian, VoxelBytes, VoxelType};
 use crate::DatasetError;
 
 /// What the header says, reduced to what loading needs.
@@ -82,7 +82,7 @@ pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
     Ok(FileChannel {
         dims: layout.dims,
         ty: layout.loaded_type(),
-        source: ChannelSource::Nifti { path: path.to_path_buf() },
+        source: ChannelSource::Nifti { file: DataFile::Local(path.to_path_buf()) },
     })
 }
 
@@ -328,7 +328,7 @@ mod tests {
         let fc = open(&path).unwrap();
         assert_eq!(fc.dims.as_array(), [33, 41, 25]);
         assert_eq!(fc.ty, VoxelType::F32);
-        assert!(matches!(&fc.source, ChannelSource::Nifti { path: p } if *p == path));
+        assert!(matches!(&fc.source, ChannelSource::Nifti { file: DataFile::Local(p) } if *p == path));
         let ch = fc.source.load(fc.dims).unwrap();
         assert_eq!(ch.ty(), VoxelType::F32);
         let off = h.vox_offset as usize;

@@ -45,7 +45,7 @@ pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
 /// As [`open`], with `locate` deciding where a detached header's data file is: it gets the
 /// `data file` value as written and that value joined to the header's folder, and returns
 /// the path to read (a sandboxed catalog canonicalises it and refuses one outside its root).
-pub(crate) fn open_in(path: &Path, locate: &DataFileLocator) -> Result<FileChannel, DatasetError> {
+pub(crate) fn open_in(path: &Path, locate: &DataFileLocator<'_>) -> Result<FileChannel, DatasetError> {
     let (lines, attached_offset) = read_header(path)?;
     let fields = Fields::parse(path, &lines)?;
     let layout = fields.layout()?;
@@ -65,7 +65,7 @@ pub(crate) fn open_in(path: &Path, locate: &DataFileLocator) -> Result<FileChann
 
 /// Where a detached header's data file is: `(value as written, value joined to the header's
 /// folder) → path to read`.
-pub(crate) type DataFileLocator = dyn Fn(&str, PathBuf) -> Result<PathBuf, DatasetError>;
+pub(crate) type DataFileLocator<'a> = dyn Fn(&str, PathBuf) -> Result<PathBuf, DatasetError> + 'a;
 
 /// What the header says about the numbers: which one sits at which voxel.
 struct Layout {
@@ -231,7 +231,7 @@ impl<'a> Fields<'a> {
         &self,
         attached_offset: Option<u64>,
         encoding: Encoding,
-        locate: &DataFileLocator,
+        locate: &DataFileLocator<'_>,
     ) -> Result<(PathBuf, u64), DatasetError> {
         let (data_path, mut offset) =
             match self.get("data file") {
@@ -394,11 +394,12 @@ fn skip_lines(path: &Path, from: u64, n: u64) -> Result<u64, DatasetError> {
 #[cfg(test)]
 mod tests {
     use super::super::raw::testutil::{data_dir, gzip, TempFile};
+    use super::super::DataFile;
     use super::*;
 
     fn file_source(fc: &FileChannel) -> (&Path, u64, Encoding, StoredType, Endian) {
         match &fc.source {
-            ChannelSource::File { path, offset, encoding, stored, endian } => {
+            ChannelSource::File { file: DataFile::Local(path), offset, encoding, stored, endian } => {
                 (path.as_path(), *offset, *encoding, *stored, *endian)
             }
             s => panic!("not a file source: {s:?}"),

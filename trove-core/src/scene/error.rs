@@ -238,11 +238,13 @@ pub enum SceneErrorKind {
     /// Explicit channels without the dataset's dims.
     #[error("missing; explicit channels need the dataset's dims")]
     MissingDims,
-    /// A `file` whose extension names no volume format TROVE reads.
-    #[error("\"{file}\": expected a .nrrd, .nhdr, .nii or .nii.gz file")]
+    /// A `file` (or a channel's `nrrd`) whose extension names no format TROVE reads there.
+    #[error("\"{file}\": expected a {expected} file")]
     VolumeExtension {
         /// The key as written.
         file: String,
+        /// The extensions allowed there.
+        expected: &'static str,
     },
     /// A dataset file refused by the catalog or its reader.
     #[error(transparent)]

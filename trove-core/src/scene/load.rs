@@ -4,7 +4,7 @@
 //! geometry, generators) return their own error types, which become the error's source.
 
 use std::collections::{BTreeMap, HashMap};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use glam::{DMat3, DMat4, DVec3, DVec4};
 
@@ -15,10 +15,11 @@ use super::{
     ImageSettings, Object, RenderSettings, Scene, MAX_IMAGE_SIDE, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE,
     MAX_SAMPLES_PER_RENDER,
 };
-use crate::dataset::generator::Generator;
-use crate::dataset::raw::StoredType;
+use crate::dataset::generator::{Generator, GeneratorError};
+use crate::dataset::raw::{self, StoredType};
 use crate::dataset::{
-    image_file, nifti_file, nrrd, raw, ChannelName, ChannelSource, DatasetInfo, Dims, Endian, VoxelType,
+    Catalog, ChannelName, ChannelSource, DatasetError, DatasetInfo, Dims, Encoding, Endian, FileInfo, FileKind,
+    VolumeFormat, VoxelType,
 };
 use crate::geometry::hexahedron::Hexahedron;
 use crate::geometry::{Camera, CameraField, Extent, Placement, Shape};
@@ -29,11 +30,10 @@ fn err<T>(key: impl Into<String>, kind: Kind) -> Result<T, KeyError> {
     Err(KeyError::new(key, kind))
 }
 
-/// Parses and validates a whole scene.
-pub(super) fn scene(text: &str, path: &Path) -> Result<Scene, SceneError> {
+/// Parses and validates a whole scene, describing its dataset keys through `catalog`.
+pub(super) fn scene(text: &str, path: &Path, catalog: &dyn Catalog) -> Result<Scene, SceneError> {
     let fail = |e: KeyError| SceneError { file: path.to_path_buf(), key: Some(e.key), kind: e.kind };
     let file = deserialize(text, path)?;
-    let folder = path.parent().map(Path::to_path_buf).unwrap_or_default();
 
     let image = image_settings(&file).map_err(fail)?;
     let camera = camera(&file).map_err(fail)?;
@@ -60,7 +60,7 @@ pub(super) fn scene(text: &str, path: &Path) -> Result<Scene, SceneError> {
             let kind = Kind::DuplicateName { what: "dataset", name: d.name.clone(), first: format!("datasets[{j}]") };
             return Err(fail(KeyError::new(format!("{key}.name"), kind)));
         }
-        datasets.push(dataset(d, &key, &folder).map_err(fail)?);
+        datasets.push(dataset(d, &key, catalog).map_err(fail)?);
     }
 
     let mut objects = Vec::with_capacity(file.objects.len());
@@ -155,7 +155,7 @@ fn deserialize(text: &str, path: &Path) -> Result<SceneFile, SceneError> {
         if key == "." {
             key.clear();
         }
-        let (field, kind) = describe(e.inner().message().trim());
+        let (field, kind) = in_words(e.inner().message().trim());
         // A missing field is reported at its table; name the field itself. An unknown
         // field's path already ends with it.
         if let Some(field) = field {
@@ -237,7 +237,7 @@ fn quoted_after<'a>(s: &'a str, prefix: &str) -> Option<&'a str> {
 /// serde's message in the scene's words: the sub-key it is about (for errors reported at
 /// the enclosing table), and what was expected. serde hands its errors over as text (its
 /// `Error::custom` carries no structure), so this is the one place that reads a message.
-fn describe(inner: &str) -> (Option<String>, Kind) {
+fn in_words(inner: &str) -> (Option<String>, Kind) {
     if let Some(field) = quoted_after(inner, "missing field `") {
         return (Some(field.to_string()), Kind::MissingKey { field: field.to_string() });
     }
@@ -311,10 +311,6 @@ fn render_settings(f: &SceneFile) -> Result<RenderSettings, KeyError> {
     Ok(RenderSettings { termination: t, opacity_correction: f.render.opacity_correction })
 }
 
-fn resolve(folder: &Path, rel: &str) -> PathBuf {
-    folder.join(rel)
-}
-
 fn dims_of(d: [i64; 3], key: &str) -> Result<Dims, KeyError> {
     if d.iter().any(|&n| n < 1) {
         return err(key, Kind::DimsBelowOne { got: d });
@@ -341,11 +337,44 @@ fn agree(dims: &mut Option<Dims>, found: Dims, key: &str) -> Result<Dims, KeyErr
 }
 
 /// A dataset file's error, at the key that names the file.
-fn dataset_error(key: &str) -> impl Fn(crate::DatasetError) -> KeyError + '_ {
+fn dataset_error(key: &str) -> impl Fn(DatasetError) -> KeyError + '_ {
     move |e| KeyError::new(key, Kind::Dataset(e))
 }
 
-fn dataset(d: &DatasetFile, key: &str, folder: &Path) -> Result<DatasetInfo, KeyError> {
+/// What `catalog` says `file` (written at `key`) holds.
+fn describe(catalog: &dyn Catalog, file: &str, kind: FileKind, key: &str) -> Result<FileInfo, KeyError> {
+    catalog.describe(file, kind).map_err(dataset_error(key))
+}
+
+/// A catalog's answer of another kind than asked for.
+fn wrong_kind(file: &str, expected: FileKind, found: &FileInfo, key: &str) -> KeyError {
+    let e = DatasetError::WrongKind { key: file.to_string(), expected, found: found.kind() };
+    KeyError::new(key, Kind::Dataset(e))
+}
+
+/// A volume file (`file`, or a channel's `nrrd` when `only` says so) in a format TROVE reads.
+fn volume(
+    catalog: &dyn Catalog,
+    file: &str,
+    key: &str,
+    only: Option<(VolumeFormat, &'static str)>,
+) -> Result<(Dims, VoxelType, ChannelSource), KeyError> {
+    let format = VolumeFormat::of_key(file);
+    let expected = match only {
+        Some((want, expected)) if format != Some(want) => Some(expected),
+        None if format.is_none() => Some(".nrrd, .nhdr, .nii or .nii.gz"),
+        _ => None,
+    };
+    if let Some(expected) = expected {
+        return err(key, Kind::VolumeExtension { file: file.to_string(), expected });
+    }
+    match describe(catalog, file, FileKind::Volume, key)? {
+        FileInfo::Volume { dims, ty, source } => Ok((dims, ty, source)),
+        other => Err(wrong_kind(file, FileKind::Volume, &other, key)),
+    }
+}
+
+fn dataset(d: &DatasetFile, key: &str, catalog: &dyn Catalog) -> Result<DatasetInfo, KeyError> {
     let mut channels: BTreeMap<ChannelName, (VoxelType, ChannelSource)> = BTreeMap::new();
     let declared = d.dims.map(|v| dims_of(v, &format!("{key}.dims"))).transpose()?;
     let mut dims = declared;
@@ -353,26 +382,20 @@ fn dataset(d: &DatasetFile, key: &str, folder: &Path) -> Result<DatasetInfo, Key
         (Some(_), Some(_)) => return err(format!("{key}.image"), Kind::FileAndImage),
         (Some(f), None) => {
             let k = format!("{key}.file");
-            let path = resolve(folder, f);
-            let lower = f.to_ascii_lowercase();
-            let opened = if lower.ends_with(".nrrd") || lower.ends_with(".nhdr") {
-                nrrd::open(&path)
-            } else if lower.ends_with(".nii") || lower.ends_with(".nii.gz") {
-                nifti_file::open(&path)
-            } else {
-                return err(k, Kind::VolumeExtension { file: f.clone() });
-            }
-            .map_err(dataset_error(&k))?;
-            agree(&mut dims, opened.dims, &k)?;
-            check_channel_type(ChannelName::Voxel, opened.ty, &k)?;
-            channels.insert(ChannelName::Voxel, (opened.ty, opened.source));
+            let (found, ty, source) = volume(catalog, f, &k, None)?;
+            agree(&mut dims, found, &k)?;
+            check_channel_type(ChannelName::Voxel, ty, &k)?;
+            channels.insert(ChannelName::Voxel, (ty, source));
         }
         (None, Some(img)) => {
             let k = format!("{key}.image");
-            let (found, chans) = image_file::open(&resolve(folder, img)).map_err(dataset_error(&k))?;
+            let (found, given) = match describe(catalog, img, FileKind::Image, &k)? {
+                FileInfo::Image { dims, channels } => (dims, channels),
+                other => return Err(wrong_kind(img, FileKind::Image, &other, &k)),
+            };
             agree(&mut dims, found, &k)?;
-            for (name, ty, source) in chans {
-                channels.insert(name, (ty, source));
+            for (name, source) in given {
+                channels.insert(name, (VoxelType::U8, source));
             }
         }
         (None, None) => {
@@ -395,7 +418,7 @@ fn dataset(d: &DatasetFile, key: &str, folder: &Path) -> Result<DatasetInfo, Key
         let Some(dims) = dims else {
             return err(format!("{key}.dims"), Kind::MissingDims);
         };
-        let (ty, source) = channel(c, &ck, name, dims, folder)?;
+        let (ty, source) = channel(c, &ck, name, dims, catalog)?;
         channels.insert(name, (ty, source));
     }
     let dims = dims.expect("every branch above fixes dims or returns");
@@ -414,7 +437,7 @@ fn channel(
     key: &str,
     name: ChannelName,
     dims: Dims,
-    folder: &Path,
+    catalog: &dyn Catalog,
 ) -> Result<(VoxelType, ChannelSource), KeyError> {
     let given = [c.raw.is_some(), c.nrrd.is_some(), c.generator.is_some()].iter().filter(|&&b| b).count();
     if given != 1 {
@@ -441,22 +464,28 @@ fn channel(
             Some(e) => Endian::parse(e)
                 .ok_or_else(|| KeyError::new(format!("{key}.endian"), Kind::UnknownEndian { got: e.to_string() }))?,
         };
+        // A raw file has no header: its length, from the catalog, must be exactly what the
+        // scene's dims, type and offset call for.
         let rk = format!("{key}.raw");
-        let source = raw::open(&resolve(folder, r), c.offset.unwrap_or(0), StoredType::from(ty), endian, dims)
-            .map_err(dataset_error(&rk))?;
-        return Ok((ty, source));
+        let (bytes, file) = match describe(catalog, r, FileKind::Raw, &rk)? {
+            FileInfo::Raw { bytes, file } => (bytes, file),
+            other => return Err(wrong_kind(r, FileKind::Raw, &other, &rk)),
+        };
+        let (offset, stored) = (c.offset.unwrap_or(0), StoredType::from(ty));
+        raw::check_len(file.path(), bytes, offset, stored, dims).map_err(dataset_error(&rk))?;
+        return Ok((ty, ChannelSource::File { file, offset, encoding: Encoding::Raw, stored, endian }));
     }
     if let Some(n) = &c.nrrd {
         let nk = format!("{key}.nrrd");
-        let opened = nrrd::open(&resolve(folder, n)).map_err(dataset_error(&nk))?;
-        agree(&mut Some(dims), opened.dims, &nk)?;
-        check_channel_type(name, opened.ty, &nk)?;
-        return Ok((opened.ty, opened.source));
+        let (found, ty, source) = volume(catalog, n, &nk, Some((VolumeFormat::Nrrd, ".nrrd or .nhdr")))?;
+        agree(&mut Some(dims), found, &nk)?;
+        check_channel_type(name, ty, &nk)?;
+        return Ok((ty, source));
     }
     let table = c.generator.clone().expect("exactly one source is present");
     let gk = format!("{key}.generator");
     // The generator's errors name the key they are about.
-    let at_its_key = |e: crate::dataset::generator::GeneratorError| {
+    let at_its_key = |e: GeneratorError| {
         let k = e.key().map_or_else(|| gk.clone(), |field| format!("{gk}.{field}"));
         KeyError::new(k, Kind::Generator(e))
     };

@@ -14,7 +14,7 @@ mod tests;
 
 use std::path::{Path, PathBuf};
 
-use crate::dataset::DatasetInfo;
+use crate::dataset::{Catalog, DatasetInfo, FsCatalog};
 use crate::geometry::{Camera, Placement};
 use crate::interp::Interpolation;
 use crate::mapping::{ColourMap, OpacityMap};
@@ -93,7 +93,8 @@ pub struct Scene {
 
 impl Scene {
     /// Reads and validates a scene file, opening every dataset's headers so that size
-    /// mismatches are reported before anything renders.
+    /// mismatches are reported before anything renders. Dataset keys are paths relative to
+    /// the scene's folder ([`FsCatalog::trusting`]).
     pub fn load(path: impl AsRef<Path>) -> Result<Scene, SceneError> {
         let path = path.as_ref();
         let text = std::fs::read_to_string(path).map_err(|e| SceneError {
@@ -105,9 +106,17 @@ impl Scene {
     }
 
     /// Validates scene text as if read from `path` (relative dataset paths resolve against
-    /// its folder).
+    /// its folder, [`FsCatalog::trusting`]).
     pub fn parse(text: &str, path: impl AsRef<Path>) -> Result<Scene, SceneError> {
-        load::scene(text, path.as_ref())
+        let path = path.as_ref();
+        let folder = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        Scene::parse_with(text, path, &FsCatalog::trusting(folder))
+    }
+
+    /// Validates scene text, describing its dataset keys through `catalog` (a sandboxed
+    /// data root, or a farm coordinator's registry); `path` names the scene in messages.
+    pub fn parse_with(text: &str, path: impl AsRef<Path>, catalog: &dyn Catalog) -> Result<Scene, SceneError> {
+        load::scene(text, path.as_ref(), catalog)
     }
 
     /// Switches every distorted box between exact inversion and the paper's straight-line

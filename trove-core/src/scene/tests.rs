@@ -11,7 +11,9 @@ use std::path::{Path, PathBuf};
 
 use super::{Scene, SceneErrorKind as Kind, MAX_IMAGE_SIDE, MAX_OBJECTS};
 use crate::dataset::generator::GeneratorError;
-use crate::dataset::{ChannelName, DatasetError, DimsError, VoxelType};
+use crate::dataset::{
+    ChannelName, DataFile, DatasetError, DimsError, FileInfo, FileKind, FsCatalog, KeyProblem, VoxelType,
+};
 use crate::geometry::hexahedron::HexahedronError;
 use crate::geometry::{CameraError, CameraField};
 use crate::SceneError;
@@ -711,7 +713,7 @@ fn a_file_with_an_unsupported_extension_is_refused() {
     let dir = scratch("extension");
     std::fs::write(dir.join("head.mha"), b"not read").unwrap();
     let text = with(&[(BALL, "file = \"head.mha\"\n")]);
-    refused!(in dir, text, "datasets[0].file", Kind::VolumeExtension { file } if file == "head.mha");
+    refused!(in dir, text, "datasets[0].file", Kind::VolumeExtension { file, .. } if file == "head.mha");
 }
 
 #[test]
@@ -1194,4 +1196,126 @@ fn messages_name_the_file_the_key_and_what_was_expected() {
     let got = shown(&Scene::load(&missing).unwrap_err());
     let want = format!("{}: cannot read the scene file: ", missing.display());
     assert!(got.starts_with(&want) && got.len() > want.len(), "{got}");
+}
+
+// ---------------------------------------------------------------------------------------
+// Dataset keys go through a catalog (the seam a farm uses).
+
+/// A catalog that knows files only by their headers, as a farm coordinator does: every raw
+/// key is 128 bytes long and held by another process.
+struct Registry;
+
+impl crate::dataset::Catalog for Registry {
+    fn describe(&self, key: &str, kind: FileKind) -> Result<FileInfo, DatasetError> {
+        match kind {
+            FileKind::Raw => Ok(FileInfo::Raw { bytes: 128, file: DataFile::Remote(key.to_string()) }),
+            _ => Err(DatasetError::Remote { key: key.to_string() }),
+        }
+    }
+}
+
+#[test]
+fn a_catalog_of_remote_headers_validates_without_reading_and_cannot_load() {
+    let gen = "generator = { kind = \"sphere\", radius = 0.4 }";
+    let text = with(&[(gen, "raw = \"data/ball.raw\"\ntype = \"u16\"")]);
+    let scene = Scene::parse_with(&text, NAME, &Registry).unwrap_or_else(|e| panic!("{e}"));
+    let e = scene.datasets[0].load().unwrap_err();
+    assert!(matches!(&e, DatasetError::Remote { key } if key == "data/ball.raw"), "{e:?}");
+    // The length the registry reports is checked like a local file's, naming the key.
+    let text = with(&[(gen, "raw = \"data/ball.raw\"\ntype = \"u8\"")]);
+    let e = Scene::parse_with(&text, NAME, &Registry).unwrap_err();
+    assert!(
+        matches!(&e.kind, Kind::Dataset(DatasetError::SizeMismatch { path, expected: 64, actual: 128, .. })
+            if path == Path::new("data/ball.raw")),
+        "{e:?}"
+    );
+    // A catalog that answers with another kind of file than asked is refused, not trusted.
+    struct Confused;
+    impl crate::dataset::Catalog for Confused {
+        fn describe(&self, _: &str, _: FileKind) -> Result<FileInfo, DatasetError> {
+            Ok(FileInfo::Raw { bytes: 64, file: DataFile::Remote("x".into()) })
+        }
+    }
+    let e = Scene::parse_with(&with(&[(BALL, "file = \"a.nhdr\"\n")]), NAME, &Confused).unwrap_err();
+    assert!(
+        matches!(
+            e.kind,
+            Kind::Dataset(DatasetError::WrongKind { expected: FileKind::Volume, found: FileKind::Raw, .. })
+        ),
+        "{e:?}"
+    );
+}
+
+#[test]
+fn a_raw_offset_is_counted_and_may_not_pass_the_end() {
+    let dir = scratch("raw-offset");
+    std::fs::write(dir.join("ball.raw"), [0u8; 136]).unwrap();
+    let gen = "generator = { kind = \"sphere\", radius = 0.4 }";
+    accepted_in(&dir, &with(&[(gen, "raw = \"ball.raw\"\ntype = \"u16\"\noffset = 8")]));
+    refused!(
+        in dir,
+        with(&[(gen, "raw = \"ball.raw\"\ntype = \"u16\"\noffset = 4")]),
+        "datasets[0].channels.voxel.raw",
+        Kind::Dataset(DatasetError::SizeMismatch { expected: 128, actual: 132, .. })
+    );
+    refused!(
+        in dir,
+        with(&[(gen, "raw = \"ball.raw\"\ntype = \"u16\"\noffset = 200")]),
+        "datasets[0].channels.voxel.raw",
+        Kind::Dataset(DatasetError::ShorterThanOffset { len: 136, offset: 200, .. })
+    );
+}
+
+#[test]
+fn an_nrrd_channel_needs_an_nrrd_file() {
+    let gen = "generator = { kind = \"sphere\", radius = 0.4 }";
+    refused!(
+        with(&[(gen, "nrrd = \"ball.nii\"")]),
+        "datasets[0].channels.voxel.nrrd",
+        Kind::VolumeExtension { file, expected: ".nrrd or .nhdr" } if file == "ball.nii"
+    );
+}
+
+#[cfg(unix)]
+#[test]
+fn a_sandboxed_catalog_refuses_keys_that_leave_its_root() {
+    let dir = scratch("sandbox");
+    let root = dir.join("root");
+    std::fs::create_dir_all(&root).unwrap();
+    std::fs::write(dir.join("ball.raw"), [0u8; 64]).unwrap();
+    std::os::unix::fs::symlink("../ball.raw", root.join("ball.raw")).unwrap();
+    let gen = "generator = { kind = \"sphere\", radius = 0.4 }";
+    let text = with(&[(gen, "raw = \"ball.raw\"\ntype = \"u8\"")]);
+    // Local mode follows the link; a farm worker's sandbox does not.
+    Scene::parse_with(&text, NAME, &FsCatalog::trusting(&root)).unwrap_or_else(|e| panic!("{e}"));
+    let sandbox = FsCatalog::sandboxed(&root).unwrap();
+    let e = Scene::parse_with(&text, NAME, &sandbox).unwrap_err();
+    assert_eq!(e.key.as_deref(), Some("datasets[0].channels.voxel.raw"));
+    assert!(matches!(&e.kind, Kind::Dataset(DatasetError::OutsideRoot { key }) if key == "ball.raw"), "{e:?}");
+    let text = with(&[(gen, "raw = \"../ball.raw\"\ntype = \"u8\"")]);
+    let e = Scene::parse_with(&text, NAME, &sandbox).unwrap_err();
+    assert!(
+        matches!(&e.kind, Kind::Dataset(DatasetError::InvalidKey { problem: KeyProblem::ParentComponent, .. })),
+        "{e:?}"
+    );
+}
+
+#[test]
+fn datasets_that_read_the_same_sources_share_an_id() {
+    let dir = scratch("ids");
+    std::fs::write(dir.join("ball.raw"), [0u8; 64]).unwrap();
+    let gen = "generator = { kind = \"sphere\", radius = 0.4 }";
+    let text = with(&[(gen, "raw = \"ball.raw\"\ntype = \"u8\"")]);
+    let a = accepted_in(&dir, &text);
+    let b = accepted_in(
+        &dir,
+        &text.replace("name = \"ball\"", "name = \"other\"").replace("dataset = \"ball\"", "dataset = \"other\""),
+    );
+    assert_eq!(a.datasets[0].id(), b.datasets[0].id(), "names do not matter");
+    assert_ne!(a.datasets[0].id(), a.datasets[1].id());
+    let generated = accepted(&base());
+    assert_eq!(generated.datasets[0].id(), accepted(&base()).datasets[0].id());
+    assert_ne!(generated.datasets[0].id(), a.datasets[0].id());
+    let bigger = accepted(&with(&[("dims = [4, 4, 4]", "dims = [4, 4, 5]")]));
+    assert_ne!(generated.datasets[0].id(), bigger.datasets[0].id(), "dims matter");
 }
