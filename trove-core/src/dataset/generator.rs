@@ -597,8 +597,8 @@ mod tests {
     }
 
     /// The table as serde reads it; its own refusals (unknown keys, wrong types) are serde's.
-    fn table(s: &str) -> Result<GeneratorTable, String> {
-        toml::from_str::<GeneratorTable>(s).map_err(|e| e.to_string())
+    fn table(s: &str) -> Result<GeneratorTable, toml::de::Error> {
+        toml::from_str::<GeneratorTable>(s)
     }
 
     fn parse(s: &str) -> Result<Generator, GeneratorError> {
@@ -649,7 +649,7 @@ mod tests {
             ("kind = \"chessboard\"\nsquares = [1, 2]", "squares"),
             ("radius = 1.0", "kind"),
         ] {
-            let e = table(bad).unwrap_err();
+            let e = table(bad).unwrap_err().to_string();
             assert!(e.contains(needle), "{bad:?}: {e}");
         }
         // Refused by the conversion, each naming its key.
