@@ -35,7 +35,7 @@ pub fn render_text(dir: &Path, toml: &str) -> Image {
     };
     let reference = run(Algorithm::PerRay).image;
     let grouped = run(Algorithm::Grouped).image;
-    let slack = 1e-6 + (1.0 - scene.render.termination);
+    let slack = 1e-6 + (1.0 - scene.render().termination);
     let diff = max_abs_difference(&reference, &grouped);
     assert!(diff <= slack, "grouped differs from per-ray by {diff} (allowed {slack})");
     reference
@@ -64,10 +64,11 @@ pub fn example_scenes(max_side: u32) -> Vec<(PathBuf, Scene)> {
             eprintln!("skipping {}: it reads ../shared/data, which is absent", path.display());
             continue;
         }
-        let mut scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
-        let scale = max_side as f64 / scene.image.width.max(scene.image.height) as f64;
-        scene.image.width = ((scene.image.width as f64 * scale).round() as u32).max(1);
-        scene.image.height = ((scene.image.height as f64 * scale).round() as u32).max(1);
+        let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
+        let (width, height) = (scene.image().width, scene.image().height);
+        let scale = max_side as f64 / width.max(height) as f64;
+        let shrink = |side: u32| ((side as f64 * scale).round() as u32).max(1);
+        let scene = scene.with_image_size(shrink(width), shrink(height)).unwrap_or_else(|e| panic!("{e}"));
         scenes.push((path, scene));
     }
     scenes

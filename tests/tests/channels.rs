@@ -51,7 +51,7 @@ fn all_sixteen_channels_load_with_their_types() {
     text += &channel("user3", "{ kind = \"constant\", value = 1, type = \"bit\" }");
     text += &channel("user4", "{ kind = \"constant\", value = 300, type = \"u16\" }");
     let scene = Scene::parse(&scene_with(&text), dir.join("scene.toml")).unwrap_or_else(|e| panic!("{e}"));
-    let info = &scene.datasets[0];
+    let info = &scene.datasets()[0];
     assert_eq!(info.channels.len(), 16);
     let volume = info.load().unwrap();
     let expect = |name: ChannelName, ty: VoxelType, value: f32| {
@@ -69,7 +69,7 @@ fn all_sixteen_channels_load_with_their_types() {
     expect(ChannelName::User(3), VoxelType::Bit, 1.0);
     expect(ChannelName::User(4), VoxelType::U16, 300.0);
     // Raw colour prefers red/green/blue over grey and bit.
-    assert_eq!(scene.objects[0].colour, trove_core::mapping::ColourMap::Raw(trove_core::mapping::RawColour::Rgb));
+    assert_eq!(*scene.objects()[0].colour(), trove_core::mapping::ColourMap::Raw(trove_core::mapping::RawColour::Rgb));
 }
 
 #[test]

@@ -87,7 +87,7 @@ fn a_slightly_distorted_box_converges_to_the_affine_one() {
         let text = scene(&corners_text(corners(eps)), "");
         let parsed = Scene::parse(&text, dir.join("scene.toml")).unwrap();
         assert!(
-            matches!(parsed.objects[0].placement.shape(), Shape::Distorted { .. }),
+            matches!(parsed.objects()[0].placement().shape(), Shape::Distorted { .. }),
             "ε = {eps} must take the distorted path"
         );
         let err = trove_tests::max_abs_difference(&render_text(&dir, &text), &affine);

@@ -155,7 +155,7 @@ pub fn run(args: AccuracyArgs) -> Result<()> {
             step_voxels: 1.0,
             opacity_correction: true,
         };
-        let camera = scene.scene(&base)?.camera;
+        let camera = *scene.scene(&base)?.camera();
         let truth = scene.exact_image(&camera, cfg.image_side, cfg.image_side);
         for interpolation in interpolations() {
             let trilinear = interpolation == Interpolation::Trilinear;
@@ -212,7 +212,7 @@ pub fn run(args: AccuracyArgs) -> Result<()> {
                 step_voxels: cfg.representation_step,
                 opacity_correction: true,
             };
-            let camera = scene.scene(&setup)?.camera;
+            let camera = *scene.scene(&setup)?.camera();
             let truth = scene.exact_image(&camera, cfg.image_side, cfg.image_side);
             let (img, _, _) = render_reference(scene, &setup)?;
             let (rmse, max) = rmse_and_max(img, truth);

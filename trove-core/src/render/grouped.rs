@@ -176,10 +176,10 @@ impl<'i> Waves<'i> {
 /// The sample positions an object would take over a task's piece (SPEC §4.2), for
 /// `samples_skipped`.
 fn sample_positions(scene: &Scene, task: &PieceTask) -> u64 {
-    let (w, h) = (scene.image.width, scene.image.height);
-    let ray = scene.camera.ray(task.ray % w, task.ray / w, w, h);
-    let object = &scene.objects[task.object as usize];
-    object.placement.walk(&ray, task.t0, task.t1, object.sampling_distance).len()
+    let (w, h) = (scene.image().width, scene.image().height);
+    let ray = scene.camera().ray(task.ray % w, task.ray / w, w, h);
+    let object = &scene.objects()[task.object as usize];
+    object.placement().walk(&ray, task.t0, task.t1, object.sampling_distance()).len()
 }
 
 /// The order in which datasets take their turn, and each dataset's waves.
@@ -194,9 +194,9 @@ pub struct Plan {
 /// Orders datasets front to back as far as the scene allows, and splits each dataset's
 /// tasks into waves by their rank along their ray.
 pub fn plan(scene: &Scene, inter: &Intersections) -> Plan {
-    let dataset_of = |t: usize| scene.objects[inter.tasks[t].object as usize].dataset;
+    let dataset_of = |t: usize| scene.objects()[inter.tasks[t].object as usize].dataset();
     let order = dataset_order(scene, inter);
-    let mut position = vec![usize::MAX; scene.datasets.len()];
+    let mut position = vec![usize::MAX; scene.datasets().len()];
     for (i, &d) in order.iter().enumerate() {
         position[d] = i;
     }
@@ -245,8 +245,8 @@ pub fn plan(scene: &Scene, inter: &Intersections) -> Plan {
 /// has no cycle every ray meets datasets in their turn order. Ties go to the smaller mean
 /// depth of the dataset's pieces.
 pub fn dataset_order(scene: &Scene, inter: &Intersections) -> Vec<usize> {
-    let n = scene.datasets.len();
-    let dataset_of = |t: usize| scene.objects[inter.tasks[t].object as usize].dataset;
+    let n = scene.datasets().len();
+    let dataset_of = |t: usize| scene.objects()[inter.tasks[t].object as usize].dataset();
     type Votes = (HashMap<(usize, usize), u64>, Vec<f64>, Vec<u64>);
     let (votes, depth_sum, count): Votes = (0..inter.rays())
         .into_par_iter()
@@ -336,7 +336,7 @@ pub fn greedy_order(nodes: &[usize], votes: &HashMap<(usize, usize), u64>, depth
 
 /// Renders with Algorithm 2.
 pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progress>) -> Result<Rendered, RenderError> {
-    let (w, h) = (scene.image.width, scene.image.height);
+    let (w, h) = (scene.image().width, scene.image().height);
     let mut stats = RenderStats::default();
 
     // Phase 1: intersection (object level only).
@@ -349,7 +349,7 @@ pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progr
     // Phase 2: volume rendering, dataset by dataset, in front-to-back waves.
     let started = Instant::now();
     let plan = plan(scene, &inter);
-    let mut waves = Waves::new(&inter, scene.render.termination);
+    let mut waves = Waves::new(&inter, scene.render().termination);
     let mut loading = Duration::ZERO;
     let total_tasks = inter.tasks.len().max(1) as u64;
     let mut tasks_done = 0u64;
@@ -380,7 +380,7 @@ pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progr
 
     // Phase 3: composition, front to back per ray.
     let started = Instant::now();
-    let background = scene.image.background;
+    let background = scene.image().background;
     let pixels: Vec<[f64; 3]> =
         (0..inter.rays()).into_par_iter().map(|r| waves.composite(r).with_background(background)).collect();
     stats.seconds.composition = started.elapsed().as_secs_f64();

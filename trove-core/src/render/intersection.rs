@@ -70,7 +70,7 @@ struct Band {
 /// Intersects every ray of `scene` with every object (the scene guarantees at most
 /// [`crate::scene::MAX_OBJECTS`] objects, so an object index fits the task's 16 bits).
 pub fn intersect(scene: &Scene) -> Intersections {
-    let (w, h) = (scene.image.width, scene.image.height);
+    let (w, h) = (scene.image().width, scene.image().height);
     let bands: Vec<Band> = (0..h as usize)
         .into_par_iter()
         .step_by(BAND_ROWS)
@@ -81,10 +81,10 @@ pub fn intersect(scene: &Scene) -> Intersections {
             for row in first_row..(first_row + BAND_ROWS).min(h as usize) {
                 for col in 0..w {
                     let ray_index = row as u32 * w + col;
-                    let ray = scene.camera.ray(col, row as u32, w, h);
+                    let ray = scene.camera().ray(col, row as u32, w, h);
                     segments.clear();
-                    for (i, object) in scene.objects.iter().enumerate() {
-                        if let Some((t_near, t_far)) = object.placement.segment(&ray) {
+                    for (i, object) in scene.objects().iter().enumerate() {
+                        if let Some((t_near, t_far)) = object.placement().segment(&ray) {
                             if t_far > t_near {
                                 segments.push(Segment { object: i as u32, t_near, t_far });
                             }

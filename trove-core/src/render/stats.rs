@@ -65,10 +65,10 @@ impl RenderStats {
     /// Fills the scene-level fields and the totals once rendering is over.
     pub(crate) fn finish(&mut self, scene: &Scene, algorithm: Algorithm, store: &VolumeStore, total: f64) {
         self.algorithm = algorithm.name().to_string();
-        self.width = scene.image.width;
-        self.height = scene.image.height;
-        self.objects = scene.objects.len();
-        self.datasets = scene.datasets.len();
+        self.width = scene.image().width;
+        self.height = scene.image().height;
+        self.objects = scene.objects().len();
+        self.datasets = scene.datasets().len();
         self.dataset_loads = store.loads();
         self.bytes_loaded = store.bytes_loaded();
         self.memory_budget = store.budget();

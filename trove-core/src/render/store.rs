@@ -111,7 +111,7 @@ impl<'s> VolumeStore<'s> {
             scene,
             budget,
             state: Mutex::new(State {
-                slots: scene.datasets.iter().map(|_| Slot::Absent).collect(),
+                slots: scene.datasets().iter().map(|_| Slot::Absent).collect(),
                 resident: 0,
                 peak: 0,
                 clock: 0,
@@ -133,7 +133,7 @@ impl<'s> VolumeStore<'s> {
     pub fn check_budget(&self) -> Result<(), RenderError> {
         let Some(budget) = self.budget else { return Ok(()) };
         for d in self.scene.used_datasets() {
-            let info = &self.scene.datasets[d];
+            let info = &self.scene.datasets()[d];
             let needed = info.resident_bytes();
             if needed > budget {
                 return Err(RenderError::BudgetTooSmall { name: info.name.clone(), needed, budget });
@@ -148,7 +148,7 @@ impl<'s> VolumeStore<'s> {
     /// so loaders must never use rayon themselves: a worker idle in a nested join may steal a
     /// job that waits here for the load on its own stack (see `Generator::generate`).
     pub fn get(&self, index: usize) -> Result<Pinned<'_>, RenderError> {
-        let info = &self.scene.datasets[index];
+        let info = &self.scene.datasets()[index];
         let needed = info.resident_bytes();
         let mut state = lock(&self.state);
         loop {
@@ -226,8 +226,8 @@ impl<'s> VolumeStore<'s> {
 
     fn failure(&self, index: usize, message: String) -> RenderError {
         RenderError::Dataset {
-            name: self.scene.datasets[index].name.clone(),
-            source: crate::DatasetError::format(&self.scene.path, message),
+            name: self.scene.datasets()[index].name.clone(),
+            source: crate::DatasetError::format(self.scene.path(), message),
         }
     }
 

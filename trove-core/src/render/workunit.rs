@@ -164,8 +164,8 @@ impl From<PieceRgba> for Rgba {
 /// task is recomputed from `scene`'s camera, exactly as Algorithm 1 computes it.
 pub fn cast_batch(scene: &Scene, volume: &Volume, tasks: &[PieceTask], out: &mut [PieceRgba]) -> u64 {
     assert_eq!(tasks.len(), out.len(), "one result per task");
-    let (w, h) = (scene.image.width, scene.image.height);
-    let (termination, correction) = (scene.render.termination, scene.render.opacity_correction);
+    let (w, h) = (scene.image().width, scene.image().height);
+    let (termination, correction) = (scene.render().termination, scene.render().opacity_correction);
     // Casters resolve channel readers once; a batch usually holds few distinct objects.
     let mut casters: Vec<(u16, ObjectCaster)> = Vec::new();
     let mut samples = 0;
@@ -173,14 +173,14 @@ pub fn cast_batch(scene: &Scene, volume: &Volume, tasks: &[PieceTask], out: &mut
         let slot = match casters.iter().position(|(o, _)| *o == task.object) {
             Some(i) => i,
             None => {
-                let object = &scene.objects[task.object as usize];
+                let object = &scene.objects()[task.object as usize];
                 let caster = ObjectCaster::new(object, volume, correction)
-                    .unwrap_or_else(|e| panic!("object `{}`: {e}", object.name));
+                    .unwrap_or_else(|e| panic!("object `{}`: {e}", object.name()));
                 casters.push((task.object, caster));
                 casters.len() - 1
             }
         };
-        let ray = scene.camera.ray(task.ray % w, task.ray / w, w, h);
+        let ray = scene.camera().ray(task.ray % w, task.ray / w, w, h);
         let r = casters[slot].1.cast(&ray, task.t0, task.t1, task.front_alpha(), task.stop_at(termination));
         samples += r.samples;
         *result = r.rgba.into();

@@ -107,7 +107,11 @@ fn world_diagonal(placement: &Placement) -> f64 {
 /// pixel's ray through every object's bounding-box diagonal, at the object's step (its
 /// world sampling distance, or one voxel: the VC diagonal of its extent). A clear refusal
 /// beats a render that cannot finish; termination 1.0 cannot shorten it either.
-fn render_budget(image: &ImageSettings, objects: &[Object], datasets: &[DatasetInfo]) -> Result<(), KeyError> {
+pub(super) fn render_budget(
+    image: &ImageSettings,
+    objects: &[Object],
+    datasets: &[DatasetInfo],
+) -> Result<(), KeyError> {
     let per_ray: Vec<f64> = objects
         .iter()
         .map(|o| {
@@ -286,7 +290,7 @@ fn plain_type(expected: &str) -> String {
 }
 
 /// An image side (`image.width`, `image.height`) within 1..=[`MAX_IMAGE_SIDE`].
-fn image_side(v: i64, key: &str) -> Result<u32, KeyError> {
+pub(super) fn image_side(v: i64, key: &str) -> Result<u32, KeyError> {
     if v < 1 || v > MAX_IMAGE_SIDE as i64 {
         return err(key, Kind::ImageSide { got: v });
     }

@@ -1319,3 +1319,20 @@ fn datasets_that_read_the_same_sources_share_an_id() {
     let bigger = accepted(&with(&[("dims = [4, 4, 4]", "dims = [4, 4, 5]")]));
     assert_ne!(generated.datasets[0].id(), bigger.datasets[0].id(), "dims matter");
 }
+
+#[test]
+fn a_scene_can_be_resized_within_the_limits() {
+    let s = accepted(&base()).with_image_size(4, 3).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!((s.image().width, s.image().height, s.image().background), (4, 3, [0.1, 0.2, 0.3]));
+    let e = accepted(&base()).with_image_size(0, 3).unwrap_err();
+    assert_eq!(e.key.as_deref(), Some("image.width"));
+    assert!(matches!(e.kind, Kind::ImageSide { got: 0 }), "{e:?}");
+    let e = accepted(&base()).with_image_size(8, MAX_IMAGE_SIDE + 1).unwrap_err();
+    assert!(matches!(e.kind, Kind::ImageSide { got: 16385 }), "{e:?}");
+    // A fine step that is affordable at 8×6 pixels is not at 16384².
+    let fine = accepted(&with_sampling("1e-6"));
+    let e = fine.clone().with_image_size(MAX_IMAGE_SIDE, MAX_IMAGE_SIDE).unwrap_err();
+    assert_eq!(e.key.as_deref(), Some("objects[0].sampling_distance"));
+    assert!(matches!(e.kind, Kind::RenderTooCostly { width: 16384, height: 16384, .. }), "{e:?}");
+    assert_eq!(fine.with_image_size(16, 12).unwrap().image().width, 16);
+}
