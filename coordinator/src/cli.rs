@@ -125,7 +125,7 @@ fn render_command(args: RenderArgs) -> Result<()> {
     if let Some(mode) = args.distorted_sampling {
         scene.set_straight_distorted_sampling(matches!(mode, DistortedSampling::Straight));
     }
-    let bar = progress_bar(scene.image.height as u64);
+    let bar = progress_bar(scene.image().height as u64);
     let options = RenderOptions {
         algorithm: args.algorithm.into(),
         memory_budget: args.memory_budget,

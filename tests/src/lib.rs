@@ -102,7 +102,7 @@ pub fn render_text(dir: &Path, toml: &str) -> Image {
     };
     let reference = run(Algorithm::PerRay).image;
     let grouped = run(Algorithm::Grouped).image;
-    let slack = 1e-6 + (1.0 - scene.render.termination);
+    let slack = 1e-6 + (1.0 - scene.render().termination);
     let diff = max_abs_difference(&reference, &grouped);
     assert!(diff <= slack, "grouped differs from per-ray by {diff} (allowed {slack})");
     reference
@@ -131,10 +131,11 @@ pub fn example_scenes(max_side: u32) -> Vec<(PathBuf, Scene)> {
             eprintln!("skipping {}: it reads ../shared/data, which is absent", path.display());
             continue;
         }
-        let mut scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
-        let scale = max_side as f64 / scene.image.width.max(scene.image.height) as f64;
-        scene.image.width = ((scene.image.width as f64 * scale).round() as u32).max(1);
-        scene.image.height = ((scene.image.height as f64 * scale).round() as u32).max(1);
+        let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
+        let (width, height) = (scene.image().width, scene.image().height);
+        let scale = max_side as f64 / width.max(height) as f64;
+        let shrink = |side: u32| ((side as f64 * scale).round() as u32).max(1);
+        let scene = scene.with_image_size(shrink(width), shrink(height)).unwrap_or_else(|e| panic!("{e}"));
         scenes.push((path, scene));
     }
     scenes
@@ -217,8 +218,8 @@ mod tests {
         let text = h.to_string();
         assert!(text.contains("width = 7\nheight = 5\n") && text.contains("fov_y = 25.0\n"), "{text}");
         let scene = trove_core::scene::Scene::parse(&text, "header.toml").unwrap_or_else(|e| panic!("{e}\n{text}"));
-        assert_eq!((scene.image.width, scene.image.height, scene.image.background), (7, 5, [0.2, 0.4, 0.6]));
-        let ray = scene.camera.ray(3, 2, 7, 5);
+        assert_eq!((scene.image().width, scene.image().height, scene.image().background), (7, 5, [0.2, 0.4, 0.6]));
+        let ray = scene.camera().ray(3, 2, 7, 5);
         assert_eq!(ray.origin.to_array(), [0.5, 0.5, 3.0]);
         assert!((ray.dir.to_array()[2] + 1.0).abs() < 1e-12, "the centre ray looks down −z: {:?}", ray.dir);
     }

@@ -507,7 +507,7 @@ mod tests {
                  generator = {{ kind = \"marschner_lobb\", fm = {fm:?}, alpha = {alpha:?} }}\n"
             );
             let scene = Scene::parse(&text, "ml.toml").unwrap_or_else(|e| panic!("{e}"));
-            let volume = scene.datasets[0].load().expect("a generated dataset loads");
+            let volume = scene.datasets()[0].load().expect("a generated dataset loads");
             let voxels = volume.channel(trove_core::dataset::ChannelName::Voxel).expect("a voxel channel");
             let mut largest = 0.0f64;
             for k in 0..nz {

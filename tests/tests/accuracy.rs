@@ -15,7 +15,7 @@ fn render_alpha(r: Reference, s: &Setup) -> Vec<f64> {
 
 fn exact(r: Reference, s: &Setup) -> Vec<f64> {
     let scene = r.scene(s).expect("scene");
-    r.exact_image(&scene.camera, s.image_side, s.image_side)
+    r.exact_image(scene.camera(), s.image_side, s.image_side)
 }
 
 fn setup(dims: u32, interpolation: Interpolation, step_voxels: f64, opacity_correction: bool) -> Setup {

@@ -60,9 +60,9 @@ impl Rng {
 fn shuffled(scene: &Scene, seed: u64) -> Image {
     let mut rng = Rng(seed);
     let store = VolumeStore::new(None);
-    let volumes: Vec<_> = scene.datasets.iter().map(|d| store.get(d).unwrap()).collect();
+    let volumes: Vec<_> = scene.datasets().iter().map(|d| store.get(d).unwrap()).collect();
     let casters: Vec<_> = (0..volumes.len()).map(|d| BatchCaster::new(scene, d, &volumes[d]).unwrap()).collect();
-    let (w, h) = (scene.image.width, scene.image.height);
+    let (w, h) = (scene.image().width, scene.image().height);
     let mut pixels = Vec::new();
     let mut row = 0;
     while row < h {
@@ -86,7 +86,7 @@ fn shuffled(scene: &Scene, seed: u64) -> Image {
             s.record(batch.id, &out).unwrap();
         }
         assert!(in_flight.is_empty(), "complete with batches still out");
-        let background = scene.image.background;
+        let background = scene.image().background;
         pixels.extend((0..s.intersections().rays()).map(|r| s.composite_ray(r).with_background(background)));
         row = rows.end;
     }
@@ -102,7 +102,7 @@ fn the_scene_exercises_culling_shared_pieces_and_several_waves() {
     let s = scene();
     let rendered = render(&s, &RenderOptions::default()).unwrap();
     assert!(rendered.stats.samples_skipped > 0, "no task was culled: the test would prove little");
-    let inter = intersect(&s, 0..s.image.height);
+    let inter = intersect(&s, 0..s.image().height);
     let shared = inter.tasks.iter().filter(|t| t.is_whole()).count();
     assert!(shared > 0, "no shared piece");
     let sched = Scheduler::new(&s, inter, 64).unwrap();

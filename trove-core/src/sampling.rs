@@ -60,23 +60,23 @@ impl<'a> ObjectCaster<'a> {
         volume: &'a Volume,
         opacity_correction: bool,
     ) -> Result<ObjectCaster<'a>, BindError> {
-        let expected = object.placement.dims();
+        let expected = object.placement().dims();
         if volume.dims() != expected {
             return Err(BindError::DimsMismatch { expected, found: volume.dims() });
         }
         let reader = |channel: ChannelName| {
             volume.channel(channel).map(|ch| ch.reader()).ok_or(BindError::MissingChannel { channel })
         };
-        let needs_voxel = object.colour.reads_voxel() || object.opacity.reads_voxel();
-        let raw_rgb = match &object.colour {
+        let needs_voxel = object.colour().reads_voxel() || object.opacity().reads_voxel();
+        let raw_rgb = match object.colour() {
             ColourMap::Raw(kind) => {
                 let [r, g, b] = kind.channels();
                 Some((*kind, [reader(r)?, reader(g)?, reader(b)?]))
             }
             _ => None,
         };
-        let constant_colour = match &object.colour {
-            ColourMap::Polynomial(_) if !object.colour.reads_voxel() => object.colour.map(0.0),
+        let constant_colour = match object.colour() {
+            ColourMap::Polynomial(_) if !object.colour().reads_voxel() => object.colour().map(0.0),
             _ => None,
         };
         Ok(ObjectCaster {
@@ -84,7 +84,7 @@ impl<'a> ObjectCaster<'a> {
             volume,
             voxel: if needs_voxel { Some(reader(ChannelName::Voxel)?) } else { None },
             raw_rgb,
-            alpha: if matches!(object.opacity, OpacityMap::Raw) { Some(reader(ChannelName::Alpha)?) } else { None },
+            alpha: if matches!(object.opacity(), OpacityMap::Raw) { Some(reader(ChannelName::Alpha)?) } else { None },
             constant_colour,
             opacity_correction,
         })
@@ -98,14 +98,14 @@ impl<'a> ObjectCaster<'a> {
         let mut acc = Rgba::CLEAR;
         let mut samples = 0;
         // A constant-zero opacity contributes nothing anywhere: skip the walk entirely.
-        if self.object.opacity.constant() == Some(0.0) {
+        if self.object.opacity().constant() == Some(0.0) {
             return PieceResult { rgba: acc, samples };
         }
         let dims = self.volume.dims();
-        let interp = &self.object.interpolation;
+        let interp = &self.object.interpolation();
         // Maps that read no channel (constant colour and opacity) need no stencil at all.
         let reads_channels = self.voxel.is_some() || self.raw_rgb.is_some() || self.alpha.is_some();
-        for (vc, ell) in self.object.placement.walk(ray, t0, t1, self.object.sampling_distance) {
+        for (vc, ell) in self.object.placement().walk(ray, t0, t1, self.object.sampling_distance()) {
             let Some(vc) = vc else { continue };
             samples += 1;
             let stencil = reads_channels.then(|| Stencil::new(interp, dims, vc));
@@ -123,11 +123,11 @@ impl<'a> ObjectCaster<'a> {
             let colour = match (&self.raw_rgb, self.constant_colour) {
                 (Some((kind, rgb)), _) => ColourMap::map_raw(*kind, rgb.each_ref().map(read)),
                 (None, Some(c)) => Some(c),
-                (None, None) => self.object.colour.map(v),
+                (None, None) => self.object.colour().map(v),
             };
             let opacity = match &self.alpha {
                 Some(a) => OpacityMap::map_raw(read(a)),
-                None => self.object.opacity.map(v),
+                None => self.object.opacity().map(v),
             };
             let (Some(colour), Some(opacity)) = (colour, opacity) else { continue };
             let alpha = if self.opacity_correction { corrected_opacity(opacity, ell) } else { opacity };

@@ -126,7 +126,7 @@ fn render_reference(r: Reference, s: &Setup, repeats: u32) -> Result<Measured> {
 
 /// The exact image of `r` set up as `s` (SPEC §4.1's rays, closed-form integrals).
 fn exact(r: Reference, s: &Setup) -> Result<Vec<f64>> {
-    let camera = r.scene(s).with_context(|| format!("building the {} scene", r.name()))?.camera;
+    let camera = *r.scene(s).with_context(|| format!("building the {} scene", r.name()))?.camera();
     Ok(r.exact_image(&camera, s.image_side, s.image_side))
 }
 

@@ -7,7 +7,9 @@
 //! [`Volume`], produced by [`DatasetInfo::load`] when a renderer needs them, so a
 //! memory-budgeted store can drop and reload them.
 
+mod catalog;
 mod channel;
+mod error;
 pub mod generator;
 pub mod image_file;
 mod mmap;
@@ -17,6 +19,8 @@ pub mod raw;
 mod source;
 mod volume;
 
-pub use channel::{Channel, ChannelName, ChannelReader, Endian, VoxelBytes, VoxelType};
-pub use source::{ChannelSource, DatasetInfo, Encoding};
-pub use volume::{Dims, Volume};
+pub use catalog::{Catalog, DataFile, FileInfo, FileKind, FsCatalog, VolumeFormat};
+pub use channel::{Channel, ChannelName, ChannelReader, ChannelSizeError, Endian, VoxelBytes, VoxelType};
+pub use error::{DatasetError, KeyProblem};
+pub use source::{ChannelSource, DatasetId, DatasetInfo, Encoding};
+pub use volume::{Dims, DimsError, Volume};

@@ -27,7 +27,7 @@ const BATCH_TASKS: usize = 256;
 
 /// Renders with Algorithm 2.
 pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progress>) -> Result<Rendered, RenderError> {
-    let (w, h) = (scene.image.width, scene.image.height);
+    let (w, h) = (scene.image().width, scene.image().height);
     let mut stats = RenderStats::default();
 
     // Phase 1: intersection (object level only).
@@ -42,7 +42,7 @@ pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progr
     let mut scheduler = Scheduler::new(scene, inter, BATCH_TASKS)?;
     let mut loading = Duration::ZERO;
     for dataset in scheduler.datasets().to_vec() {
-        let info = &scene.datasets[dataset];
+        let info = &scene.datasets()[dataset];
         let load_started = Instant::now();
         let volume = store.get(info)?;
         loading += load_started.elapsed();
@@ -80,7 +80,7 @@ pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progr
 
     // Phase 3: composition, front to back per ray.
     let started = Instant::now();
-    let background = scene.image.background;
+    let background = scene.image().background;
     let pixels: Vec<[f64; 3]> = (0..scheduler.intersections().rays())
         .into_par_iter()
         .map(|r| scheduler.composite_ray(r).with_background(background))

@@ -82,8 +82,8 @@ struct Band {
 /// (SPEC §4.2): the one place where rays meet objects, for both algorithms.
 pub(crate) fn segments_of(scene: &Scene, ray: &Ray, segments: &mut Vec<Segment>) {
     segments.clear();
-    for (i, object) in scene.objects.iter().enumerate() {
-        if let Some((t_near, t_far)) = object.placement.segment(ray) {
+    for (i, object) in scene.objects().iter().enumerate() {
+        if let Some((t_near, t_far)) = object.placement().segment(ray) {
             if t_far > t_near {
                 segments.push(Segment { object: i as u32, t_near, t_far });
             }
@@ -95,7 +95,7 @@ pub(crate) fn segments_of(scene: &Scene, ray: &Ray, segments: &mut Vec<Segment>)
 /// guarantees at most [`crate::scene::MAX_OBJECTS`] objects, so an object index fits the
 /// task's 16 bits).
 pub fn intersect(scene: &Scene, rows: std::ops::Range<u32>) -> Intersections {
-    let (w, h) = (scene.image.width, scene.image.height);
+    let (w, h) = (scene.image().width, scene.image().height);
     let rows = rows.start.min(h)..rows.end.min(h);
     let bands: Vec<Band> = (rows.start as usize..rows.end as usize)
         .into_par_iter()
@@ -107,7 +107,7 @@ pub fn intersect(scene: &Scene, rows: std::ops::Range<u32>) -> Intersections {
             for row in first_row..(first_row + BAND_ROWS).min(rows.end as usize) {
                 for col in 0..w {
                     let ray_index = row as u32 * w + col;
-                    let ray = scene.camera.ray(col, row as u32, w, h);
+                    let ray = scene.camera().ray(col, row as u32, w, h);
                     segments_of(scene, &ray, &mut segments);
                     band.segments += segments.len() as u64;
                     split_into_pieces(&segments, &mut cuts, &mut pieces, &mut cover);
@@ -155,13 +155,13 @@ pub fn intersect(scene: &Scene, rows: std::ops::Range<u32>) -> Intersections {
 /// The sample positions `object` takes over [t0, t1] of `ray` (SPEC §4.2): what a cast would
 /// evaluate, for counting the samples that early termination saved.
 pub(crate) fn sample_positions(scene: &Scene, ray: &Ray, object: usize, t0: f64, t1: f64) -> u64 {
-    let object = &scene.objects[object];
-    object.placement.walk(ray, t0, t1, object.sampling_distance).len()
+    let object = &scene.objects()[object];
+    object.placement().walk(ray, t0, t1, object.sampling_distance()).len()
 }
 
 /// The sample positions of a task, its ray recomputed from the camera.
 pub(crate) fn task_sample_positions(scene: &Scene, task: &PieceTask) -> u64 {
-    let (w, h) = (scene.image.width, scene.image.height);
-    let ray = scene.camera.ray(task.ray % w, task.ray / w, w, h);
+    let (w, h) = (scene.image().width, scene.image().height);
+    let ray = scene.camera().ray(task.ray % w, task.ray / w, w, h);
     sample_positions(scene, &ray, task.object as usize, task.t0, task.t1)
 }

@@ -140,9 +140,9 @@ impl Scheduler {
         if u32::try_from(n).is_err() {
             return Err(ScheduleError::TooManyTasks { tasks: n as u64 });
         }
-        let dataset_of_object: Vec<u32> = scene.objects.iter().map(|o| o.dataset as u32).collect();
-        let (order, waves) = plan(&inter, &dataset_of_object, scene.datasets.len());
-        let mut lanes: Vec<Lane> = (0..scene.datasets.len()).map(|_| Lane::default()).collect();
+        let dataset_of_object: Vec<u32> = scene.objects().iter().map(|o| o.dataset() as u32).collect();
+        let (order, waves) = plan(&inter, &dataset_of_object, scene.datasets().len());
+        let mut lanes: Vec<Lane> = (0..scene.datasets().len()).map(|_| Lane::default()).collect();
         for (&d, w) in order.iter().zip(waves) {
             lanes[d].waves = w;
         }
@@ -152,7 +152,7 @@ impl Scheduler {
             progress: Progress { total: n as u64, ..Progress::default() },
             inter,
             dataset_of_object,
-            termination: scene.render.termination,
+            termination: scene.render().termination,
             batch_tasks: batch_tasks.max(1),
             order,
             lanes,

@@ -66,10 +66,10 @@ impl RenderStats {
     /// the voxel store (or, in a farm, every worker's store together) did.
     pub fn finish(&mut self, scene: &Scene, algorithm: Algorithm, store: &StoreStats, budget: Option<u64>, total: f64) {
         self.algorithm = algorithm.name().to_string();
-        self.width = scene.image.width;
-        self.height = scene.image.height;
-        self.objects = scene.objects.len();
-        self.datasets = scene.datasets.len();
+        self.width = scene.image().width;
+        self.height = scene.image().height;
+        self.objects = scene.objects().len();
+        self.datasets = scene.datasets().len();
         self.dataset_loads = store.loads;
         self.bytes_loaded = store.bytes_loaded;
         self.memory_budget = budget;

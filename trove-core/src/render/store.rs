@@ -31,17 +31,12 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::Instant;
 
 use super::error::StoreError;
-use crate::dataset::{DatasetInfo, Volume};
+use crate::dataset::{DatasetId, DatasetInfo, Volume};
 use crate::scene::Scene;
 
-/// What identifies a dataset's voxels across scenes and jobs: its dims and the sources of its
-/// channels (files, or generator parameters). Two scenes that name the same files share one
-/// resident copy in a long-lived worker.
-type DatasetKey = String;
-
-fn key_of(info: &DatasetInfo) -> DatasetKey {
-    format!("{:?}|{:?}", info.dims, info.channels)
-}
+/// What identifies a dataset's voxels across scenes and jobs ([`DatasetInfo::id`]): two
+/// scenes that name the same files share one resident copy in a long-lived worker.
+type DatasetKey = DatasetId;
 
 /// Loads datasets on first use and keeps at most `budget` bytes of them resident. Cheap to
 /// clone: clones share one store, so a long-lived worker and every job it serves see the
@@ -111,6 +106,15 @@ pub struct Pinned {
     inner: Arc<Inner>,
     key: DatasetKey,
     volume: Arc<Volume>,
+    loaded: bool,
+}
+
+impl Pinned {
+    /// Whether this request loaded the dataset (rather than finding it resident): what a
+    /// farm worker reports as its loads.
+    pub fn was_loaded(&self) -> bool {
+        self.loaded
+    }
 }
 
 impl Deref for Pinned {
@@ -162,10 +166,10 @@ impl VolumeStore {
     pub fn check_budget(&self, scene: &Scene) -> Result<(), StoreError> {
         let Some(budget) = self.inner.budget else { return Ok(()) };
         for d in scene.used_datasets() {
-            let info = &scene.datasets[d];
+            let info = &scene.datasets()[d];
             let needed = info.resident_bytes();
             if needed > budget {
-                return Err(StoreError::BudgetTooSmall { name: info.name.clone(), needed, budget });
+                return Err(StoreError::BudgetTooSmall { name: info.name().to_string(), needed, budget });
             }
         }
         Ok(())
@@ -180,7 +184,7 @@ impl VolumeStore {
     /// does not poison a long-lived worker.
     pub fn get(&self, info: &DatasetInfo) -> Result<Pinned, StoreError> {
         let inner = &self.inner;
-        let key = key_of(info);
+        let key = info.id().clone();
         let needed = info.resident_bytes();
         let mut state = lock(&inner.state);
         loop {
@@ -191,7 +195,7 @@ impl VolumeStore {
                     *pins += 1;
                     *last_used = now;
                     let volume = volume.clone();
-                    return Ok(Pinned { inner: inner.clone(), key, volume });
+                    return Ok(Pinned { inner: inner.clone(), key, volume, loaded: false });
                 }
                 Some(Slot::Loading) => {
                     state = inner.changed.wait(state).unwrap_or_else(|e| e.into_inner());
@@ -201,7 +205,7 @@ impl VolumeStore {
             }
             if let Some(budget) = inner.budget {
                 if needed > budget {
-                    return Err(StoreError::BudgetTooSmall { name: info.name.clone(), needed, budget });
+                    return Err(StoreError::BudgetTooSmall { name: info.name().to_string(), needed, budget });
                 }
                 if !evict_until_fits(&mut state, needed, budget) {
                     state = inner.changed.wait(state).unwrap_or_else(|e| e.into_inner());
@@ -224,19 +228,19 @@ impl VolumeStore {
             Ok(volume) => {
                 // The reservation used the dataset's declared size; a load always yields
                 // exactly that (channels are checked against dims), so no correction is due.
-                debug_assert_eq!(volume.byte_len(), needed, "dataset `{}` resident size", info.name);
+                debug_assert_eq!(volume.byte_len(), needed, "dataset `{}` resident size", info.name());
                 inner.loads.fetch_add(1, Ordering::Relaxed);
                 inner.bytes_loaded.fetch_add(needed, Ordering::Relaxed);
-                tracing::debug!(dataset = %info.name, bytes = needed, "loaded");
+                tracing::debug!(dataset = %info.name(), bytes = needed, "loaded");
                 let now = state.clock;
                 let slot = Slot::Resident { volume: volume.clone(), bytes: needed, pins: 1, last_used: now };
                 state.slots.insert(key.clone(), slot);
-                Ok(Pinned { inner: inner.clone(), key, volume })
+                Ok(Pinned { inner: inner.clone(), key, volume, loaded: true })
             }
             Err(e) => {
                 state.resident -= needed;
                 state.slots.remove(&key);
-                Err(StoreError::Load { name: info.name.clone(), source: Arc::new(e) })
+                Err(StoreError::Load { name: info.name().to_string(), source: Arc::new(e) })
             }
         };
         drop(state);
@@ -246,7 +250,7 @@ impl VolumeStore {
 
     /// Drops the dataset now if nobody reads it (Algorithm 2's `UnloadVolume`).
     pub fn unload(&self, info: &DatasetInfo) {
-        let key = key_of(info);
+        let key = info.id().clone();
         let mut state = lock(&self.inner.state);
         if let Some(Slot::Resident { pins: 0, bytes, .. }) = state.slots.get(&key) {
             let bytes = *bytes;
@@ -297,11 +301,11 @@ fn evict_until_fits(state: &mut State, needed: u64, budget: u64) -> bool {
             .slots
             .iter()
             .filter_map(|(k, s)| match s {
-                Slot::Resident { pins: 0, last_used, .. } => Some((*last_used, k.clone())),
+                Slot::Resident { pins: 0, last_used, .. } => Some((*last_used, k)),
                 _ => None,
             })
-            .min()
-            .map(|(_, k)| k)
+            .min_by_key(|(last_used, _)| *last_used)
+            .map(|(_, k)| k.clone())
         else {
             // Counted above; unreachable while the lock is held.
             return false;
@@ -347,15 +351,15 @@ mod tests {
         let store = VolumeStore::new(Some(2 * BYTES));
         for d in [0, 1, 0, 2] {
             assert_eq!(
-                store.get(&s.datasets[d]).unwrap().channel(crate::dataset::ChannelName::Voxel).unwrap().value(0),
+                store.get(&s.datasets()[d]).unwrap().channel(crate::dataset::ChannelName::Voxel).unwrap().value(0),
                 d as f32
             );
         }
         // Loading 2 evicted 1 (used before the second use of 0), so 0 is still here.
         assert_eq!(store.stats().loads, 3);
-        drop(store.get(&s.datasets[0]).unwrap());
+        drop(store.get(&s.datasets()[0]).unwrap());
         assert_eq!(store.stats().loads, 3);
-        drop(store.get(&s.datasets[1]).unwrap());
+        drop(store.get(&s.datasets()[1]).unwrap());
         assert_eq!(store.stats().loads, 4);
         assert_eq!(store.stats().bytes_loaded, 4 * BYTES);
         assert_eq!(store.stats().peak_resident_bytes, 2 * BYTES);
@@ -367,15 +371,15 @@ mod tests {
         let s = scene(3);
         let store = VolumeStore::new(None);
         for d in [0, 1, 2, 0, 1, 2] {
-            drop(store.get(&s.datasets[d]).unwrap());
+            drop(store.get(&s.datasets()[d]).unwrap());
         }
         assert_eq!((store.stats().loads, store.stats().peak_resident_bytes), (3, 3 * BYTES));
-        let pinned = store.get(&s.datasets[1]).unwrap();
-        store.unload(&s.datasets[1]);
+        let pinned = store.get(&s.datasets()[1]).unwrap();
+        store.unload(&s.datasets()[1]);
         assert_eq!(store.resident_bytes(), 3 * BYTES, "a pinned dataset stays");
         drop(pinned);
-        store.unload(&s.datasets[1]);
-        store.unload(&s.datasets[2]);
+        store.unload(&s.datasets()[1]);
+        store.unload(&s.datasets()[2]);
         assert_eq!(store.resident_bytes(), BYTES);
     }
 
@@ -383,11 +387,11 @@ mod tests {
     fn a_pinned_dataset_is_not_evicted_and_a_load_waits_for_room() {
         let s = scene(2);
         let store = VolumeStore::new(Some(BYTES));
-        let pinned = store.get(&s.datasets[0]).unwrap();
+        let pinned = store.get(&s.datasets()[0]).unwrap();
         let finished = AtomicBool::new(false);
         std::thread::scope(|scope| {
             let waiter = scope.spawn(|| {
-                let v = store.get(&s.datasets[1]).map(|v| v.dims());
+                let v = store.get(&s.datasets()[1]).map(|v| v.dims());
                 finished.store(true, Ordering::SeqCst);
                 v
             });
@@ -412,7 +416,7 @@ mod tests {
                 let (store, s) = (&store, &s);
                 scope.spawn(move || {
                     for i in 0..200usize {
-                        let v = store.get(&s.datasets[(i * 7 + thread * 3) % 5]).unwrap();
+                        let v = store.get(&s.datasets()[(i * 7 + thread * 3) % 5]).unwrap();
                         assert!(store.resident_bytes() <= budget);
                         drop(v);
                     }
@@ -428,10 +432,10 @@ mod tests {
     fn a_budget_below_a_dataset_is_refused_naming_it() {
         let s = scene(2);
         let store = VolumeStore::new(Some(BYTES - 1));
-        for e in [store.check_budget(&s).unwrap_err(), store.get(&s.datasets[1]).err().unwrap()] {
+        for e in [store.check_budget(&s).unwrap_err(), store.get(&s.datasets()[1]).err().unwrap()] {
             assert!(matches!(&e, StoreError::BudgetTooSmall { needed: BYTES, .. }), "{e}");
         }
-        assert!(store.get(&s.datasets[1]).err().unwrap().to_string().contains("`d1`"));
+        assert!(store.get(&s.datasets()[1]).err().unwrap().to_string().contains("`d1`"));
         assert_eq!(store.stats().loads, 0);
         assert!(VolumeStore::new(Some(BYTES)).check_budget(&s).is_ok());
     }
@@ -451,7 +455,7 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
         let store = VolumeStore::new(Some(100));
         for _ in 0..2 {
-            let e = store.get(&s.datasets[0]).err().expect("the file is gone");
+            let e = store.get(&s.datasets()[0]).err().expect("the file is gone");
             assert!(matches!(e, StoreError::Load { ref name, .. } if name == "gone"), "{e}");
         }
         assert_eq!((store.resident_bytes(), store.stats().loads), (0, 0));
@@ -462,11 +466,11 @@ mod tests {
         // A long-lived worker serves many jobs: the second scene's dataset is the first's.
         let (a, b) = (scene(2), scene(3));
         let store = VolumeStore::new(None);
-        let first = store.get(&a.datasets[1]).unwrap();
-        let again = store.get(&b.datasets[1]).unwrap();
+        let first = store.get(&a.datasets()[1]).unwrap();
+        let again = store.get(&b.datasets()[1]).unwrap();
         assert!(std::ptr::eq(&*first, &*again));
         assert_eq!(store.stats().loads, 1);
-        drop(store.get(&b.datasets[2]).unwrap());
+        drop(store.get(&b.datasets()[2]).unwrap());
         assert_eq!(store.stats().loads, 2);
     }
 

@@ -179,19 +179,19 @@ pub struct BatchCaster<'a> {
 impl<'a> BatchCaster<'a> {
     /// Binds every object of `dataset` to `volume`, that dataset's voxels.
     pub fn new(scene: &'a Scene, dataset: usize, volume: &'a Volume) -> Result<BatchCaster<'a>, CastError> {
-        if dataset >= scene.datasets.len() {
-            return Err(CastError::DatasetOutOfRange { dataset, datasets: scene.datasets.len() });
+        if dataset >= scene.datasets().len() {
+            return Err(CastError::DatasetOutOfRange { dataset, datasets: scene.datasets().len() });
         }
-        let correction = scene.render.opacity_correction;
+        let correction = scene.render().opacity_correction;
         let objects = scene
-            .objects
+            .objects()
             .iter()
             .map(|object| {
-                if object.dataset != dataset {
+                if object.dataset() != dataset {
                     return Ok(None);
                 }
                 let caster = ObjectCaster::new(object, volume, correction)
-                    .map_err(|source| CastError::Bind { object: object.name.clone(), source })?;
+                    .map_err(|source| CastError::Bind { object: object.name().to_string(), source })?;
                 Ok(Some((caster, longest_piece(object))))
             })
             .collect::<Result<_, CastError>>()?;
@@ -215,14 +215,14 @@ impl<'a> BatchCaster<'a> {
             self.check(i, task)?;
         }
         let scene = self.scene;
-        let (w, h) = (scene.image.width, scene.image.height);
-        let termination = scene.render.termination;
+        let (w, h) = (scene.image().width, scene.image().height);
+        let termination = scene.render().termination;
         let mut samples = 0;
         for (task, result) in tasks.iter().zip(out) {
             let Some((caster, _)) = &self.objects[task.object as usize] else {
                 unreachable!("checked above: the object belongs to this dataset")
             };
-            let ray = scene.camera.ray(task.ray % w, task.ray / w, w, h);
+            let ray = scene.camera().ray(task.ray % w, task.ray / w, w, h);
             let r = caster.cast(&ray, task.t0, task.t1, task.front_alpha(), task.stop_at(termination));
             samples += r.samples;
             *result = r.rgba.into();
@@ -234,16 +234,16 @@ impl<'a> BatchCaster<'a> {
     /// interval that is not a piece of its object's box (which could otherwise ask for an
     /// unbounded number of samples).
     fn check(&self, i: usize, task: &PieceTask) -> Result<(), CastError> {
-        let objects = &self.scene.objects;
+        let objects = &self.scene.objects();
         let object = task.object;
         let Some(entry) = self.objects.get(object as usize) else {
             return Err(CastError::ObjectOutOfRange { task: i, object, objects: objects.len() });
         };
         let Some((_, longest)) = entry else {
-            let uses = objects[object as usize].dataset;
+            let uses = objects[object as usize].dataset();
             return Err(CastError::WrongDataset { task: i, object, uses, batch: self.dataset });
         };
-        let pixels = self.scene.image.width as u64 * self.scene.image.height as u64;
+        let pixels = self.scene.image().width as u64 * self.scene.image().height as u64;
         if task.ray as u64 >= pixels {
             return Err(CastError::RayOutOfRange { task: i, ray: task.ray, pixels });
         }
@@ -267,7 +267,7 @@ impl<'a> BatchCaster<'a> {
 /// The longest piece an object's box can hold: its bounding box's diagonal, with room for
 /// rounding in the intersection that computed the piece.
 fn longest_piece(object: &crate::scene::Object) -> f64 {
-    let c = object.placement.corners();
+    let c = object.placement().corners();
     let (lo, hi) = c.iter().fold((c[0], c[0]), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
     (hi - lo).length() * (1.0 + 1e-9) + 1e-12
 }

@@ -209,7 +209,7 @@ fn datasets_go_front_to_back_and_waves_follow_each_ray() {
     let s = scene(&[("near", 0.0), ("far", 1.0), ("near", -1.0)]);
     let inter = intersect(&s, 0..4);
     assert_eq!(inter.rays(), 16);
-    let dataset_of: Vec<u32> = s.objects.iter().map(|o| o.dataset as u32).collect();
+    let dataset_of: Vec<u32> = s.objects().iter().map(|o| o.dataset() as u32).collect();
     let (order, waves) = plan(&inter, &dataset_of, 2);
     assert_eq!(order, vec![1, 0], "the dataset met first goes first");
     // Dataset 1 has one piece per ray: one wave. Dataset 0 has two: two waves, the
