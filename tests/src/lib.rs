@@ -6,6 +6,8 @@
 
 pub mod reference;
 
+pub mod farm;
+
 use std::path::{Path, PathBuf};
 
 use trove_core::render::{render, Algorithm, Image, RenderOptions, Rendered};
@@ -206,6 +208,45 @@ pub fn read_pfm(path: &Path) -> Image {
         })
         .collect();
     Image::new(w as u32, h as u32, pixels)
+}
+
+/// The text of example scene `path` as a farm job: every dataset path rewritten as a key
+/// under `data` (its path relative to `data`, which must hold it), and the image shrunk so
+/// its longer side is `max_side` pixels, as [`example_scenes`] shrinks it.
+pub fn keyed_scene_text(path: &Path, data: &Path, max_side: u32) -> String {
+    let text = std::fs::read_to_string(path).expect("read scene");
+    let mut table: toml::Table = text.parse().unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let folder = path.parent().expect("a scene file has a folder");
+    let data = data.canonicalize().expect("data folder");
+    let key = |value: &mut toml::Value| {
+        let rel = value.as_str().expect("a path string");
+        let full = folder.join(rel).canonicalize().unwrap_or_else(|e| panic!("{rel}: {e}"));
+        let key = full.strip_prefix(&data).unwrap_or_else(|_| panic!("{rel} is not under {}", data.display()));
+        *value = toml::Value::String(key.to_string_lossy().replace('\\', "/"));
+    };
+    for d in table.get_mut("datasets").and_then(|v| v.as_array_mut()).into_iter().flatten() {
+        let d = d.as_table_mut().expect("dataset table");
+        for field in ["file", "image"] {
+            if let Some(v) = d.get_mut(field) {
+                key(v);
+            }
+        }
+        for c in
+            d.get_mut("channels").and_then(|v| v.as_table_mut()).into_iter().flat_map(|t| t.iter_mut().map(|(_, v)| v))
+        {
+            for field in ["raw", "nrrd"] {
+                if let Some(v) = c.get_mut(field) {
+                    key(v);
+                }
+            }
+        }
+    }
+    let image = table.get_mut("image").and_then(|v| v.as_table_mut()).expect("[image]");
+    let (w, h) = (image["width"].as_integer().unwrap() as f64, image["height"].as_integer().unwrap() as f64);
+    let scale = max_side as f64 / w.max(h);
+    image.insert("width".into(), toml::Value::Integer(((w * scale).round() as i64).max(1)));
+    image.insert("height".into(), toml::Value::Integer(((h * scale).round() as i64).max(1)));
+    toml::to_string(&table).expect("serialise scene")
 }
 
 #[cfg(test)]
