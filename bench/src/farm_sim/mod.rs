@@ -31,7 +31,7 @@ use inputs::Inputs;
 /// `trove-bench farm-sim` options.
 #[derive(clap::Args, Clone, Debug)]
 pub struct Args {
-    /// Measure the inputs on this machine (about 30 s) instead of using the recorded ones.
+    /// Measure the inputs on this machine (about 10 s) instead of using the recorded ones.
     #[arg(long)]
     measure: bool,
     /// Image width and height in pixels.
