@@ -7,6 +7,7 @@
 
 mod accuracy;
 mod distorted;
+mod farm_sim;
 mod table1;
 
 use std::process::ExitCode;
@@ -35,6 +36,10 @@ enum Command {
     /// What accuracy costs in time: sampling distance × interpolation × opacity correction
     /// on reference scenes with closed-form ray integrals; writes a CSV and a plot.
     Accuracy(accuracy::AccuracyArgs),
+    /// The farm beyond one machine: a discrete-event simulation of a coordinator and 8 to
+    /// 256 workers, fed by costs measured here; predicts speedup, efficiency and where the
+    /// coordinator becomes the bottleneck.
+    FarmSim(farm_sim::Args),
 }
 
 fn main() -> ExitCode {
@@ -46,6 +51,7 @@ fn main() -> ExitCode {
         Command::Table1(args) => table1::run(args),
         Command::Distorted(args) => distorted::run(args),
         Command::Accuracy(args) => accuracy::run(args),
+        Command::FarmSim(args) => farm_sim::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
