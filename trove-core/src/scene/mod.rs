@@ -187,7 +187,7 @@ impl Scene {
         let width = load::image_side(width.into(), "image.width").map_err(fail)?;
         let height = load::image_side(height.into(), "image.height").map_err(fail)?;
         let image = ImageSettings { width, height, ..self.image };
-        load::render_budget(&image, &self.objects, &self.datasets).map_err(fail)?;
+        load::render_budget(&image, &self.camera, &self.objects, &self.datasets).map_err(fail)?;
         self.image = image;
         Ok(self)
     }
