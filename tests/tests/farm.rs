@@ -175,11 +175,16 @@ fn a_cancelled_job_stops_casting_within_a_batch() {
         tokio::time::sleep(Duration::from_millis(500)).await;
         let b: u64 = client.workers().await.unwrap().iter().map(|w| w.batches_done + w.batches_in_flight).sum();
         assert_eq!(a, b, "batches still being answered after the cancel settled");
+        // What the cancelled job had out no longer counts against its workers' capacity.
+        let out: u64 = client.workers().await.unwrap().iter().map(|w| w.batches_in_flight).sum();
+        assert_eq!(out, 0, "the cancelled job's batches still count as in flight");
         (last.state(), done_at_cancel, b)
     });
     assert_eq!(state, pb::JobState::Cancelled);
     // At most the batches in flight at the cancel (a few per worker) were answered after it.
     assert!(done_after <= done_at_cancel + 16, "{done_at_cancel} → {done_after}");
+    // And the farm goes on serving: the next job on the same worker finishes.
+    farm.render(&generated_scene(40), "after.toml", false).expect("a job after the cancelled one");
 }
 
 #[test]
