@@ -7,6 +7,7 @@
 
 mod accuracy;
 mod distorted;
+mod farm;
 mod farm_sim;
 mod table1;
 
@@ -40,6 +41,9 @@ enum Command {
     /// 256 workers, fed by costs measured here; predicts speedup, efficiency and where the
     /// coordinator becomes the bottleneck.
     FarmSim(farm_sim::Args),
+    /// The farm on this machine: a coordinator and 1–3 worker processes on loopback
+    /// against local mode, in time, bytes on the wire and coordinator memory.
+    Farm(farm::Args),
 }
 
 fn main() -> ExitCode {
@@ -52,6 +56,7 @@ fn main() -> ExitCode {
         Command::Distorted(args) => distorted::run(args),
         Command::Accuracy(args) => accuracy::run(args),
         Command::FarmSim(args) => farm_sim::run(args),
+        Command::Farm(args) => farm::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
