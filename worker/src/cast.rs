@@ -196,7 +196,10 @@ impl Caster {
                 if self.cancelled.load(Ordering::SeqCst) {
                     return;
                 }
-                let Some(kind) = self.cast(&caster, &batch, bytes_loaded, loading_nanos) else { return };
+                let span = tracing::debug_span!("batch", id = batch.batch_id, attempt = batch.attempt);
+                let Some(kind) = span.in_scope(|| self.cast(&caster, &batch, bytes_loaded, loading_nanos)) else {
+                    return;
+                };
                 if !self.send(kind) {
                     return;
                 }

@@ -139,7 +139,9 @@ impl Camera {
         for &p in points {
             let d = p - self.eye;
             let depth = d.dot(self.forward);
-            if !(depth > 1e-9 * d.length()) {
+            // NaN included: only a point clearly in front projects.
+            let in_front = depth > 1e-9 * d.length();
+            if !in_front {
                 return all;
             }
             let aspect = width as f64 / height as f64;
