@@ -1,13 +1,19 @@
 //! Helpers shared by the integration tests: scratch folders, rendering scene text, and the
-//! location of the shared real data (tests that need it skip with a message when absent);
-//! [`reference`] holds the scenes with closed-form ray integrals that the accuracy tests and
-//! `trove-bench accuracy` measure the renderer against. None of this belongs in
-//! `trove-core`: the library ships only what renders.
+//! location of the shared real data; [`reference`] holds the scenes with closed-form ray
+//! integrals that the accuracy tests and `trove-bench accuracy` measure the renderer against.
+//! None of this belongs in `trove-core`: the library ships only what renders.
+//!
+//! Tests that need the real data (`../shared/data`, see `docs/data.md`) run only where it is.
+//! Where it is absent they report the skip on the terminal — past cargo's output capture, which
+//! would otherwise hide it behind an `ok` — and pass; with `TROVE_REQUIRE_DATA=1` (set by
+//! `.ci/run`, since CI always has the data) a skip is a failure instead, so a broken data path
+//! can never turn the data tests into silent passes.
 
 pub mod reference;
 
 pub mod farm;
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use trove_core::render::{render, Algorithm, Image, RenderOptions, Rendered};
@@ -116,8 +122,8 @@ pub fn max_abs_difference(a: &Image, b: &Image) -> f64 {
 }
 
 /// Every example scene in `scenes/`, sorted, loaded and shrunk so that its longer side is
-/// `max_side` pixels (aspect kept). Scenes that read `../shared/data` are skipped, with a
-/// message, where that folder is absent.
+/// `max_side` pixels (aspect kept). Scenes that read `../shared/data` are skipped where that
+/// folder is absent, each with a line on the terminal (see [`skip`]).
 pub fn example_scenes(max_side: u32) -> Vec<(PathBuf, Scene)> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(repo_root().join("scenes"))
         .expect("scenes/ exists")
@@ -130,7 +136,8 @@ pub fn example_scenes(max_side: u32) -> Vec<(PathBuf, Scene)> {
     for path in files {
         let text = std::fs::read_to_string(&path).expect("read scene");
         if text.contains("shared/data") && !shared {
-            eprintln!("skipping {}: it reads ../shared/data, which is absent", path.display());
+            let name = path.file_name().unwrap_or_default().to_string_lossy();
+            skip(&format!("scenes/{name} reads ../shared/data, which is absent"));
             continue;
         }
         let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
@@ -148,15 +155,42 @@ pub fn render_with(scene: &Scene, algorithm: Algorithm, memory_budget: Option<u6
     render(scene, &RenderOptions { algorithm, memory_budget, progress: None })
 }
 
-/// `../shared/data` seen from the repository root, if present.
+/// `../shared/data` seen from the repository root, if present; otherwise the calling test
+/// should return early, and this reports the skip (see [`skip`]).
 pub fn shared_data() -> Option<PathBuf> {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
     if dir.is_dir() {
         Some(dir)
     } else {
-        eprintln!("skipping: ../shared/data not found (this test reads the shared real datasets)");
+        skip("../shared/data, the real datasets, is absent");
         None
     }
+}
+
+/// The variable that turns every skip into a failure (`.ci/run` sets it).
+pub const REQUIRE_DATA: &str = "TROVE_REQUIRE_DATA";
+
+/// Whether skips are failures: `TROVE_REQUIRE_DATA` is set to anything but empty or `0`.
+pub fn data_required() -> bool {
+    std::env::var_os(REQUIRE_DATA).is_some_and(|v| !v.is_empty() && v != "0")
+}
+
+/// Reports that the running test skips part or all of its work for `reason`, or fails it
+/// when [`data_required`].
+///
+/// libtest captures `print!`/`eprint!` and shows them only for failing tests, so a skipped
+/// test would look like any other pass. This writes to the standard error handle itself,
+/// which the capture does not intercept, so the line appears in the run's output next to
+/// the test's `ok`, naming the test (libtest names each test's thread after it).
+pub fn skip(reason: &str) {
+    let test = std::thread::current().name().unwrap_or("a test").to_string();
+    if data_required() {
+        panic!("{test}: {reason}, and {REQUIRE_DATA} is set, so this is a failure, not a skip (docs/data.md)");
+    }
+    let _ = writeln!(
+        std::io::stderr().lock(),
+        "SKIPPED in {test}: {reason}; see docs/data.md, or set {REQUIRE_DATA}=1 to fail instead"
+    );
 }
 
 /// The repository root.
