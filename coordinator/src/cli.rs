@@ -27,6 +27,9 @@ enum Command {
     Render(RenderArgs),
     /// Serve a farm's job API and worker membership (SPEC §5).
     Coordinator(CoordinatorArgs),
+    /// Check or fetch the public datasets the example scenes read (docs/data.md).
+    #[command(subcommand)]
+    Data(crate::data::DataCommand),
 }
 
 #[derive(clap::Args)]
@@ -102,6 +105,7 @@ pub fn run() -> Result<()> {
         Command::Render(args) if args.coordinator.is_some() => farm_render(args),
         Command::Render(args) => render_command(args),
         Command::Coordinator(args) => coordinator_command(args),
+        Command::Data(data) => data.run(),
     }
 }
 
