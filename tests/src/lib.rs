@@ -316,4 +316,18 @@ mod tests {
             }
         }
     }
+
+    /// The complete scenes in the user documentation load: the reference must not teach a
+    /// scene that TROVE refuses.
+    #[test]
+    fn the_scenes_in_docs_scene_format_load() {
+        let doc = std::fs::read_to_string(repo_root().join("docs/scene-format.md")).expect("docs/scene-format.md");
+        let blocks: Vec<&str> = doc.split("```toml\n").skip(1).filter_map(|b| b.split("```").next()).collect();
+        let scenes: Vec<&&str> = blocks.iter().filter(|b| b.contains("[image]")).collect();
+        assert!(!scenes.is_empty(), "no complete scene in docs/scene-format.md");
+        let dir = scratch("doc-scenes");
+        for text in scenes {
+            Scene::parse(text, dir.join("scene.toml")).unwrap_or_else(|e| panic!("{e}\n{text}"));
+        }
+    }
 }
