@@ -7,8 +7,9 @@
 //! to rebuild it, byte for byte, from its original public source with lossless steps only.
 //!
 //! * `trove data verify [DIR]` checks a folder against those sums, offline.
-//! * `trove data fetch [DIR]` downloads the sources (with `curl`, which every platform ships;
-//!   no HTTP or TLS stack is compiled in), repeats the steps, and keeps a file only when its
+//! * `trove data fetch [DIR]` downloads the sources with the `curl` program (shipped with
+//!   macOS, Windows 10 and later and most Linux systems, so no HTTP or TLS stack is compiled
+//!   into `trove`), repeats the steps, and keeps a file only when its
 //!   size and SHA-256 match — so what a user renders is what the team tested, and a moved or
 //!   changed source is an error, never a quietly different picture.
 
@@ -31,7 +32,7 @@ const DEFAULT_DIR: &str = "../shared/data";
 
 /// `trove data ...`
 #[derive(clap::Subcommand)]
-pub enum DataCommand {
+pub(crate) enum DataCommand {
     /// Check a data folder against the SHA-256 sums kept in the repository (offline).
     Verify {
         /// The data folder (default: ../shared/data, where the example scenes look when run
@@ -57,7 +58,7 @@ pub enum DataCommand {
 
 impl DataCommand {
     /// Runs the command, printing one line per file.
-    pub fn run(self) -> Result<()> {
+    pub(crate) fn run(self) -> Result<()> {
         let manifest = Manifest::builtin()?;
         match self {
             DataCommand::List => {
@@ -119,48 +120,48 @@ impl DataCommand {
 /// The parsed `data/manifest.toml`.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct Manifest {
+pub(crate) struct Manifest {
     /// Every file, in the manifest's order.
     #[serde(rename = "file")]
-    pub files: Vec<Entry>,
+    pub(crate) files: Vec<Entry>,
 }
 
 /// One file of the data folder: what it must be and how to rebuild it.
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct Entry {
+pub(crate) struct Entry {
     /// File name inside the data folder (no folders).
-    pub name: String,
+    pub(crate) name: String,
     /// Exact size.
-    pub bytes: u64,
+    pub(crate) bytes: u64,
     /// SHA-256, lowercase hex.
-    pub sha256: String,
+    pub(crate) sha256: String,
     /// What the file is and where it comes from, for people.
-    pub about: String,
+    pub(crate) about: String,
     /// Its licence, as far as the source states one.
-    pub licence: String,
+    pub(crate) licence: String,
     /// Where to download it (or its parts, or the archive holding it).
-    pub url: Option<String>,
+    pub(crate) url: Option<String>,
     /// `[first, last]`: `url` holds `{n}`; parts first..=last are concatenated in order.
-    pub parts: Option<[u32; 2]>,
+    pub(crate) parts: Option<[u32; 2]>,
     /// The member of the zip archive at `url` that is the file.
-    pub member: Option<String>,
+    pub(crate) member: Option<String>,
     /// Swap the bytes of every 16-bit word (the source is big-endian, the file little).
     #[serde(default)]
-    pub swap16: bool,
+    pub(crate) swap16: bool,
     /// The whole file, for headers written for this collection.
-    pub text: Option<String>,
+    pub(crate) text: Option<String>,
 }
 
 impl Manifest {
     /// The manifest compiled into this binary.
-    pub fn builtin() -> Result<Manifest> {
+    pub(crate) fn builtin() -> Result<Manifest> {
         Manifest::parse(MANIFEST).context("data/manifest.toml (compiled into trove)")
     }
 
     /// Parses and checks a manifest: every entry has a plain, unique name, a well-formed
     /// checksum and exactly one consistent way to rebuild it.
-    pub fn parse(text: &str) -> Result<Manifest> {
+    pub(crate) fn parse(text: &str) -> Result<Manifest> {
         let manifest: Manifest = toml::from_str(text)?;
         let mut seen = HashMap::new();
         for (i, e) in manifest.files.iter().enumerate() {
@@ -210,7 +211,7 @@ impl Manifest {
 
 /// What `verify` found for one file.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub enum Status {
+pub(crate) enum Status {
     /// Present with the right size and SHA-256.
     Ok,
     /// Not in the folder.
@@ -235,7 +236,7 @@ impl Status {
 }
 
 /// Checks every file of `manifest` in `dir`. Files the manifest does not name are ignored.
-pub fn verify(manifest: &Manifest, dir: &Path) -> Result<Vec<Status>> {
+pub(crate) fn verify(manifest: &Manifest, dir: &Path) -> Result<Vec<Status>> {
     if !dir.is_dir() {
         bail!("{} is not a folder; `trove data fetch {}` creates and fills it", dir.display(), dir.display());
     }
@@ -281,7 +282,7 @@ fn hex(bytes: &[u8]) -> String {
 
 /// Why one file could not be fetched.
 #[derive(Debug)]
-pub enum FetchError {
+pub(crate) enum FetchError {
     /// The download itself failed (network, HTTP status, no curl).
     Download {
         /// The URL asked for (after the mirror was applied).
@@ -332,7 +333,7 @@ impl From<io::Error> for FetchError {
 
 /// What `fetch` did with a file.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Fetched {
+pub(crate) enum Fetched {
     /// It was already there with the right checksum; nothing was downloaded.
     AlreadyThere,
     /// It was downloaded, rebuilt and checked.
@@ -340,15 +341,15 @@ pub enum Fetched {
 }
 
 /// Something that puts the bytes at a URL into a file.
-pub trait Download {
+pub(crate) trait Download {
     /// Writes what `url` holds to `to`.
     fn download(&self, url: &str, to: &Path) -> Result<(), FetchError>;
 }
 
 /// Downloads with the `curl` program, optionally through a mirror.
-pub struct Curl {
+pub(crate) struct Curl {
     /// See `trove data fetch --mirror`.
-    pub mirror: Option<String>,
+    pub(crate) mirror: Option<String>,
 }
 
 impl Curl {
@@ -399,7 +400,7 @@ impl Download for Curl {
 /// correct are kept; others are rebuilt in a temporary file and renamed into place only when
 /// their size and SHA-256 match, so an interrupted or failed fetch never leaves a wrong file
 /// under a right name. Every file is attempted; the result holds each one's outcome.
-pub fn fetch(
+pub(crate) fn fetch(
     manifest: &Manifest,
     dir: &Path,
     source: &dyn Download,
@@ -514,7 +515,7 @@ fn build(
 /// The bytes of member `name` of the zip archive `zip` (stored or deflated; no zip64, no
 /// encryption — a Python wheel is plain zip). Sizes and CRC-32 are checked; malformed input
 /// is an error, never a panic.
-pub fn zip_member(zip: &[u8], name: &str) -> Result<Vec<u8>, String> {
+pub(crate) fn zip_member(zip: &[u8], name: &str) -> Result<Vec<u8>, String> {
     let truncated = || "truncated or not a zip archive".to_string();
     let u16_at = |at: usize| -> Result<usize, String> {
         zip.get(at..at + 2).map(|b| u16::from_le_bytes([b[0], b[1]]) as usize).ok_or_else(truncated)
@@ -745,6 +746,16 @@ mod tests {
             }
         }
         assert!(used >= 6, "the example scenes read only {used} data files");
+    }
+
+    #[test]
+    fn docs_data_md_describes_every_file() {
+        let doc = fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/data.md")).unwrap();
+        for e in Manifest::builtin().unwrap().files {
+            // Headers are listed with their data file: `x.raw` + `.nhdr`.
+            let stem = e.name.split('.').next().unwrap();
+            assert!(doc.contains(&format!("`{stem}.")), "docs/data.md does not mention {}", e.name);
+        }
     }
 
     #[test]
