@@ -1,13 +1,14 @@
 //! `trove data`: the public datasets the example scenes and the data tests read.
 //!
 //! Six of the example scenes, and the tests of the file readers, read real data (a CT head, an
-//! engine CT, photographs, ...) from a data folder (`../shared/data` beside the repository).
+//! engine CT, photographs, ...) by key from a data root (`../shared/data` beside the
+//! repository, given as `--data-root`).
 //! Those files are not in the repository, so a user needs a way to get exactly them:
 //! `data/manifest.toml` (embedded in the binary) names each file with its SHA-256 and says how
 //! to rebuild it, byte for byte, from its original public source with lossless steps only.
 //!
-//! * `trove data verify [DIR]` checks a folder against those sums, offline.
-//! * `trove data fetch [DIR]` downloads the sources with the `curl` program (shipped with
+//! * `trove data verify [--data-root DIR]` checks a folder against those sums, offline.
+//! * `trove data fetch [--data-root DIR]` downloads the sources with the `curl` program (shipped with
 //!   macOS, Windows 10 and later and most Linux systems, so no HTTP or TLS stack is compiled
 //!   into `trove`), repeats the steps, and keeps a file only when its
 //!   size and SHA-256 match — so what a user renders is what the team tested, and a moved or
@@ -23,11 +24,13 @@ use std::process::Command;
 use anyhow::{bail, Context, Result};
 use serde::Deserialize;
 use sha2::{Digest, Sha256};
+use trove_core::scene::{DataRoot, DATA_ROOT_ENV};
 
 /// The manifest, as kept in the repository.
 const MANIFEST: &str = include_str!("../../data/manifest.toml");
 
-/// Where the example scenes look for their data, seen from the repository root.
+/// The data folder when neither `--data-root` nor `TROVE_DATA` names one: where the README's
+/// commands, run from the repository root, give the example scenes their data.
 const DEFAULT_DIR: &str = "../shared/data";
 
 /// `trove data ...`
@@ -35,18 +38,18 @@ const DEFAULT_DIR: &str = "../shared/data";
 pub(crate) enum DataCommand {
     /// Check a data folder against the SHA-256 sums kept in the repository (offline).
     Verify {
-        /// The data folder (default: ../shared/data, where the example scenes look when run
-        /// from the repository root).
-        #[arg(default_value = DEFAULT_DIR)]
-        dir: PathBuf,
+        /// The data folder (default: TROVE_DATA, else ../shared/data).
+        #[arg(long, value_name = "DIR")]
+        data_root: Option<PathBuf>,
     },
     /// Download the data from its original public sources (needs curl), rebuild each file
     /// with its documented lossless steps, and keep it only if its SHA-256 matches. Files
     /// already present and correct are not downloaded again.
     Fetch {
-        /// The data folder to fill (created if needed; default: ../shared/data).
-        #[arg(default_value = DEFAULT_DIR)]
-        dir: PathBuf,
+        /// The data folder to fill, created if needed (default: TROVE_DATA, else
+        /// ../shared/data).
+        #[arg(long, value_name = "DIR")]
+        data_root: Option<PathBuf>,
         /// Download `https://HOST/PATH` from `MIRROR/HOST/PATH` instead, e.g. a local copy
         /// (`file:///srv/mirror`) or a proxy (`http://cache:8080`). The checksums still apply.
         #[arg(long, value_name = "URL")]
@@ -67,7 +70,8 @@ impl DataCommand {
                 }
                 Ok(())
             }
-            DataCommand::Verify { dir } => {
+            DataCommand::Verify { data_root } => {
+                let dir = data_dir(data_root);
                 let report = verify(&manifest, &dir)?;
                 let mut bad = 0;
                 for (entry, status) in manifest.files.iter().zip(&report) {
@@ -85,7 +89,7 @@ impl DataCommand {
                 if bad > 0 {
                     bail!(
                         "{bad} of {} files in {} are missing or differ from data/manifest.toml; \
-                         `trove data fetch {}` downloads them again",
+                         `trove data fetch --data-root {}` downloads them again",
                         report.len(),
                         dir.display(),
                         dir.display()
@@ -94,7 +98,8 @@ impl DataCommand {
                 println!("all {} files in {} match data/manifest.toml", report.len(), dir.display());
                 Ok(())
             }
-            DataCommand::Fetch { dir, mirror } => {
+            DataCommand::Fetch { data_root, mirror } => {
+                let dir = data_dir(data_root);
                 let curl = Curl { mirror };
                 let outcomes = fetch(&manifest, &dir, &curl, &mut |name, outcome| match outcome {
                     Ok(Fetched::AlreadyThere) => println!("ok       {name} (already there)"),
@@ -114,6 +119,15 @@ impl DataCommand {
                 Ok(())
             }
         }
+    }
+}
+
+/// The data folder, by the rule a local render follows (`--data-root`, else `TROVE_DATA`),
+/// except that with neither there is no scene folder to fall back on: [`DEFAULT_DIR`].
+fn data_dir(given: Option<PathBuf>) -> PathBuf {
+    match DataRoot::choose(given, std::env::var_os(DATA_ROOT_ENV)) {
+        DataRoot::Given(dir) | DataRoot::Environment(dir) => dir,
+        _ => PathBuf::from(DEFAULT_DIR),
     }
 }
 
@@ -238,7 +252,11 @@ impl Status {
 /// Checks every file of `manifest` in `dir`. Files the manifest does not name are ignored.
 pub(crate) fn verify(manifest: &Manifest, dir: &Path) -> Result<Vec<Status>> {
     if !dir.is_dir() {
-        bail!("{} is not a folder; `trove data fetch {}` creates and fills it", dir.display(), dir.display());
+        bail!(
+            "{} is not a folder; `trove data fetch --data-root {}` creates and fills it",
+            dir.display(),
+            dir.display()
+        );
     }
     manifest
         .files
