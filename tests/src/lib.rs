@@ -17,7 +17,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use trove_core::render::{render, Algorithm, Image, RenderOptions, Rendered};
-use trove_core::scene::Scene;
+use trove_core::scene::{DataRoot, Scene, SceneError, SceneErrorKind};
 use trove_core::RenderError;
 
 /// A fresh scratch folder under the system temp dir, unique to this test.
@@ -121,9 +121,11 @@ pub fn max_abs_difference(a: &Image, b: &Image) -> f64 {
     a.max_abs_difference(b)
 }
 
-/// Every example scene in `scenes/`, sorted, loaded and shrunk so that its longer side is
-/// `max_side` pixels (aspect kept). Scenes that read `../shared/data` are skipped where that
-/// folder is absent, each with a line on the terminal (see [`skip`]).
+/// Every example scene in `scenes/`, sorted, loaded with [`shared_data_dir`] as the data
+/// root (given explicitly, as `--data-root` would give it: tests never read `TROVE_DATA`) and
+/// shrunk so that its longer side is `max_side` pixels (aspect kept). A scene whose data is
+/// not there is skipped where that folder is absent, with a line on the terminal (see
+/// [`skip`]); anywhere else a missing file is a failure.
 pub fn example_scenes(max_side: u32) -> Vec<(PathBuf, Scene)> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(repo_root().join("scenes"))
         .expect("scenes/ exists")
@@ -131,23 +133,31 @@ pub fn example_scenes(max_side: u32) -> Vec<(PathBuf, Scene)> {
         .filter(|p| p.extension().is_some_and(|e| e == "toml"))
         .collect();
     files.sort();
-    let shared = repo_root().join("../shared/data").is_dir();
+    let data = shared_data_dir();
+    let root = DataRoot::Given(data.clone());
     let mut scenes = Vec::new();
     for path in files {
-        let text = std::fs::read_to_string(&path).expect("read scene");
-        if text.contains("shared/data") && !shared {
-            let name = path.file_name().unwrap_or_default().to_string_lossy();
-            skip(&format!("scenes/{name} reads ../shared/data, which is absent"));
-            continue;
-        }
-        let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
-        let (width, height) = (scene.image().width, scene.image().height);
-        let scale = max_side as f64 / width.max(height) as f64;
-        let shrink = |side: u32| ((side as f64 * scale).round() as u32).max(1);
-        let scene = scene.with_image_size(shrink(width), shrink(height)).unwrap_or_else(|e| panic!("{e}"));
+        let scene = match Scene::load_in(&path, &root) {
+            Ok(scene) => scene,
+            Err(SceneError { kind: SceneErrorKind::DataNotFound { .. }, .. }) if !data.is_dir() => {
+                let name = path.file_name().unwrap_or_default().to_string_lossy();
+                skip(&format!("scenes/{name} reads ../shared/data, which is absent"));
+                continue;
+            }
+            Err(e) => panic!("{e}"),
+        };
+        let (width, height) = shrunk(scene.image().width, scene.image().height, max_side);
+        let scene = scene.with_image_size(width, height).unwrap_or_else(|e| panic!("{e}"));
         scenes.push((path, scene));
     }
     scenes
+}
+
+/// An image size scaled so that its longer side is `max_side` (aspect kept, at least 1).
+fn shrunk(width: u32, height: u32, max_side: u32) -> (u32, u32) {
+    let scale = max_side as f64 / width.max(height) as f64;
+    let shrink = |side: u32| ((side as f64 * scale).round() as u32).max(1);
+    (shrink(width), shrink(height))
 }
 
 /// Renders `scene` with `algorithm` under an optional memory budget.
@@ -155,10 +165,16 @@ pub fn render_with(scene: &Scene, algorithm: Algorithm, memory_budget: Option<u6
     render(scene, &RenderOptions { algorithm, memory_budget, progress: None })
 }
 
+/// `../shared/data` beside the repository: the data root of the example scenes, present or
+/// not.
+pub fn shared_data_dir() -> PathBuf {
+    repo_root().join("../shared/data")
+}
+
 /// `../shared/data` seen from the repository root, if present; otherwise the calling test
 /// should return early, and this reports the skip (see [`skip`]).
 pub fn shared_data() -> Option<PathBuf> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
+    let dir = shared_data_dir();
     if dir.is_dir() {
         Some(dir)
     } else {
@@ -244,42 +260,17 @@ pub fn read_pfm(path: &Path) -> Image {
     Image::new(w as u32, h as u32, pixels)
 }
 
-/// The text of example scene `path` as a farm job: every dataset path rewritten as a key
-/// under `data` (its path relative to `data`, which must hold it), and the image shrunk so
-/// its longer side is `max_side` pixels, as [`example_scenes`] shrinks it.
-pub fn keyed_scene_text(path: &Path, data: &Path, max_side: u32) -> String {
+/// The text of example scene `path` as a farm job: its dataset keys as written (a farm's
+/// workers resolve them under their own data roots) and its image shrunk so that its longer
+/// side is `max_side` pixels, as [`example_scenes`] shrinks it.
+pub fn shrunk_scene_text(path: &Path, max_side: u32) -> String {
     let text = std::fs::read_to_string(path).expect("read scene");
     let mut table: toml::Table = text.parse().unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let folder = path.parent().expect("a scene file has a folder");
-    let data = data.canonicalize().expect("data folder");
-    let key = |value: &mut toml::Value| {
-        let rel = value.as_str().expect("a path string");
-        let full = folder.join(rel).canonicalize().unwrap_or_else(|e| panic!("{rel}: {e}"));
-        let key = full.strip_prefix(&data).unwrap_or_else(|_| panic!("{rel} is not under {}", data.display()));
-        *value = toml::Value::String(key.to_string_lossy().replace('\\', "/"));
-    };
-    for d in table.get_mut("datasets").and_then(|v| v.as_array_mut()).into_iter().flatten() {
-        let d = d.as_table_mut().expect("dataset table");
-        for field in ["file", "image"] {
-            if let Some(v) = d.get_mut(field) {
-                key(v);
-            }
-        }
-        for c in
-            d.get_mut("channels").and_then(|v| v.as_table_mut()).into_iter().flat_map(|t| t.iter_mut().map(|(_, v)| v))
-        {
-            for field in ["raw", "nrrd"] {
-                if let Some(v) = c.get_mut(field) {
-                    key(v);
-                }
-            }
-        }
-    }
     let image = table.get_mut("image").and_then(|v| v.as_table_mut()).expect("[image]");
-    let (w, h) = (image["width"].as_integer().unwrap() as f64, image["height"].as_integer().unwrap() as f64);
-    let scale = max_side as f64 / w.max(h);
-    image.insert("width".into(), toml::Value::Integer(((w * scale).round() as i64).max(1)));
-    image.insert("height".into(), toml::Value::Integer(((h * scale).round() as i64).max(1)));
+    let side = |key: &str| u32::try_from(image[key].as_integer().expect("an integer")).expect("a pixel count");
+    let (width, height) = shrunk(side("width"), side("height"), max_side);
+    image.insert("width".into(), toml::Value::Integer(width.into()));
+    image.insert("height".into(), toml::Value::Integer(height.into()));
     toml::to_string(&table).expect("serialise scene")
 }
 
