@@ -388,7 +388,7 @@ pub(crate) mod testutil {
         }
         let _ = writeln!(
             std::io::stderr().lock(),
-            "SKIPPED {test}: ../shared/data, the real datasets, is absent; \
+            "SKIPPED in {test}: ../shared/data, the real datasets, is absent; \
              see docs/data.md, or set TROVE_REQUIRE_DATA=1 to fail instead"
         );
         None
