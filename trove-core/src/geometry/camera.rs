@@ -139,7 +139,8 @@ impl Camera {
         for &p in points {
             let d = p - self.eye;
             let depth = d.dot(self.forward);
-            if !(depth > 1e-9 * d.length()) {
+            // Not `depth <= …`: a NaN depth must take the whole image too.
+            if depth.partial_cmp(&(1e-9 * d.length())) != Some(std::cmp::Ordering::Greater) {
                 return all;
             }
             let aspect = width as f64 / height as f64;
