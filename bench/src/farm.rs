@@ -109,13 +109,14 @@ fn table1_case(args: &Args, dir: &Path) -> Result<Case> {
     Ok(Case { name: format!("Table 1, 15 datasets, {0}×{0}", args.size), scene, root })
 }
 
-/// `scenes/fig01-fifteen-objects.toml` with its longer side `size`, its files named by key
-/// under a folder of links to the data (so that the workers' sandbox sees plain files).
+/// `scenes/fig01-fifteen-objects.toml` with its longer side `size`, written into a copy of
+/// the data folder: its keys resolve there both for the local render (the scene's folder is
+/// its data root) and for the workers, whose data root it is.
 fn fig01_case(data: &Path, size: u32, dir: &Path) -> Result<Case> {
     let repo = trove_tests::repo_root();
     let path = repo.join("scenes/fig01-fifteen-objects.toml");
     ensure!(data.is_dir(), "{}: no such folder (pass --data-root, or --fig01-size 0 to skip Fig. 1)", data.display());
-    let text = trove_tests::keyed_scene_text(&path, data, size);
+    let text = trove_tests::shrunk_scene_text(&path, size);
     let root = dir.join("fig01");
     std::fs::create_dir_all(&root)?;
     // Copies, not links: a worker refuses links that leave its root; and every file, since
@@ -248,6 +249,8 @@ impl Binaries {
         let output = Command::new(&self.trove)
             .args(["render", path_str(scene)?, "-o", path_str(out)?])
             .args(extra)
+            // Every case's scene lies in its data root; a TROVE_DATA of the caller's must not move it.
+            .env_remove("TROVE_DATA")
             .stdin(Stdio::null())
             .output()?;
         let seconds = started.elapsed().as_secs_f64();
@@ -266,6 +269,7 @@ impl Binaries {
             .args(["-f", "%M"])
             .arg(&self.trove)
             .args(["render", path_str(scene)?, "-o", path_str(out)?])
+            .env_remove("TROVE_DATA")
             .stdin(Stdio::null())
             .output()?;
         let seconds = started.elapsed().as_secs_f64();

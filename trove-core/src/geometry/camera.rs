@@ -139,9 +139,8 @@ impl Camera {
         for &p in points {
             let d = p - self.eye;
             let depth = d.dot(self.forward);
-            // NaN included: only a point clearly in front projects.
-            let in_front = depth > 1e-9 * d.length();
-            if !in_front {
+            // Not `depth <= …`: a NaN depth must take the whole image too.
+            if depth.partial_cmp(&(1e-9 * d.length())) != Some(std::cmp::Ordering::Greater) {
                 return all;
             }
             let aspect = width as f64 / height as f64;
