@@ -41,9 +41,11 @@ pub fn parse_bytes(text: &str) -> Result<u64, String> {
 }
 
 /// Logs to stderr through `tracing`, filtered by `RUST_LOG` (default `warn`), with colour
-/// only when stderr is a terminal and `NO_COLOR` is unset.
+/// only when stderr is a terminal and `NO_COLOR` is unset or empty (no-color.org: only a
+/// non-empty value asks for no colour).
 pub fn init_logging() {
-    let colour = std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none();
+    let no_colour = std::env::var_os("NO_COLOR").is_some_and(|v| !v.is_empty());
+    let colour = std::io::stderr().is_terminal() && !no_colour;
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
         .with_writer(std::io::stderr)
