@@ -2,14 +2,13 @@
 //! them, and every error as a typed [`pb::Failure`] (in a gRPC status's details when a call
 //! is refused), so a reason is never flattened to a string on its way across a process.
 
-use std::error::Error;
-
 use prost::Message;
 use tonic::{Code, Status};
-use trove_core::dataset::raw::StoredType;
+use trove_core::dataset::StoredType;
 use trove_core::dataset::{
     ChannelName, ChannelSource, DataFile, DatasetError, Dims, Encoding, Endian, FileInfo, FileKind, VoxelType,
 };
+use trove_core::error::with_causes;
 use trove_core::render::{CastError, StoreError};
 use trove_core::scene::{SceneError, SceneErrorKind};
 
@@ -23,21 +22,6 @@ pub const JOB_HEADER: &str = "x-trove-job";
 /// message for the person.
 pub fn failure(reason: pb::Reason, retryable: bool, message: String) -> pb::Failure {
     pb::Failure { reason: reason as i32, retryable, message, ..Default::default() }
-}
-
-/// `e` and its causes, one after the other, as one paragraph.
-pub fn chain(e: &dyn Error) -> String {
-    let mut text = e.to_string();
-    let mut source = e.source();
-    while let Some(s) = source {
-        let more = s.to_string();
-        if !text.contains(&more) {
-            text.push_str(": ");
-            text.push_str(&more);
-        }
-        source = s.source();
-    }
-    text
 }
 
 /// The gRPC status that refuses a call with `f`: a code a generic client understands, and
@@ -83,7 +67,7 @@ pub fn scene_failure(e: &SceneError) -> pb::Failure {
         SceneErrorKind::Dataset(d) => (pb::Reason::DatasetInvalid, d.is_retryable()),
         _ => (pb::Reason::SceneInvalid, false),
     };
-    let mut f = failure(reason, retryable, chain(e));
+    let mut f = failure(reason, retryable, with_causes(e));
     f.file = e.file.display().to_string();
     f.key = e.key.clone().unwrap_or_default();
     f
@@ -96,7 +80,7 @@ pub fn store_failure(e: &StoreError) -> pb::Failure {
         StoreError::Load { name, source } if not_here(source) => (pb::Reason::DatasetNotHeld, true, name),
         StoreError::Load { name, source } => (pb::Reason::DatasetInvalid, source.is_retryable(), name),
     };
-    let mut f = failure(reason, retryable, chain(e));
+    let mut f = failure(reason, retryable, with_causes(e));
     f.dataset = name.clone();
     f
 }
@@ -107,7 +91,7 @@ pub fn cast_failure(e: &CastError) -> pb::Failure {
         CastError::Bind { .. } => pb::Reason::DatasetInvalid,
         _ => pb::Reason::BadBatch,
     };
-    failure(reason, false, chain(e))
+    failure(reason, false, with_causes(e))
 }
 
 fn voxel_type(ty: VoxelType) -> pb::VoxelType {

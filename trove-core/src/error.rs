@@ -9,13 +9,18 @@ pub use crate::scene::{SceneError, SceneErrorKind};
 
 /// `error: cause: its cause…` on one line, as anyhow's `{:#}` prints a chain: for code that
 /// has to keep an error as text. Each error displays only its own level and names the rest as
-/// its source, so this shows every level once.
+/// its source, so this shows every level once (a level that quotes its cause anyway is not
+/// repeated).
 pub fn with_causes(e: &dyn std::error::Error) -> String {
     let mut text = e.to_string();
     let mut cause = e.source();
     while let Some(c) = cause {
-        text.push_str(": ");
-        text.push_str(&c.to_string());
+        // A message that already quotes its cause is not repeated.
+        let more = c.to_string();
+        if !text.contains(&more) {
+            text.push_str(": ");
+            text.push_str(&more);
+        }
         cause = c.source();
     }
     text

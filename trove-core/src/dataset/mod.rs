@@ -10,17 +10,19 @@
 mod catalog;
 mod channel;
 mod error;
-pub mod generator;
-pub mod image_file;
+pub(crate) mod generator;
+pub(crate) mod image_file;
 mod mmap;
-pub mod nifti_file;
-pub mod nrrd;
-pub mod raw;
+pub(crate) mod nifti_file;
+pub(crate) mod nrrd;
+pub(crate) mod raw;
 mod source;
 mod volume;
 
 pub use catalog::{Catalog, DataFile, FileInfo, FileKind, FsCatalog, VolumeFormat};
 pub use channel::{Channel, ChannelName, ChannelReader, ChannelSizeError, Endian, VoxelBytes, VoxelType};
 pub use error::{DatasetError, KeyProblem};
+pub use generator::{Generator, GeneratorError};
+pub use raw::StoredType;
 pub use source::{ChannelSource, DatasetId, DatasetInfo, Encoding};
 pub use volume::{Dims, DimsError, Volume};

@@ -37,8 +37,10 @@ pub struct FileChannel {
 const MAX_HEADER: usize = 1 << 20;
 
 /// Reads the header of `path` (`.nrrd` or `.nhdr`) and checks the data's size against it. A
-/// detached header's `data file` is read relative to the header's folder.
-pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
+/// detached header's `data file` is read relative to the header's folder. (The renderer
+/// goes through [`open_in`] from a catalog; the readers' tests use this.)
+#[cfg(test)]
+pub(crate) fn open(path: &Path) -> Result<FileChannel, DatasetError> {
     open_in(path, &|_, joined| Ok(joined))
 }
 
