@@ -310,6 +310,65 @@ impl Channel {
     }
 }
 
+/// Random access to a channel's voxels as f32 (SPEC §3.1), for the sampler and the
+/// macrocell scan. [`ChannelReader`] implements it by matching on the storage type at every
+/// read; the typed views below ([`U8Voxels`], [`U16LeVoxels`], ...) decode one type only,
+/// so code made generic over `Voxels` is compiled once per type with no dispatch per voxel.
+pub trait Voxels: Copy + Send + Sync {
+    /// The value at linear index `i` (x fastest, then y, then z). Panics if out of range.
+    fn get(&self, i: usize) -> f32;
+}
+
+impl Voxels for ChannelReader<'_> {
+    #[inline(always)]
+    fn get(&self, i: usize) -> f32 {
+        self.read(i)
+    }
+}
+
+macro_rules! typed_voxels {
+    ($(#[$doc:meta])* $name:ident, $variant:ident, |$b:ident, $i:ident| $read:expr) => {
+        $(#[$doc])*
+        #[derive(Clone, Copy, Debug)]
+        pub struct $name<'a>(&'a [u8]);
+
+        impl<'a> $name<'a> {
+            /// The typed view of `reader`, or `None` when it stores another type.
+            pub fn of(reader: ChannelReader<'a>) -> Option<$name<'a>> {
+                match reader {
+                    ChannelReader::$variant(b) => Some($name(b)),
+                    _ => None,
+                }
+            }
+        }
+
+        impl Voxels for $name<'_> {
+            #[inline(always)]
+            fn get(&self, $i: usize) -> f32 {
+                let $b = self.0;
+                $read
+            }
+        }
+    };
+}
+
+typed_voxels!(
+    /// A `bit` channel: one LSB-first bit per voxel.
+    BitVoxels, Bit, |b, i| ((b[i >> 3] >> (i & 7)) & 1) as f32
+);
+typed_voxels!(
+    /// A `u8` channel.
+    U8Voxels, U8, |b, i| b[i] as f32
+);
+typed_voxels!(
+    /// A little-endian `u16` channel.
+    U16LeVoxels, U16Le, |b, i| u16::from_le_bytes([b[2 * i], b[2 * i + 1]]) as f32
+);
+typed_voxels!(
+    /// A little-endian `f32` channel.
+    F32LeVoxels, F32Le, |b, i| f32::from_le_bytes(b[4 * i..4 * i + 4].try_into().expect("4 bytes"))
+);
+
 /// A borrowed, decoded view of a channel's bytes.
 #[derive(Clone, Copy, Debug)]
 pub enum ChannelReader<'a> {

@@ -10,6 +10,7 @@
 mod channel;
 pub mod generator;
 pub mod image_file;
+pub mod macrocell;
 mod mmap;
 pub mod nifti_file;
 pub mod nrrd;
@@ -17,6 +18,9 @@ pub mod raw;
 mod source;
 mod volume;
 
-pub use channel::{Channel, ChannelName, ChannelReader, Endian, VoxelBytes, VoxelType};
+pub use channel::{
+    BitVoxels, Channel, ChannelName, ChannelReader, Endian, F32LeVoxels, U16LeVoxels, U8Voxels, VoxelBytes, VoxelType,
+    Voxels,
+};
 pub use source::{ChannelSource, DatasetInfo, Encoding};
 pub use volume::{Dims, Volume};
