@@ -4,6 +4,9 @@
 //! reads, then calls [`ColourMap::map`] or [`OpacityMap::map`]. Results are clamped to
 //! [0, 1]; a non-finite result is `None` and the sample contributes nothing.
 
+use std::borrow::Cow;
+use std::sync::OnceLock;
+
 use crate::dataset::ChannelName;
 
 /// Which channels a raw colour map reads, decided once at scene load from what the
@@ -29,19 +32,153 @@ impl RawColour {
     }
 }
 
-/// A look-up table: `s − 1` strictly increasing bounds split the line into `s` domains.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Lut<T> {
-    bounds: Vec<f64>,
-    entries: Vec<T>,
+/// Finds, for a value v, how many of a sorted list of break points are ≤ v — the segment v
+/// falls in — in constant expected time: a uniform grid over the break points' span gives a
+/// first guess, and a short walk corrects it. The answer is exactly
+/// `breaks.partition_point(|&x| x <= v)`, so maps evaluate as SPEC §3.2 defines them, without
+/// a binary search per sample.
+#[derive(Clone, Debug)]
+struct BreakIndex {
+    /// The first break point; bins start here.
+    lo: f64,
+    /// Bins per unit of value (0 when the span is empty or infinite: one bin).
+    scale: f64,
+    /// `first[g]`: the answer at the start of bin g (a guess for every value in the bin).
+    first: Vec<u32>,
 }
 
-impl<T: Copy> Lut<T> {
+/// Most grid bins per map (16 KiB of guesses).
+const MAX_BINS: usize = 4096;
+
+impl BreakIndex {
+    fn new(breaks: &[f64]) -> BreakIndex {
+        let bins = (breaks.len() * 4).next_power_of_two().clamp(8, MAX_BINS);
+        let (lo, span) = match (breaks.first(), breaks.last()) {
+            (Some(&a), Some(&b)) => (a, b - a),
+            _ => (0.0, 0.0),
+        };
+        let scale = if span > 0.0 && span.is_finite() { bins as f64 / span } else { 0.0 };
+        let first = if scale == 0.0 {
+            vec![0]
+        } else {
+            (0..bins).map(|g| breaks.partition_point(|&x| x <= lo + g as f64 / scale) as u32).collect()
+        };
+        BreakIndex { lo, scale, first }
+    }
+
+    /// `breaks.partition_point(|&x| x <= v)`; `breaks` must be the list the index was built on.
+    #[inline(always)]
+    fn find(&self, breaks: &[f64], v: f64) -> usize {
+        if v.is_nan() {
+            return 0;
+        }
+        let g = (((v - self.lo) * self.scale) as i64).clamp(0, self.first.len() as i64 - 1);
+        let mut i = self.first[g as usize] as usize;
+        while i < breaks.len() && breaks[i] <= v {
+            i += 1;
+        }
+        while i > 0 && breaks[i - 1] > v {
+            i -= 1;
+        }
+        i
+    }
+}
+
+/// One segment of a [`Piecewise`] map: y0 + ((v − x0)/w)·dy. A constant segment has
+/// x0 = 0, w = 1 and dy = 0, so it yields y0 for every finite v.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Segment<const N: usize> {
+    x0: f64,
+    w: f64,
+    y0: [f64; N],
+    dy: [f64; N],
+}
+
+impl<const N: usize> Segment<N> {
+    fn constant(y: [f64; N]) -> Segment<N> {
+        Segment { x0: 0.0, w: 1.0, y0: y, dy: [0.0; N] }
+    }
+}
+
+/// A LUT or a ramp as one kind of map: break points splitting the line into segments, each
+/// constant (LUT domains, ramp ends) or linear (ramp pieces). Both evaluate with the exact
+/// arithmetic of their definitions — a LUT entry is returned as is, a ramp piece is
+/// `y0 + t·(y1 − y0)` with `t = (v − x0)/(x1 − x0)` — so the sampler needs one loop for both.
+#[derive(Clone, Debug)]
+pub struct Piecewise<const N: usize> {
+    breaks: Vec<f64>,
+    /// `breaks.len() + 1` segments: segment i holds the values v with i break points ≤ v.
+    segments: Vec<Segment<N>>,
+    index: BreakIndex,
+}
+
+impl<const N: usize> Piecewise<N> {
+    fn new(breaks: Vec<f64>, segments: Vec<Segment<N>>) -> Piecewise<N> {
+        debug_assert_eq!(segments.len(), breaks.len() + 1);
+        let index = BreakIndex::new(&breaks);
+        Piecewise { breaks, segments, index }
+    }
+
+    /// Which segment `v` falls in.
+    #[inline(always)]
+    fn segment(&self, v: f64) -> usize {
+        self.index.find(&self.breaks, v)
+    }
+
+    /// The map's value at a finite `v` (not clamped).
+    #[inline(always)]
+    pub fn eval(&self, v: f64) -> [f64; N] {
+        let s = &self.segments[self.segment(v)];
+        let t = (v - s.x0) / s.w;
+        std::array::from_fn(|c| s.y0[c] + t * s.dy[c])
+    }
+}
+
+/// What a LUT stores per domain: an opacity or an RGB colour.
+pub trait LutValue: Copy + std::fmt::Debug + PartialEq {
+    /// The LUT as a [`Piecewise`] map.
+    type Piecewise: Clone + std::fmt::Debug;
+    /// Builds the piecewise form: one constant segment per domain.
+    fn piecewise(bounds: &[f64], entries: &[Self]) -> Self::Piecewise;
+}
+
+impl LutValue for f64 {
+    type Piecewise = Piecewise<1>;
+    fn piecewise(bounds: &[f64], entries: &[f64]) -> Piecewise<1> {
+        Piecewise::new(bounds.to_vec(), entries.iter().map(|&e| Segment::constant([e])).collect())
+    }
+}
+
+impl LutValue for [f64; 3] {
+    type Piecewise = Piecewise<3>;
+    fn piecewise(bounds: &[f64], entries: &[[f64; 3]]) -> Piecewise<3> {
+        Piecewise::new(bounds.to_vec(), entries.iter().map(|&e| Segment::constant(e)).collect())
+    }
+}
+
+/// A look-up table: `s − 1` strictly increasing bounds split the line into `s` domains.
+#[derive(Clone, Debug)]
+pub struct Lut<T: LutValue> {
+    bounds: Vec<f64>,
+    entries: Vec<T>,
+    piecewise: T::Piecewise,
+    /// Where the map (as an opacity) yields nothing, computed on first use.
+    zero: OnceLock<ZeroSet>,
+}
+
+impl<T: LutValue> PartialEq for Lut<T> {
+    fn eq(&self, other: &Lut<T>) -> bool {
+        self.bounds == other.bounds && self.entries == other.entries
+    }
+}
+
+impl<T: LutValue> Lut<T> {
     /// `entries.len() == bounds.len() + 1` and strictly increasing finite bounds are checked
     /// by the scene validator; this constructor trusts them.
     pub(crate) fn new(bounds: Vec<f64>, entries: Vec<T>) -> Lut<T> {
         debug_assert_eq!(entries.len(), bounds.len() + 1);
-        Lut { bounds, entries }
+        let piecewise = T::piecewise(&bounds, &entries);
+        Lut { bounds, entries, piecewise, zero: OnceLock::new() }
     }
 
     /// v < d1 → e1; d(i−1) ≤ v < d(i) → e(i); v ≥ d(s−1) → es. A value equal to a bound
@@ -49,6 +186,11 @@ impl<T: Copy> Lut<T> {
     #[inline]
     pub fn lookup(&self, v: f64) -> T {
         self.entries[self.bounds.partition_point(|&d| d <= v)]
+    }
+
+    /// The LUT as a piecewise map (what the sampler evaluates).
+    pub fn piecewise(&self) -> &T::Piecewise {
+        &self.piecewise
     }
 }
 
@@ -67,34 +209,201 @@ impl Polynomial {
 /// A piecewise-linear ramp through points with non-decreasing abscissae, constant beyond
 /// the ends. Where two points share an abscissa the ramp steps there, taking the later
 /// point's value at the step itself (as a LUT takes its upper domain at a bound).
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug)]
 pub struct Ramp<const N: usize> {
     xs: Vec<f64>,
     ys: Vec<[f64; N]>,
+    piecewise: Piecewise<N>,
+    /// Where the map (as an opacity) yields nothing, computed on first use.
+    zero: OnceLock<ZeroSet>,
+}
+
+impl<const N: usize> PartialEq for Ramp<N> {
+    fn eq(&self, other: &Ramp<N>) -> bool {
+        self.xs == other.xs && self.ys == other.ys
+    }
 }
 
 impl<const N: usize> Ramp<N> {
     /// Points are validated (finite, non-decreasing, at least one) by the scene validator.
     pub(crate) fn new(points: Vec<(f64, [f64; N])>) -> Ramp<N> {
-        let (xs, ys) = points.into_iter().unzip();
-        Ramp { xs, ys }
+        let (xs, ys): (Vec<f64>, Vec<[f64; N]>) = points.into_iter().unzip();
+        // Segment i holds the values with i points ≤ v: below the first point and from the
+        // last on the ramp is constant; between points i − 1 and i it is linear (a step,
+        // where the two share an abscissa, holds no value).
+        let last = ys.len() - 1;
+        let segments = (0..=xs.len())
+            .map(|i| {
+                if i == 0 || i > last || xs[i - 1] >= xs[i] {
+                    Segment::constant(ys[i.saturating_sub(1).min(last)])
+                } else {
+                    Segment {
+                        x0: xs[i - 1],
+                        w: xs[i] - xs[i - 1],
+                        y0: ys[i - 1],
+                        dy: std::array::from_fn(|c| ys[i][c] - ys[i - 1][c]),
+                    }
+                }
+            })
+            .collect();
+        let piecewise = Piecewise::new(xs.clone(), segments);
+        Ramp { xs, ys, piecewise, zero: OnceLock::new() }
     }
 
     /// The ramp's value at `v`.
     #[inline]
     pub fn eval(&self, v: f64) -> [f64; N] {
-        let i = self.xs.partition_point(|&x| x <= v);
-        if i == 0 {
-            return self.ys[0];
-        }
-        if i == self.xs.len() {
-            return self.ys[i - 1];
-        }
-        let (x0, x1) = (self.xs[i - 1], self.xs[i]);
-        // x0 <= v < x1, so the denominator is positive.
-        let t = (v - x0) / (x1 - x0);
-        std::array::from_fn(|c| self.ys[i - 1][c] + t * (self.ys[i][c] - self.ys[i - 1][c]))
+        self.piecewise.eval(v)
     }
+
+    /// The ramp as a piecewise map (what the sampler evaluates).
+    pub fn piecewise(&self) -> &Piecewise<N> {
+        &self.piecewise
+    }
+}
+
+/// The values at which an opacity map yields no contribution — opacity 0 after clamping, or
+/// a non-finite result — as sorted, disjoint intervals `[lo, hi)` or `[lo, hi]`. Empty-space
+/// skipping asks whether a macrocell's whole range of values lies in one of them.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ZeroSet {
+    runs: Vec<Run>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Run {
+    lo: f64,
+    hi: f64,
+    hi_closed: bool,
+}
+
+impl ZeroSet {
+    /// The whole line.
+    pub fn everywhere() -> ZeroSet {
+        ZeroSet { runs: vec![Run { lo: f64::NEG_INFINITY, hi: f64::INFINITY, hi_closed: true }] }
+    }
+
+    /// Whether the map yields something at every value (skipping can never apply).
+    pub fn is_empty(&self) -> bool {
+        self.runs.is_empty()
+    }
+
+    /// Whether every value in `[lo, hi]` yields nothing.
+    #[inline]
+    pub fn covers(&self, lo: f64, hi: f64) -> bool {
+        let i = self.runs.partition_point(|r| r.lo <= lo);
+        if i == 0 {
+            return false;
+        }
+        let r = self.runs[i - 1];
+        hi < r.hi || (r.hi_closed && hi <= r.hi)
+    }
+
+    /// Appends `[lo, hi)` (or `[lo, hi]`), which must not start before the last run ends;
+    /// touching runs are merged.
+    fn push(&mut self, lo: f64, hi: f64, hi_closed: bool) {
+        if let Some(last) = self.runs.last_mut() {
+            if last.hi == lo {
+                last.hi = hi;
+                last.hi_closed = hi_closed;
+                return;
+            }
+        }
+        self.runs.push(Run { lo, hi, hi_closed });
+    }
+
+    /// The zero set of an opacity map from its segments: `pieces` lists each segment's span
+    /// `[lo, hi)` and how the map behaves there, and `zero` is the map itself (true where it
+    /// yields nothing), so the set is exact for the arithmetic the sampler does. On a
+    /// monotone segment the zero part is an end of it, found by bisection over the f64
+    /// values; a segment of any other shape is left out (safe: a smaller set skips less).
+    fn of_segments(pieces: impl Iterator<Item = (f64, f64, Shape)>, zero: impl Fn(f64) -> bool) -> ZeroSet {
+        let mut set = ZeroSet::default();
+        for (lo, hi, shape) in pieces {
+            if lo >= hi {
+                continue;
+            }
+            // The last value inside the segment.
+            let top = if hi == f64::INFINITY { f64::MAX } else { next_down(hi) };
+            let bottom = if lo == f64::NEG_INFINITY { f64::MIN } else { lo };
+            let (z_lo, z_top) = (zero(bottom), zero(top));
+            match shape {
+                Shape::Constant if z_lo => set.push(lo, hi, false),
+                Shape::Increasing | Shape::Decreasing if z_lo && z_top => set.push(lo, hi, false),
+                Shape::Increasing if z_lo => set.push(lo, last_true(bottom, top, &zero), true),
+                Shape::Decreasing if z_top => set.push(first_true(bottom, top, &zero), hi, false),
+                _ => {}
+            }
+        }
+        set
+    }
+}
+
+/// How a map behaves over one segment, for [`ZeroSet::of_segments`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Shape {
+    Constant,
+    /// Non-decreasing (in f64 arithmetic too: every step of the evaluation is monotone).
+    Increasing,
+    /// Non-increasing.
+    Decreasing,
+    /// Neither: left out of the zero set.
+    Other,
+}
+
+/// The largest x in `[a, b]` with `pred` true on `[a, x]`, given `pred(a)` and that `pred`
+/// is true then false over `[a, b]`.
+fn last_true(a: f64, b: f64, pred: &impl Fn(f64) -> bool) -> f64 {
+    let (mut lo, mut hi) = (order_key(a), order_key(b));
+    if pred(b) {
+        return b;
+    }
+    while hi - lo > 1 {
+        let mid = lo + (hi - lo) / 2;
+        if pred(from_order_key(mid)) {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    from_order_key(lo)
+}
+
+/// The smallest x in `[a, b]` with `pred` true on `[x, b]`, given `pred(b)` and that `pred`
+/// is false then true over `[a, b]`.
+fn first_true(a: f64, b: f64, pred: &impl Fn(f64) -> bool) -> f64 {
+    let (mut lo, mut hi) = (order_key(a), order_key(b));
+    if pred(a) {
+        return a;
+    }
+    while hi - lo > 1 {
+        let mid = lo + (hi - lo) / 2;
+        if pred(from_order_key(mid)) {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    from_order_key(hi)
+}
+
+/// A key whose integer order is the order of the (non-NaN) f64 values.
+fn order_key(x: f64) -> i64 {
+    let b = x.to_bits() as i64;
+    if b < 0 {
+        b ^ i64::MAX
+    } else {
+        b
+    }
+}
+
+fn from_order_key(k: i64) -> f64 {
+    f64::from_bits((if k < 0 { k ^ i64::MAX } else { k }) as u64)
+}
+
+/// The largest f64 below a finite `x`.
+fn next_down(x: f64) -> f64 {
+    from_order_key(order_key(x) - 1)
 }
 
 /// A colour mapping function 𝒞(v) (SPEC §3.2).
@@ -120,13 +429,14 @@ impl ColourMap {
         }
     }
 
-    /// 𝒞(v) for an interpolated voxel value, clamped to [0, 1]; `None` when not finite.
+    /// 𝒞(v) for an interpolated voxel value, clamped to [0, 1]; `None` when v or the result is
+    /// not finite (SPEC §3.2: the sample contributes nothing).
     /// For `Raw`, `v` is ignored: use [`ColourMap::map_raw`].
     #[inline]
     pub fn map(&self, v: f64) -> Option<[f64; 3]> {
         let c = match self {
             ColourMap::Raw(_) => return None,
-            ColourMap::Lut(l) => l.lookup(v),
+            ColourMap::Lut(l) => l.piecewise().eval(v),
             ColourMap::Polynomial(p) => [p[0].eval(v), p[1].eval(v), p[2].eval(v)],
             ColourMap::Ramp(r) => r.eval(v),
         };
@@ -173,13 +483,71 @@ impl OpacityMap {
         }
     }
 
-    /// 𝒪(v), clamped to [0, 1]; `None` when not finite. For `Raw`, pass alpha /255 through
+    /// Values where the map yields opacity 0 (a subset of where it yields nothing), for
+    /// empty-space skipping:
+    /// exact for raw opacity (alpha 0), LUTs, ramps and polynomials of degree ≤ 1, which are
+    /// monotone on each piece; empty (no skipping) for polynomials of higher degree. LUTs and
+    /// ramps compute it once and keep it.
+    pub fn zero_set(&self) -> Cow<'_, ZeroSet> {
+        // Only a clamped 0 counts: a non-finite result also yields nothing, but an increasing
+        // polynomial overflows to +∞ at the far end, so counting it would break monotonicity.
+        let zero = |v: f64| self.map(v) == Some(0.0);
+        match self {
+            OpacityMap::Raw => {
+                let mut set = ZeroSet::default();
+                set.push(f64::NEG_INFINITY, 0.0, true);
+                Cow::Owned(set)
+            }
+            OpacityMap::Lut(l) => Cow::Borrowed(l.zero.get_or_init(|| {
+                let b = &l.bounds;
+                let pieces = (0..=b.len()).map(|i| {
+                    let lo = if i == 0 { f64::NEG_INFINITY } else { b[i - 1] };
+                    let hi = if i == b.len() { f64::INFINITY } else { b[i] };
+                    (lo, hi, Shape::Constant)
+                });
+                ZeroSet::of_segments(pieces, zero)
+            })),
+            OpacityMap::Ramp(r) => Cow::Borrowed(r.zero.get_or_init(|| {
+                let x = &r.xs;
+                let pieces = (0..=x.len()).map(|i| {
+                    let lo = if i == 0 { f64::NEG_INFINITY } else { x[i - 1] };
+                    let hi = if i == x.len() { f64::INFINITY } else { x[i] };
+                    let dy = r.piecewise.segments[i].dy[0];
+                    let shape = if dy > 0.0 {
+                        Shape::Increasing
+                    } else if dy < 0.0 {
+                        Shape::Decreasing
+                    } else if dy == 0.0 {
+                        Shape::Constant
+                    } else {
+                        Shape::Other
+                    };
+                    (lo, hi, shape)
+                });
+                ZeroSet::of_segments(pieces, zero)
+            })),
+            OpacityMap::Polynomial(p) => {
+                // Horner on c0 + c1·v is monotone in v (each rounding step is); higher
+                // degrees are not, and get no zero set.
+                let shape = match p.0.as_slice() {
+                    [] | [_] => Shape::Constant,
+                    [_, c1] if *c1 > 0.0 => Shape::Increasing,
+                    [_, c1] if *c1 < 0.0 => Shape::Decreasing,
+                    [_, c1] if *c1 == 0.0 => Shape::Constant,
+                    _ => Shape::Other,
+                };
+                Cow::Owned(ZeroSet::of_segments([(f64::NEG_INFINITY, f64::INFINITY, shape)].into_iter(), zero))
+            }
+        }
+    }
+
+    /// 𝒪(v), clamped to [0, 1]; `None` when v or the result is not finite. For `Raw`, pass alpha /255 through
     /// [`OpacityMap::map_raw`].
     #[inline]
     pub fn map(&self, v: f64) -> Option<f64> {
         let a = match self {
             OpacityMap::Raw => return None,
-            OpacityMap::Lut(l) => l.lookup(v),
+            OpacityMap::Lut(l) => l.piecewise().eval(v)[0],
             OpacityMap::Polynomial(p) => p.eval(v),
             OpacityMap::Ramp(r) => r.eval(v)[0],
         };
@@ -194,12 +562,12 @@ impl OpacityMap {
 }
 
 #[inline]
-fn clamp1(a: f64) -> Option<f64> {
+pub(crate) fn clamp1(a: f64) -> Option<f64> {
     a.is_finite().then(|| a.clamp(0.0, 1.0))
 }
 
 #[inline]
-fn clamp3(c: [f64; 3]) -> Option<[f64; 3]> {
+pub(crate) fn clamp3(c: [f64; 3]) -> Option<[f64; 3]> {
     c.iter().all(|x| x.is_finite()).then(|| c.map(|x| x.clamp(0.0, 1.0)))
 }
 

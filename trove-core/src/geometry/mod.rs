@@ -9,4 +9,4 @@ mod placement;
 
 pub use camera::{Camera, Ray};
 pub use pieces::{split_into_pieces, Piece, Segment};
-pub use placement::{sample_count, Extent, Placement, Shape, VcLine};
+pub use placement::{sample_count, Extent, LineSamples, Placement, SampleWalk, Shape, VcLine};

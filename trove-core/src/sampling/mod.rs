@@ -1,12 +1,22 @@
 //! Casting one object over one piece of one ray (paper `VolumeRayCasting()`, SPEC
-//! §4.2–4.4). This is the only sampler: the per-ray and grouped algorithms both call
-//! [`ObjectCaster::cast`], and differ only in when and where they do.
+//! §4.2–4.4). This is the only sampler: the per-ray and grouped algorithms (and a farm
+//! worker) all call [`ObjectCaster::cast`], and differ only in when and where they do.
+//!
+//! Binding an object ([`ObjectCaster::new`]) chooses the loop compiled for its combination
+//! of interpolation, stored channel type, colour map and opacity map (`bind`, `kernel`), and
+//! its empty-space classification (`skip`): macrocells of its dataset whose values its
+//! opacity map sends to 0 are passed over without interpolating. Neither changes a single
+//! sample's value or position, so images are the same bit for bit as the general loop
+//! without skipping, which stays available ([`CastOptions`]) and is what tests compare with.
+
+mod bind;
+mod kernel;
+mod skip;
 
 use crate::composite::Rgba;
-use crate::dataset::{ChannelName, ChannelReader, Volume};
+use crate::dataset::{ChannelName, Volume, VoxelType};
 use crate::geometry::Ray;
-use crate::interp::Stencil;
-use crate::mapping::{ColourMap, OpacityMap, RawColour};
+use crate::mapping::{ColourMap, OpacityMap};
 use crate::scene::Object;
 
 /// Why an object cannot be bound to a volume: the volume is not the object's dataset (a
@@ -40,16 +50,32 @@ pub struct PieceResult {
     pub samples: u64,
 }
 
-/// An object bound to its resident volume, with the channel readers its maps need
-/// resolved once: a map that does not read a channel never touches it.
+/// How an object's loop is chosen. The defaults are what renderers use; the others exist so
+/// that tests (and benchmarks) can check the specialised loops and empty-space skipping
+/// against the general loop without skipping, which must render the same image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CastOptions {
+    /// Use the loop compiled for the object's combination when there is one.
+    pub specialise: bool,
+    /// Jump over macrocells where the object's opacity map is zero.
+    pub skip_empty_space: bool,
+}
+
+impl Default for CastOptions {
+    fn default() -> CastOptions {
+        CastOptions { specialise: true, skip_empty_space: false }
+    }
+}
+
+/// An object bound to its resident volume: the loop for its combination of interpolation,
+/// stored type and maps chosen once, the channel readers its maps need resolved once (a map
+/// that does not read a channel never touches it), and its empty-space classification
+/// prepared. It is `Sync`: one caster serves every thread casting that object.
 pub struct ObjectCaster<'a> {
     object: &'a Object,
-    volume: &'a Volume,
-    voxel: Option<ChannelReader<'a>>,
-    raw_rgb: Option<(RawColour, [ChannelReader<'a>; 3])>,
-    alpha: Option<ChannelReader<'a>>,
-    constant_colour: Option<[f64; 3]>,
-    opacity_correction: bool,
+    /// The opacity map is the constant 0: nothing to cast.
+    transparent: bool,
+    kernel: Box<dyn kernel::Cast + 'a>,
 }
 
 impl<'a> ObjectCaster<'a> {
@@ -59,6 +85,16 @@ impl<'a> ObjectCaster<'a> {
         object: &'a Object,
         volume: &'a Volume,
         opacity_correction: bool,
+    ) -> Result<ObjectCaster<'a>, BindError> {
+        ObjectCaster::with_options(object, volume, opacity_correction, CastOptions::default())
+    }
+
+    /// [`ObjectCaster::new`] with the loop chosen by `options`.
+    pub fn with_options(
+        object: &'a Object,
+        volume: &'a Volume,
+        opacity_correction: bool,
+        options: CastOptions,
     ) -> Result<ObjectCaster<'a>, BindError> {
         let expected = object.placement.dims();
         if volume.dims() != expected {
@@ -75,69 +111,60 @@ impl<'a> ObjectCaster<'a> {
             }
             _ => None,
         };
-        let constant_colour = match &object.colour {
-            ColourMap::Polynomial(_) if !object.colour.reads_voxel() => object.colour.map(0.0),
-            _ => None,
-        };
-        Ok(ObjectCaster {
+        let parts = bind::Parts {
             object,
-            volume,
+            dims: volume.dims(),
             voxel: if needs_voxel { Some(reader(ChannelName::Voxel)?) } else { None },
             raw_rgb,
             alpha: if matches!(object.opacity, OpacityMap::Raw) { Some(reader(ChannelName::Alpha)?) } else { None },
-            constant_colour,
-            opacity_correction,
-        })
+            correction: opacity_correction,
+        };
+        let skip = if options.skip_empty_space { skipper(object, volume) } else { None };
+        let kernel = if options.specialise {
+            parts.specialised(skip).unwrap_or_else(|skip| parts.general(skip))
+        } else {
+            parts.general(skip)
+        };
+        Ok(ObjectCaster { object, transparent: object.opacity.constant() == Some(0.0), kernel })
+    }
+
+    /// Whether the object's combination has a specialised loop and it was chosen.
+    pub fn is_specialised(&self) -> bool {
+        self.kernel.is_specialised()
+    }
+
+    /// Whether the cast jumps over empty macrocells (off when the opacity map is zero
+    /// nowhere, or reads no channel).
+    pub fn skips_empty_space(&self) -> bool {
+        self.kernel.skips()
     }
 
     /// Composites this object's samples over [t0, t1] front to back. The ray arrives with
     /// opacity `alpha_in`; once `alpha_in + (1 − alpha_in)·A` reaches `stop_at` the cast
     /// stops (pass `f64::INFINITY` to sample the whole piece, as pieces shared by several
-    /// objects must, SPEC §4.5).
+    /// objects must, SPEC §4.5), and a ray that arrives with `alpha_in ≥ stop_at` casts
+    /// nothing. `samples` counts the samples interpolated and mapped: those skipped as
+    /// empty space are not.
     pub fn cast(&self, ray: &Ray, t0: f64, t1: f64, alpha_in: f64, stop_at: f64) -> PieceResult {
-        let mut acc = Rgba::CLEAR;
-        let mut samples = 0;
-        // A constant-zero opacity contributes nothing anywhere: skip the walk entirely.
-        if self.object.opacity.constant() == Some(0.0) {
-            return PieceResult { rgba: acc, samples };
+        if self.transparent || alpha_in >= stop_at {
+            return PieceResult::default();
         }
-        let dims = self.volume.dims();
-        let interp = &self.object.interpolation;
-        // Maps that read no channel (constant colour and opacity) need no stencil at all.
-        let reads_channels = self.voxel.is_some() || self.raw_rgb.is_some() || self.alpha.is_some();
-        for (vc, ell) in self.object.placement.walk(ray, t0, t1, self.object.sampling_distance) {
-            let Some(vc) = vc else { continue };
-            samples += 1;
-            let stencil = reads_channels.then(|| Stencil::new(interp, dims, vc));
-            let read = |r: &ChannelReader<'_>| stencil.as_ref().map_or(0.0, |s| s.apply(r));
-            let v = match &self.voxel {
-                Some(r) => {
-                    let v = read(r);
-                    if !v.is_finite() {
-                        continue;
-                    }
-                    v
-                }
-                None => 0.0,
-            };
-            let colour = match (&self.raw_rgb, self.constant_colour) {
-                (Some((kind, rgb)), _) => ColourMap::map_raw(*kind, rgb.each_ref().map(read)),
-                (None, Some(c)) => Some(c),
-                (None, None) => self.object.colour.map(v),
-            };
-            let opacity = match &self.alpha {
-                Some(a) => OpacityMap::map_raw(read(a)),
-                None => self.object.opacity.map(v),
-            };
-            let (Some(colour), Some(opacity)) = (colour, opacity) else { continue };
-            let alpha = if self.opacity_correction { corrected_opacity(opacity, ell) } else { opacity };
-            acc.add_sample(colour, alpha);
-            if alpha_in + (1.0 - alpha_in) * acc.alpha >= stop_at {
-                break;
-            }
-        }
-        PieceResult { rgba: acc, samples }
+        let walk = self.object.placement.walk(ray, t0, t1, self.object.sampling_distance);
+        self.kernel.cast(walk, alpha_in, stop_at)
     }
+}
+
+/// The object's empty-space classification over `volume`, if its opacity map reads a
+/// channel with macrocell ranges and is zero somewhere.
+fn skipper<'a>(object: &'a Object, volume: &'a Volume) -> Option<skip::Skipper<'a>> {
+    let channel = match &object.opacity {
+        OpacityMap::Raw => ChannelName::Alpha,
+        map if map.reads_voxel() => ChannelName::Voxel,
+        _ => return None,
+    };
+    let cells = volume.macrocells(channel)?;
+    let integer = volume.channel(channel)?.ty() != VoxelType::F32;
+    skip::Skipper::new(cells, object.opacity.zero_set(), integer)
 }
 
 /// α = 1 − (1 − O)^ℓ (SPEC §4.3), computed as −expm1(ℓ·ln(1 − O)) so small opacities and
