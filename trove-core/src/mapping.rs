@@ -84,26 +84,29 @@ impl BreakIndex {
     }
 }
 
-/// One segment of a [`Piecewise`] map: y0 + ((v − x0)/w)·dy. A constant segment has
-/// x0 = 0, w = 1 and dy = 0, so it yields y0 for every finite v.
+/// One segment of a [`Piecewise`] map: y0 + ((v − x0)·(1/w))·dy. The reciprocal of the
+/// width is taken once, so a sample pays a multiplication instead of a division (the result
+/// differs from (v − x0)/w by at most an ulp or two, far below any image tolerance). A
+/// constant segment has x0 = 0, 1/w = 1 and dy = 0, so it yields y0 for every finite v.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct Segment<const N: usize> {
     x0: f64,
-    w: f64,
+    inv_w: f64,
     y0: [f64; N],
     dy: [f64; N],
 }
 
 impl<const N: usize> Segment<N> {
     fn constant(y: [f64; N]) -> Segment<N> {
-        Segment { x0: 0.0, w: 1.0, y0: y, dy: [0.0; N] }
+        Segment { x0: 0.0, inv_w: 1.0, y0: y, dy: [0.0; N] }
     }
 }
 
 /// A LUT or a ramp as one kind of map: break points splitting the line into segments, each
-/// constant (LUT domains, ramp ends) or linear (ramp pieces). Both evaluate with the exact
-/// arithmetic of their definitions — a LUT entry is returned as is, a ramp piece is
-/// `y0 + t·(y1 − y0)` with `t = (v − x0)/(x1 − x0)` — so the sampler needs one loop for both.
+/// constant (LUT domains, ramp ends) or linear (ramp pieces), so the sampler needs one loop
+/// for both. The segment is found exactly as SPEC §3.2 defines it (bounds and points belong
+/// to the upper segment); a LUT entry is returned as is, a ramp piece is `y0 + t·(y1 − y0)`
+/// with `t = (v − x0)·(1/(x1 − x0))`.
 #[derive(Clone, Debug)]
 pub struct Piecewise<const N: usize> {
     breaks: Vec<f64>,
@@ -129,7 +132,7 @@ impl<const N: usize> Piecewise<N> {
     #[inline(always)]
     pub fn eval(&self, v: f64) -> [f64; N] {
         let s = &self.segments[self.segment(v)];
-        let t = (v - s.x0) / s.w;
+        let t = (v - s.x0) * s.inv_w;
         std::array::from_fn(|c| s.y0[c] + t * s.dy[c])
     }
 }
@@ -239,7 +242,7 @@ impl<const N: usize> Ramp<N> {
                 } else {
                     Segment {
                         x0: xs[i - 1],
-                        w: xs[i] - xs[i - 1],
+                        inv_w: 1.0 / (xs[i] - xs[i - 1]),
                         y0: ys[i - 1],
                         dy: std::array::from_fn(|c| ys[i][c] - ys[i - 1][c]),
                     }
@@ -278,11 +281,6 @@ struct Run {
 }
 
 impl ZeroSet {
-    /// The whole line.
-    pub fn everywhere() -> ZeroSet {
-        ZeroSet { runs: vec![Run { lo: f64::NEG_INFINITY, hi: f64::INFINITY, hi_closed: true }] }
-    }
-
     /// Whether the map yields something at every value (skipping can never apply).
     pub fn is_empty(&self) -> bool {
         self.runs.is_empty()
@@ -387,18 +385,18 @@ fn first_true(a: f64, b: f64, pred: &impl Fn(f64) -> bool) -> f64 {
     from_order_key(hi)
 }
 
-/// A key whose integer order is the order of the (non-NaN) f64 values.
-fn order_key(x: f64) -> i64 {
-    let b = x.to_bits() as i64;
-    if b < 0 {
-        b ^ i64::MAX
+/// A key whose unsigned order is the order of the (non-NaN) f64 values, −0 just below +0.
+fn order_key(x: f64) -> u64 {
+    let b = x.to_bits();
+    if b >> 63 == 1 {
+        !b
     } else {
-        b
+        b | 1 << 63
     }
 }
 
-fn from_order_key(k: i64) -> f64 {
-    f64::from_bits((if k < 0 { k ^ i64::MAX } else { k }) as u64)
+fn from_order_key(k: u64) -> f64 {
+    f64::from_bits(if k >> 63 == 1 { k & !(1 << 63) } else { !k })
 }
 
 /// The largest f64 below a finite `x`.
@@ -608,6 +606,97 @@ mod tests {
         let o = OpacityMap::Ramp(Ramp::new(vec![(0.0, [-1.0]), (1.0, [2.0])]));
         assert_eq!(o.map(-3.0), Some(0.0));
         assert_eq!(o.map(9.0), Some(1.0));
+    }
+
+    #[test]
+    fn the_segment_index_finds_what_partition_point_finds() {
+        let cases: [Vec<f64>; 5] = [
+            vec![],
+            vec![3.0],
+            vec![0.0, 500.0, 800.0, 1000.0, 1150.0, 1300.0, 3272.0],
+            vec![1.0, 1.0, 2.0, 2.0, 2.0, 9.5],
+            (0..3000).map(|i| (i as f64).powf(1.3) - 40.0).collect(),
+        ];
+        for breaks in cases {
+            let index = BreakIndex::new(&breaks);
+            let mut values = vec![f64::NEG_INFINITY, f64::INFINITY, f64::NAN, -1e300, 1e300, -0.0, 0.0];
+            for &b in &breaks {
+                values.extend([b, next_down(b), from_order_key(order_key(b) + 1), b + 0.5, b - 0.25]);
+            }
+            values.extend((0..2000).map(|i| i as f64 * 3.7 - 100.0));
+            for v in values {
+                assert_eq!(
+                    index.find(&breaks, v),
+                    breaks.partition_point(|&x| x <= v),
+                    "{v} in {} breaks",
+                    breaks.len()
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn luts_and_ramps_as_piecewise_maps_keep_their_values() {
+        let l = Lut::new(vec![10.0, 20.0], vec![0.1, 0.2, 0.3]);
+        for v in [-5.0, 9.999, 10.0, 15.0, 20.0, 1e9] {
+            assert_eq!(l.piecewise().eval(v)[0], l.lookup(v), "{v}");
+        }
+        let r = Ramp::new(vec![(0.0, [0.0]), (10.0, [1.0]), (10.0, [0.2]), (20.0, [0.4])]);
+        assert_eq!(r.eval(10.0), [0.2]);
+        assert_eq!(r.eval(-3.0), [0.0]);
+        assert!((r.eval(2.5)[0] - 0.25).abs() < 1e-15);
+    }
+
+    #[test]
+    fn zero_sets_of_luts_are_their_zero_domains() {
+        let o = OpacityMap::Lut(Lut::new(vec![10.0, 20.0, 30.0], vec![0.0, 0.0, 0.4, -1.0]));
+        let z = o.zero_set();
+        // [−∞, 20) and [30, ∞): a bound belongs to the upper domain.
+        assert!(z.covers(-1e30, 19.999));
+        assert!(!z.covers(5.0, 20.0));
+        assert!(!z.covers(25.0, 25.0));
+        assert!(z.covers(30.0, 1e30));
+        assert!(!z.covers(29.999, 31.0));
+    }
+
+    #[test]
+    fn zero_sets_of_ramps_end_exactly_where_the_map_stops_being_zero() {
+        // Zero up to 500, then rising: the zero set is (−∞, c] with c the last f64 the ramp
+        // maps to 0, found by bisection on the map itself.
+        let o = OpacityMap::Ramp(Ramp::new(vec![(0.0, [0.0]), (500.0, [0.0]), (800.0, [0.004]), (1300.0, [0.3])]));
+        let z = o.zero_set();
+        assert!(z.covers(-1e9, 500.0));
+        assert!(!z.covers(0.0, 500.000_001));
+        let ends: Vec<f64> = z.runs.iter().map(|r| r.hi).collect();
+        assert_eq!(ends.len(), 1);
+        assert_eq!(o.map(ends[0]), Some(0.0));
+        assert!(o.map(from_order_key(order_key(ends[0]) + 1)).unwrap() > 0.0);
+        // Falling to zero and staying there: [c, ∞).
+        let falling = OpacityMap::Ramp(Ramp::new(vec![(0.0, [0.5]), (10.0, [-0.5])]));
+        let z = falling.zero_set();
+        assert!(z.covers(5.0, 1e300));
+        assert!(!z.covers(4.99, 6.0));
+        assert_eq!(falling.map(z.runs[0].lo), Some(0.0));
+        assert!(falling.map(next_down(z.runs[0].lo)).unwrap() > 0.0);
+        // Never zero.
+        assert!(OpacityMap::Ramp(Ramp::new(vec![(0.0, [0.1]), (1.0, [0.5])])).zero_set().is_empty());
+        // A step to zero at an abscissa shared by two points.
+        let step = OpacityMap::Ramp(Ramp::new(vec![(0.0, [0.5]), (4.0, [0.5]), (4.0, [0.0]), (9.0, [0.0])]));
+        assert!(step.zero_set().covers(4.0, 1e9));
+        assert!(!step.zero_set().covers(3.999, 5.0));
+    }
+
+    #[test]
+    fn zero_sets_of_polynomials_and_raw_alpha() {
+        let linear = OpacityMap::Polynomial(Polynomial(vec![-1.0, 0.01]));
+        let z = linear.zero_set();
+        assert!(z.covers(-1e300, 100.0));
+        assert!(!z.covers(0.0, 100.000_000_1));
+        assert!(OpacityMap::Polynomial(Polynomial(vec![0.0])).zero_set().covers(-1e300, 1e300));
+        assert!(OpacityMap::Polynomial(Polynomial(vec![-1.0, 0.0, 1.0])).zero_set().is_empty());
+        let raw = OpacityMap::Raw.zero_set();
+        assert!(raw.covers(0.0, 0.0));
+        assert!(!raw.covers(0.0, 1e-300));
     }
 
     #[test]

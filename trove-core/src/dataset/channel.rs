@@ -317,6 +317,20 @@ impl Channel {
 pub trait Voxels: Copy + Send + Sync {
     /// The value at linear index `i` (x fastest, then y, then z). Panics if out of range.
     fn get(&self, i: usize) -> f32;
+
+    /// [`Voxels::get`] widened to f64 (the same value: integer types convert directly).
+    #[inline(always)]
+    fn get_f64(&self, i: usize) -> f64 {
+        self.get(i) as f64
+    }
+
+    /// The values at `i` and `i + dx` (`dx` 0 or 1: a voxel and its neighbour along x, or
+    /// the voxel twice on a single-voxel axis), as f64: the x pairs of a trilinear stencil,
+    /// read with one bounds check and one load where the type allows.
+    #[inline(always)]
+    fn pair(&self, i: usize, dx: usize) -> [f64; 2] {
+        [self.get_f64(i), self.get_f64(i + dx)]
+    }
 }
 
 impl Voxels for ChannelReader<'_> {
@@ -327,7 +341,7 @@ impl Voxels for ChannelReader<'_> {
 }
 
 macro_rules! typed_voxels {
-    ($(#[$doc:meta])* $name:ident, $variant:ident, |$b:ident, $i:ident| $read:expr) => {
+    ($(#[$doc:meta])* $name:ident, $variant:ident, $ty:ty, $bytes:literal, $from:ident) => {
         $(#[$doc])*
         #[derive(Clone, Copy, Debug)]
         pub struct $name<'a>(&'a [u8]);
@@ -340,34 +354,75 @@ macro_rules! typed_voxels {
                     _ => None,
                 }
             }
+
+            #[inline(always)]
+            fn number(&self, i: usize) -> $ty {
+                <$ty>::$from(self.0[$bytes * i..$bytes * i + $bytes].try_into().expect("one voxel"))
+            }
         }
 
         impl Voxels for $name<'_> {
             #[inline(always)]
-            fn get(&self, $i: usize) -> f32 {
-                let $b = self.0;
-                $read
+            fn get(&self, i: usize) -> f32 {
+                self.number(i) as f32
+            }
+
+            #[inline(always)]
+            fn get_f64(&self, i: usize) -> f64 {
+                // u8 and u16 widen exactly, to the value `get` gives; f32 too.
+                self.number(i) as f64
+            }
+
+            #[inline(always)]
+            fn pair(&self, i: usize, dx: usize) -> [f64; 2] {
+                if dx == 1 {
+                    let b: &[u8; 2 * $bytes] = self.0[$bytes * i..$bytes * i + 2 * $bytes].try_into().expect("two voxels");
+                    let (lo, hi) = b.split_at($bytes);
+                    [
+                        <$ty>::$from(lo.try_into().expect("one voxel")) as f64,
+                        <$ty>::$from(hi.try_into().expect("one voxel")) as f64,
+                    ]
+                } else {
+                    [self.get_f64(i), self.get_f64(i + dx)]
+                }
             }
         }
     };
 }
 
 typed_voxels!(
-    /// A `bit` channel: one LSB-first bit per voxel.
-    BitVoxels, Bit, |b, i| ((b[i >> 3] >> (i & 7)) & 1) as f32
-);
-typed_voxels!(
     /// A `u8` channel.
-    U8Voxels, U8, |b, i| b[i] as f32
+    U8Voxels, U8, u8, 1, from_le_bytes
 );
 typed_voxels!(
     /// A little-endian `u16` channel.
-    U16LeVoxels, U16Le, |b, i| u16::from_le_bytes([b[2 * i], b[2 * i + 1]]) as f32
+    U16LeVoxels, U16Le, u16, 2, from_le_bytes
 );
 typed_voxels!(
     /// A little-endian `f32` channel.
-    F32LeVoxels, F32Le, |b, i| f32::from_le_bytes(b[4 * i..4 * i + 4].try_into().expect("4 bytes"))
+    F32LeVoxels, F32Le, f32, 4, from_le_bytes
 );
+
+/// A `bit` channel: one LSB-first bit per voxel.
+#[derive(Clone, Copy, Debug)]
+pub struct BitVoxels<'a>(&'a [u8]);
+
+impl<'a> BitVoxels<'a> {
+    /// The typed view of `reader`, or `None` when it stores another type.
+    pub fn of(reader: ChannelReader<'a>) -> Option<BitVoxels<'a>> {
+        match reader {
+            ChannelReader::Bit(b) => Some(BitVoxels(b)),
+            _ => None,
+        }
+    }
+}
+
+impl Voxels for BitVoxels<'_> {
+    #[inline(always)]
+    fn get(&self, i: usize) -> f32 {
+        ((self.0[i >> 3] >> (i & 7)) & 1) as f32
+    }
+}
 
 /// A borrowed, decoded view of a channel's bytes.
 #[derive(Clone, Copy, Debug)]

@@ -1,7 +1,9 @@
 //! Value ranges per macrocell: the data behind empty-space skipping (issue 10).
 //!
-//! A dataset's volume is cut into cells of [`MACROCELL`]³ voxels; for each cell the minimum
-//! and maximum of the finite values a sample *based* in that cell can read are kept. A
+//! A dataset's volume is cut into cells of B³ voxels (B = [`MACROCELL`]); for each cell the
+//! minimum and maximum of the finite values a sample *based* in that cell can read are kept,
+//! and the same for coarse blocks of 8³ cells (their union), over which a ray crosses wide
+//! empty regions in few steps. A
 //! sample is based in cell `c` along an axis when its interpolation's base voxel index (the
 //! nearest voxel, or trilinear's and the cubic's lower cell corner `x0`, SPEC §3.3) lies in
 //! `[c·B, c·B + B − 1]`. Nearest then reads voxels up to `c·B + B − 1`, trilinear and nonlinear
@@ -26,38 +28,62 @@ use super::{BitVoxels, Channel, ChannelName, ChannelReader, Dims, F32LeVoxels, U
 pub const RANGED_CHANNELS: [ChannelName; 2] = [ChannelName::Voxel, ChannelName::Alpha];
 
 /// log₂ of the macrocell side.
-pub const MACROCELL_SHIFT: u32 = 3;
-/// Voxels per macrocell side: 8, as a compromise between skipping close to surfaces
-/// (smaller cells) and the cost of a jump and the table's size (1/64 of the voxel count,
-/// 8 bytes each).
+pub const MACROCELL_SHIFT: u32 = 2;
+/// Voxels per macrocell side: 4, like VTK's min-max blocks, so that skipping reaches close
+/// to surfaces; the coarse level lets a ray cross wide empty regions in few steps.
 pub const MACROCELL: u32 = 1 << MACROCELL_SHIFT;
+/// log₂ of the side of a coarse block, in voxels (32: 8³ macrocells).
+pub const COARSE_SHIFT: u32 = 5;
+
+/// A level of the two-level grid.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Level {
+    /// Macrocells of [`MACROCELL`]³ voxels.
+    Fine,
+    /// Blocks of 2^[`COARSE_SHIFT`] voxels a side, each the union of its macrocells.
+    Coarse,
+}
+
+impl Level {
+    /// log₂ of the cell side in voxels.
+    pub fn shift(self) -> u32 {
+        match self {
+            Level::Fine => MACROCELL_SHIFT,
+            Level::Coarse => COARSE_SHIFT,
+        }
+    }
+}
 
 /// The empty range: no finite value.
 const EMPTY: [f32; 2] = [f32::INFINITY, f32::NEG_INFINITY];
 
-/// Min and max per macrocell of one channel (see the module documentation).
+/// Min and max per macrocell of one channel (see the module documentation), and per coarse
+/// block (the union of its macrocells).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Macrocells {
     cells: [u32; 3],
     ranges: Vec<[f32; 2]>,
+    coarse_cells: [u32; 3],
+    coarse: Vec<[f32; 2]>,
 }
 
 impl Macrocells {
-    /// Cells along an axis of `n` voxels.
-    pub fn cells_along(n: u32) -> u32 {
-        n.div_ceil(MACROCELL)
+    /// Cells of `level` along an axis of `n` voxels.
+    pub fn cells_along(n: u32, level: Level) -> u32 {
+        n.div_ceil(1 << level.shift())
     }
 
-    /// Cells per axis for a dataset of `dims`.
-    pub fn cells_of(dims: Dims) -> [u32; 3] {
-        dims.as_array().map(Macrocells::cells_along)
+    /// Cells of `level` per axis for a dataset of `dims`.
+    pub fn cells_of(dims: Dims, level: Level) -> [u32; 3] {
+        dims.as_array().map(|n| Macrocells::cells_along(n, level))
     }
 
-    /// Resident bytes of one channel's ranges for a dataset of `dims` (two f32 per cell):
-    /// what [`super::DatasetInfo::resident_bytes`] reserves before loading and
+    /// Resident bytes of one channel's ranges for a dataset of `dims` (two f32 per cell of
+    /// either level): what [`super::DatasetInfo::resident_bytes`] reserves before loading and
     /// [`super::Volume::byte_len`] reports after.
     pub fn byte_len(dims: Dims) -> u64 {
-        Macrocells::cells_of(dims).iter().map(|&c| c as u64).product::<u64>() * std::mem::size_of::<[f32; 2]>() as u64
+        let count = |level| Macrocells::cells_of(dims, level).iter().map(|&c| c as u64).product::<u64>();
+        (count(Level::Fine) + count(Level::Coarse)) * std::mem::size_of::<[f32; 2]>() as u64
     }
 
     /// Scans `channel` (of `dims`) once and returns its ranges.
@@ -76,29 +102,36 @@ impl Macrocells {
         }
     }
 
-    /// Cells per axis.
-    pub fn cells(&self) -> [u32; 3] {
-        self.cells
+    /// Cells of `level` per axis.
+    pub fn cells(&self, level: Level) -> [u32; 3] {
+        match level {
+            Level::Fine => self.cells,
+            Level::Coarse => self.coarse_cells,
+        }
     }
 
-    /// `[min, max]` of the finite values a sample based in cell `c` reads; `min > max` when
-    /// there is none. `c` must be a valid cell.
+    /// `[min, max]` of the finite values a sample based in cell `c` of `level` reads;
+    /// `min > max` when there is none. `c` must be a valid cell.
     #[inline]
-    pub fn range(&self, c: [u32; 3]) -> [f32; 2] {
-        let [nx, ny, _] = self.cells;
-        self.ranges[c[0] as usize + nx as usize * (c[1] as usize + ny as usize * c[2] as usize)]
+    pub fn range(&self, level: Level, c: [u32; 3]) -> [f32; 2] {
+        let ([nx, ny, _], ranges) = match level {
+            Level::Fine => (self.cells, &self.ranges),
+            Level::Coarse => (self.coarse_cells, &self.coarse),
+        };
+        ranges[c[0] as usize + nx as usize * (c[1] as usize + ny as usize * c[2] as usize)]
     }
 
-    /// The union of the ranges of the cells within `radius` cells of `c` (per axis, clipped
-    /// to the grid): what a stencil reaching beyond its base cell can read.
-    pub fn range_around(&self, c: [u32; 3], radius: u32) -> [f32; 2] {
+    /// The union of the ranges of the cells of `level` within `radius` cells of `c` (per
+    /// axis, clipped to the grid): what a stencil reaching beyond its base cell can read.
+    pub fn range_around(&self, level: Level, c: [u32; 3], radius: u32) -> [f32; 2] {
+        let cells = self.cells(level);
         let lo = c.map(|v| v.saturating_sub(radius));
-        let hi: [u32; 3] = std::array::from_fn(|a| (c[a] + radius).min(self.cells[a] - 1));
+        let hi: [u32; 3] = std::array::from_fn(|a| (c[a] + radius).min(cells[a] - 1));
         let mut out = EMPTY;
         for z in lo[2]..=hi[2] {
             for y in lo[1]..=hi[1] {
                 for x in lo[0]..=hi[0] {
-                    out = union(out, self.range([x, y, z]));
+                    out = union(out, self.range(level, [x, y, z]));
                 }
             }
         }
@@ -123,7 +156,7 @@ fn window(c: u32, n: u32) -> (usize, usize) {
 /// more than reading the channel once.
 fn scan<V: Voxels>(v: V, dims: Dims) -> Macrocells {
     let [nx, ny, nz] = dims.as_array();
-    let cells = Macrocells::cells_of(dims);
+    let cells = Macrocells::cells_of(dims, Level::Fine);
     let [cx, cy, cz] = cells.map(|c| c as usize);
     let (nxu, nyu, nzu) = (nx as usize, ny as usize, nz as usize);
 
@@ -172,7 +205,21 @@ fn scan<V: Voxels>(v: V, dims: Dims) -> Macrocells {
             }
         }
     }
-    Macrocells { cells, ranges }
+
+    // Coarse blocks: the union of the macrocells they hold.
+    let coarse_cells = Macrocells::cells_of(dims, Level::Coarse);
+    let per = 1usize << (COARSE_SHIFT - MACROCELL_SHIFT);
+    let mut coarse = vec![EMPTY; coarse_cells.iter().map(|&c| c as usize).product()];
+    let [ccx, ccy, _] = coarse_cells.map(|c| c as usize);
+    for z in 0..cz {
+        for y in 0..cy {
+            for x in 0..cx {
+                let block = x / per + ccx * (y / per + ccy * (z / per));
+                coarse[block] = union(coarse[block], ranges[x + cx * (y + cy * z)]);
+            }
+        }
+    }
+    Macrocells { cells, ranges, coarse_cells, coarse }
 }
 
 #[cfg(test)]
@@ -217,11 +264,15 @@ mod tests {
             let dims = Dims::new(d).unwrap();
             let ch = channel(dims, |i, j, k| ((i * 7 + j * 13 + k * 29) % 23) as f32 - 5.0);
             let m = Macrocells::compute(&ch, dims);
-            assert_eq!(m.cells(), Macrocells::cells_of(dims));
-            for z in 0..m.cells()[2] {
-                for y in 0..m.cells()[1] {
-                    for x in 0..m.cells()[0] {
-                        assert_eq!(m.range([x, y, z]), brute(&ch, dims, [x, y, z]), "{d:?} cell {x} {y} {z}");
+            assert_eq!(m.cells(Level::Fine), Macrocells::cells_of(dims, Level::Fine));
+            for z in 0..m.cells(Level::Fine)[2] {
+                for y in 0..m.cells(Level::Fine)[1] {
+                    for x in 0..m.cells(Level::Fine)[0] {
+                        assert_eq!(
+                            m.range(Level::Fine, [x, y, z]),
+                            brute(&ch, dims, [x, y, z]),
+                            "{d:?} cell {x} {y} {z}"
+                        );
                     }
                 }
             }
@@ -230,31 +281,58 @@ mod tests {
 
     #[test]
     fn the_apron_reaches_the_first_voxel_of_the_next_cell_only() {
-        let dims = Dims::new([24, 1, 1]).unwrap();
-        // A single bright voxel at x = 8: cell 0 (window 0..=8) and cell 1 (8..=16) see it,
-        // cell 2 (16..=23) does not; at x = 16 it would be cells 1 and 2.
-        let ch = channel(dims, |i, _, _| if i == 8 { 9.0 } else { 0.0 });
+        let dims = Dims::new([12, 1, 1]).unwrap();
+        // A single bright voxel at x = 4: cell 0 (window 0..=4) and cell 1 (4..=8) see it,
+        // cell 2 (8..=11) does not, nor would cell 1 if it sat at x = 9.
+        let ch = channel(dims, |i, _, _| if i == 4 { 9.0 } else { 0.0 });
         let m = Macrocells::compute(&ch, dims);
-        assert_eq!(m.range([0, 0, 0]), [0.0, 9.0]);
-        assert_eq!(m.range([1, 0, 0]), [0.0, 9.0]);
-        assert_eq!(m.range([2, 0, 0]), [0.0, 0.0]);
-        assert_eq!(m.range_around([2, 0, 0], 1), [0.0, 9.0]);
-        assert_eq!(m.range_around([0, 0, 0], 1), [0.0, 9.0]);
+        assert_eq!(m.range(Level::Fine, [0, 0, 0]), [0.0, 9.0]);
+        assert_eq!(m.range(Level::Fine, [1, 0, 0]), [0.0, 9.0]);
+        assert_eq!(m.range(Level::Fine, [2, 0, 0]), [0.0, 0.0]);
+        assert_eq!(m.range_around(Level::Fine, [2, 0, 0], 1), [0.0, 9.0]);
+        assert_eq!(m.range_around(Level::Fine, [0, 0, 0], 1), [0.0, 9.0]);
+        assert_eq!(m.cells(Level::Coarse), [1, 1, 1]);
+        assert_eq!(m.range(Level::Coarse, [0, 0, 0]), [0.0, 9.0]);
+    }
+
+    #[test]
+    fn coarse_blocks_are_the_union_of_their_macrocells() {
+        let dims = Dims::new([70, 33, 5]).unwrap();
+        let ch = channel(dims, |i, j, k| ((i * 5 + j * 11 + k * 3) % 17) as f32 * if i > 40 { 2.0 } else { 1.0 });
+        let m = Macrocells::compute(&ch, dims);
+        assert_eq!(m.cells(Level::Coarse), [3, 2, 1]);
+        let per = 1 << (COARSE_SHIFT - MACROCELL_SHIFT);
+        for bz in 0..1 {
+            for by in 0..2 {
+                for bx in 0..3 {
+                    let mut want = EMPTY;
+                    let f = m.cells(Level::Fine);
+                    for z in bz * per..((bz + 1) * per).min(f[2]) {
+                        for y in by * per..((by + 1) * per).min(f[1]) {
+                            for x in bx * per..((bx + 1) * per).min(f[0]) {
+                                want = union(want, m.range(Level::Fine, [x, y, z]));
+                            }
+                        }
+                    }
+                    assert_eq!(m.range(Level::Coarse, [bx, by, bz]), want);
+                }
+            }
+        }
     }
 
     #[test]
     fn non_finite_voxels_are_left_out_and_an_all_nan_cell_is_empty() {
-        let dims = Dims::new([20, 2, 2]).unwrap();
+        let dims = Dims::new([12, 2, 2]).unwrap();
         let ch = channel(dims, |i, _, _| match i {
-            0..=8 => f32::NAN,
-            9 => f32::INFINITY,
-            10 => 4.0,
+            0..=4 => f32::NAN,
+            5 => f32::INFINITY,
+            6 => 4.0,
             _ => -1.0,
         });
         let m = Macrocells::compute(&ch, dims);
-        assert_eq!(m.range([0, 0, 0]), EMPTY);
-        assert_eq!(m.range([1, 0, 0]), [-1.0, 4.0]);
-        assert_eq!(m.range([2, 0, 0]), [-1.0, -1.0]);
+        assert_eq!(m.range(Level::Fine, [0, 0, 0]), EMPTY);
+        assert_eq!(m.range(Level::Fine, [1, 0, 0]), [-1.0, 4.0]);
+        assert_eq!(m.range(Level::Fine, [2, 0, 0]), [-1.0, -1.0]);
     }
 
     #[test]
@@ -275,8 +353,8 @@ mod tests {
     }
 
     #[test]
-    fn byte_len_counts_two_f32_per_cell() {
+    fn byte_len_counts_two_f32_per_cell_of_both_levels() {
         let dims = Dims::new([256, 256, 113]).unwrap();
-        assert_eq!(Macrocells::byte_len(dims), 32 * 32 * 15 * 8);
+        assert_eq!(Macrocells::byte_len(dims), (64 * 64 * 29 + 8 * 8 * 4) * 8);
     }
 }

@@ -282,6 +282,8 @@ pub struct LineSamples {
     vc0: DVec3,
     delta: DVec3,
     n: u64,
+    /// 1/n, so a sample's position costs a multiplication, not a division.
+    inv_n: f64,
 }
 
 impl LineSamples {
@@ -296,10 +298,11 @@ impl LineSamples {
         self.n == 0
     }
 
-    /// The VC point of sample k.
+    /// The VC point of sample k: vc0 + δ·((k + ½)·(1/n)), within an ulp or two of
+    /// (k + ½)/n of the way along.
     #[inline(always)]
     pub fn point(&self, k: u64) -> [f64; 3] {
-        (self.vc0 + self.delta * ((k as f64 + 0.5) / self.n as f64)).to_array()
+        (self.vc0 + self.delta * ((k as f64 + 0.5) * self.inv_n)).to_array()
     }
 
     /// ℓ, the VC length of each sample's sub-interval.
@@ -355,7 +358,9 @@ impl SampleWalk<'_> {
     /// The walk as a straight line of samples, when it is one (and has not started).
     pub fn line(&self) -> Option<LineSamples> {
         match self.state {
-            WalkState::Line { vc0, delta } if self.k == 0 => Some(LineSamples { vc0, delta, n: self.n }),
+            WalkState::Line { vc0, delta } if self.k == 0 => {
+                Some(LineSamples { vc0, delta, n: self.n, inv_n: 1.0 / self.n as f64 })
+            }
             _ => None,
         }
     }
@@ -383,7 +388,8 @@ impl Iterator for SampleWalk<'_> {
         let n = self.n as f64;
         match &mut self.state {
             WalkState::Line { vc0, delta } => {
-                let vc = *vc0 + *delta * ((k + 0.5) / n);
+                // As `LineSamples::point`.
+                let vc = *vc0 + *delta * ((k + 0.5) * (1.0 / n));
                 Some((Some(vc.to_array()), delta.length() / n))
             }
             WalkState::Exact { hex, prev_q, prev_vc } => {

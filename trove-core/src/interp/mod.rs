@@ -8,7 +8,6 @@
 
 pub mod cubic;
 
-use crate::dataset::macrocell::{MACROCELL, MACROCELL_SHIFT};
 use crate::dataset::{Dims, Voxels};
 
 /// Which interpolation function an object uses.
@@ -85,17 +84,6 @@ impl Axis {
         let u = if (u - r).abs() <= self.tol { r } else { u };
         ((u + 0.5) as i64 as u32).min(self.n - 1)
     }
-
-    /// The raw coordinates over which a base index (`x0` or the nearest voxel, shifted by
-    /// `shift` = 0 or ½) falls in macrocell `c`: `[c·B − shift, (c + 1)·B − shift)`, unbounded
-    /// at the first and at the last cell `last_cell`. Ignores snapping; only jump estimates
-    /// use it, and they are verified against the real cell.
-    fn span(c: u32, last_cell: u32, shift: f64) -> (f64, f64) {
-        let b = MACROCELL as f64;
-        let lo = if c == 0 { f64::NEG_INFINITY } else { c as f64 * b - shift };
-        let hi = if c >= last_cell { f64::INFINITY } else { (c + 1) as f64 * b - shift };
-        (lo, hi)
-    }
 }
 
 fn axes(dims: Dims) -> [Axis; 3] {
@@ -127,9 +115,16 @@ pub trait Interp: Copy + Send + Sync {
     /// How many macrocells around its base cell a stencil reaches (0, or 1 for the cubic).
     fn cell_radius(&self) -> u32;
 
-    /// Raw coordinates along `axis` whose base lies in macrocell `c` (see `Axis::span`):
-    /// for estimating jumps over empty cells, which are then verified exactly.
-    fn cell_span(&self, axis: usize, c: u32) -> (f64, f64);
+    /// Along `axis`: the largest base index, and where base index b starts in raw VC minus
+    /// b (0 for a cell corner, whose base is b over [b, b + 1); −½ for the nearest voxel,
+    /// over [b − ½, b + ½)). Rounding rules aside (see [`Interp::span_tolerance`]), a sample
+    /// based in macrocell c along the axis then has its coordinate in
+    /// `[c·B + offset, (c + 1)·B + offset)`, unbounded beyond the first and last cell.
+    fn base_grid(&self, axis: usize) -> (u32, f64);
+
+    /// How far (in VC) rounding rules can move a coordinate across a span's bound along
+    /// `axis`: the snapping tolerance of SPEC §4.5.
+    fn span_tolerance(&self, axis: usize) -> f64;
 
     /// The values the interpolation can produce from voxels whose finite values lie in
     /// `[lo, hi]`, rounding included: `integer` says the values are integers below 2⁵³
@@ -175,7 +170,7 @@ impl Interp for Nearest {
 
     #[inline(always)]
     fn apply<V: Voxels>(&self, s: &NearestAt, voxels: &V) -> f64 {
-        voxels.get(s.index) as f64
+        voxels.get_f64(s.index)
     }
 
     #[inline(always)]
@@ -187,8 +182,12 @@ impl Interp for Nearest {
         0
     }
 
-    fn cell_span(&self, axis: usize, c: u32) -> (f64, f64) {
-        Axis::span(c, (self.axes[axis].n - 1) >> MACROCELL_SHIFT, 0.5)
+    fn base_grid(&self, axis: usize) -> (u32, f64) {
+        (self.axes[axis].n - 1, -0.5)
+    }
+
+    fn span_tolerance(&self, axis: usize) -> f64 {
+        self.axes[axis].tol
     }
 
     fn value_bounds(&self, lo: f64, hi: f64, _integer: bool) -> (f64, f64) {
@@ -294,14 +293,13 @@ impl<W: Weight> Interp for Linear<W> {
     fn apply<V: Voxels>(&self, s: &LinearAt, voxels: &V) -> f64 {
         let [ox, oy, oz] = self.offsets;
         let i = s.index;
-        let r = |j: usize| voxels.get(j) as f64;
-        let lerp = |v0: f64, v1: f64, h: f64| v0 - h * (v0 - v1);
+        let lerp = |[v0, v1]: [f64; 2], h: f64| v0 - h * (v0 - v1);
         let h = s.h;
-        let x00 = lerp(r(i), r(i + ox), h[0]);
-        let x10 = lerp(r(i + oy), r(i + oy + ox), h[0]);
-        let x01 = lerp(r(i + oz), r(i + oz + ox), h[0]);
-        let x11 = lerp(r(i + oz + oy), r(i + oz + oy + ox), h[0]);
-        lerp(lerp(x00, x10, h[1]), lerp(x01, x11, h[1]), h[2])
+        let x00 = lerp(voxels.pair(i, ox), h[0]);
+        let x10 = lerp(voxels.pair(i + oy, ox), h[0]);
+        let x01 = lerp(voxels.pair(i + oz, ox), h[0]);
+        let x11 = lerp(voxels.pair(i + oz + oy, ox), h[0]);
+        lerp([lerp([x00, x10], h[1]), lerp([x01, x11], h[1])], h[2])
     }
 
     #[inline(always)]
@@ -313,8 +311,12 @@ impl<W: Weight> Interp for Linear<W> {
         0
     }
 
-    fn cell_span(&self, axis: usize, c: u32) -> (f64, f64) {
-        Axis::span(c, self.axes[axis].x0_max as u32 >> MACROCELL_SHIFT, 0.0)
+    fn base_grid(&self, axis: usize) -> (u32, f64) {
+        (self.axes[axis].x0_max as u32, 0.0)
+    }
+
+    fn span_tolerance(&self, axis: usize) -> f64 {
+        self.axes[axis].tol
     }
 
     fn value_bounds(&self, lo: f64, hi: f64, integer: bool) -> (f64, f64) {
@@ -381,7 +383,7 @@ impl Interp for Cubic {
             }
         }
         let w = cubic::weights(s.t);
-        idx.iter().zip(&w).map(|(&i, &w)| w * voxels.get(i) as f64).sum()
+        idx.iter().zip(&w).map(|(&i, &w)| w * voxels.get_f64(i)).sum()
     }
 
     #[inline(always)]
@@ -393,8 +395,12 @@ impl Interp for Cubic {
         1
     }
 
-    fn cell_span(&self, axis: usize, c: u32) -> (f64, f64) {
-        Axis::span(c, self.axes[axis].x0_max as u32 >> MACROCELL_SHIFT, 0.0)
+    fn base_grid(&self, axis: usize) -> (u32, f64) {
+        (self.axes[axis].x0_max as u32, 0.0)
+    }
+
+    fn span_tolerance(&self, axis: usize) -> f64 {
+        self.axes[axis].tol
     }
 
     fn value_bounds(&self, lo: f64, hi: f64, _integer: bool) -> (f64, f64) {
@@ -430,8 +436,12 @@ impl Interp for NoInterp {
         0
     }
 
-    fn cell_span(&self, _axis: usize, _c: u32) -> (f64, f64) {
-        (f64::NEG_INFINITY, f64::INFINITY)
+    fn base_grid(&self, _axis: usize) -> (u32, f64) {
+        (0, 0.0)
+    }
+
+    fn span_tolerance(&self, _axis: usize) -> f64 {
+        0.0
     }
 
     fn value_bounds(&self, lo: f64, hi: f64, _integer: bool) -> (f64, f64) {
@@ -524,8 +534,12 @@ impl Interp for DynInterp {
         each!(self, f => f.cell_radius())
     }
 
-    fn cell_span(&self, axis: usize, c: u32) -> (f64, f64) {
-        each!(self, f => f.cell_span(axis, c))
+    fn base_grid(&self, axis: usize) -> (u32, f64) {
+        each!(self, f => f.base_grid(axis))
+    }
+
+    fn span_tolerance(&self, axis: usize) -> f64 {
+        each!(self, f => f.span_tolerance(axis))
     }
 
     fn value_bounds(&self, lo: f64, hi: f64, integer: bool) -> (f64, f64) {

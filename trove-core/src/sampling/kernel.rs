@@ -6,9 +6,10 @@
 //! deciding per sample; it serves rare combinations and is what the specialised loops are
 //! tested against.
 
-use super::skip::{cell_of, run_end, Skipper};
+use super::skip::{cell_of, Jumps, Skipper};
 use super::{corrected_opacity, PieceResult};
 use crate::composite::Rgba;
+use crate::dataset::macrocell::Level;
 use crate::dataset::{ChannelReader, Voxels};
 use crate::geometry::SampleWalk;
 use crate::interp::Interp;
@@ -205,6 +206,7 @@ impl<I: Interp, V: VoxelSource, C: ColourFn, O: OpacityFn> Cast for Kernel<'_, I
         if let Some(line) = walk.line() {
             let ell = line.ell();
             let n = line.len();
+            let jumps = self.skip.as_ref().map(|_| Jumps::new(&self.interp, &line));
             let mut k = 0;
             while k < n {
                 let s = self.interp.locate(line.point(k));
@@ -212,10 +214,10 @@ impl<I: Interp, V: VoxelSource, C: ColourFn, O: OpacityFn> Cast for Kernel<'_, I
                     let c = cell_of(self.interp.base(&s));
                     if c != cell {
                         cell = c;
-                        empty = skip.is_empty(&self.interp, c);
+                        empty = skip.is_empty(&self.interp, Level::Fine, c);
                     }
-                    if empty {
-                        k = run_end(&self.interp, &line, k, c);
+                    if let (true, Some(jumps)) = (empty, &jumps) {
+                        k = jumps.skip(&self.interp, skip, k, c);
                         continue;
                     }
                 }
@@ -233,7 +235,7 @@ impl<I: Interp, V: VoxelSource, C: ColourFn, O: OpacityFn> Cast for Kernel<'_, I
                     let c = cell_of(self.interp.base(&s));
                     if c != cell {
                         cell = c;
-                        empty = skip.is_empty(&self.interp, c);
+                        empty = skip.is_empty(&self.interp, Level::Fine, c);
                     }
                     if empty {
                         continue;

@@ -63,7 +63,7 @@ pub struct CastOptions {
 
 impl Default for CastOptions {
     fn default() -> CastOptions {
-        CastOptions { specialise: true, skip_empty_space: false }
+        CastOptions { specialise: true, skip_empty_space: true }
     }
 }
 
@@ -181,19 +181,4 @@ pub fn corrected_opacity(opacity: f64, ell: f64) -> f64 {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn opacity_correction_is_exact_at_the_ends_and_precise_for_tiny_values() {
-        assert_eq!(corrected_opacity(0.0, 3.0), 0.0);
-        assert_eq!(corrected_opacity(1.0, 0.25), 1.0);
-        assert_eq!(corrected_opacity(1.0, 0.0), 0.0);
-        assert_eq!(corrected_opacity(0.3, 1.0), 0.3);
-        let a = corrected_opacity(0.5, 2.0);
-        assert!((a - 0.75).abs() < 1e-15);
-        // 1 − (1 − 1e-12)^1e-3 ≈ 1e-15: the naive formula loses every digit here.
-        let tiny = corrected_opacity(1e-12, 1e-3);
-        assert!((tiny / 1e-15 - 1.0).abs() < 1e-9, "{tiny}");
-    }
-}
+mod tests;
