@@ -324,6 +324,14 @@ pub trait Voxels: Copy + Send + Sync {
         self.get(i) as f64
     }
 
+    /// Decodes `out.len()` consecutive voxels from index `start` (a row, for scans).
+    #[inline]
+    fn decode(&self, start: usize, out: &mut [f32]) {
+        for (k, o) in out.iter_mut().enumerate() {
+            *o = self.get(start + k);
+        }
+    }
+
     /// The values at `i` and `i + dx` (`dx` 0 or 1: a voxel and its neighbour along x, or
     /// the voxel twice on a single-voxel axis), as f64: the x pairs of a trilinear stencil,
     /// read with one bounds check and one load where the type allows.
@@ -371,6 +379,16 @@ macro_rules! typed_voxels {
             fn get_f64(&self, i: usize) -> f64 {
                 // u8 and u16 widen exactly, to the value `get` gives; f32 too.
                 self.number(i) as f64
+            }
+
+            #[inline]
+            fn decode(&self, start: usize, out: &mut [f32]) {
+                let bytes = &self.0[$bytes * start..$bytes * (start + out.len())];
+                for (o, b) in out.iter_mut().zip(bytes.chunks_exact($bytes)) {
+                    let mut number = [0u8; $bytes];
+                    number.copy_from_slice(b);
+                    *o = <$ty>::$from(number) as f32;
+                }
             }
 
             #[inline(always)]

@@ -139,9 +139,10 @@ impl Macrocells {
     }
 }
 
+/// The union of two ranges (neither holds NaN: empty is [+∞, −∞]).
 #[inline(always)]
 fn union(a: [f32; 2], b: [f32; 2]) -> [f32; 2] {
-    [a[0].min(b[0]), a[1].max(b[1])]
+    [if b[0] < a[0] { b[0] } else { a[0] }, if b[1] > a[1] { b[1] } else { a[1] }]
 }
 
 /// The voxel window `[c·B, c·B + B]` of cell `c` along an axis of `n` voxels, clamped.
@@ -151,41 +152,45 @@ fn window(c: u32, n: u32) -> (usize, usize) {
     (lo as usize, (lo + MACROCELL).min(n - 1) as usize)
 }
 
-/// Separable min/max: along x over every row, then along y over the row results, then
-/// along z. Each pass reads its input about (B + 1)/B times, so the whole scan costs little
-/// more than reading the channel once.
+/// Separable min/max, one z slice at a time: along x over each row of the slice (decoded
+/// once into f32, non-finite values replaced by sentinels that min and max pass over, then
+/// reduced cell by cell), along y over the slice's row results, and along z over the
+/// slices' results. Scratch space is one slice's rows and the per-slice planes, so the scan
+/// touches little memory besides the channel itself.
 fn scan<V: Voxels>(v: V, dims: Dims) -> Macrocells {
     let [nx, ny, nz] = dims.as_array();
     let cells = Macrocells::cells_of(dims, Level::Fine);
     let [cx, cy, cz] = cells.map(|c| c as usize);
     let (nxu, nyu, nzu) = (nx as usize, ny as usize, nz as usize);
+    let b = MACROCELL as usize;
 
-    // Pass 1: x. rows[(k·ny + j)·cx + i] = range of cell i's window in row (j, k).
-    let mut rows = vec![EMPTY; cx * nyu * nzu];
-    for (row, out) in rows.chunks_exact_mut(cx).enumerate() {
-        let base = row * nxu;
-        for (i, o) in out.iter_mut().enumerate() {
-            let (lo, hi) = window(i as u32, nx);
-            let mut r = EMPTY;
-            for x in lo..=hi {
-                let value = v.get(base + x);
-                if value.is_finite() {
-                    r = union(r, [value, value]);
-                }
-            }
-            *o = r;
-        }
-    }
-
-    // Pass 2: y. planes[(k·cy + j)·cx + i].
+    // Per slice k: planes[(k·cy + j)·cx + i] = range of cell (i, j)'s window in slice k.
     let mut planes = vec![EMPTY; cx * cy * nzu];
+    let mut rows = vec![EMPTY; cx * nyu];
+    let (mut values, mut lo, mut hi) = (vec![0.0f32; nxu], vec![0.0f32; nxu], vec![0.0f32; nxu]);
     for k in 0..nzu {
+        // Pass 1: x, over the rows of slice k.
+        for (j, out) in rows.chunks_exact_mut(cx).enumerate() {
+            v.decode((k * nyu + j) * nxu, &mut values);
+            for ((value, l), h) in values.iter().zip(lo.iter_mut()).zip(hi.iter_mut()) {
+                let finite = value.is_finite();
+                *l = if finite { *value } else { f32::INFINITY };
+                *h = if finite { *value } else { f32::NEG_INFINITY };
+            }
+            for (i, ((o, l), h)) in out.iter_mut().zip(lo.chunks(b)).zip(hi.chunks(b)).enumerate() {
+                // The cell's own voxels, then its apron: the first voxel of the next cell.
+                let apron = ((i + 1) * b).min(nxu - 1);
+                let low = l.iter().fold(lo[apron], |m, &x| if x < m { x } else { m });
+                let high = h.iter().fold(hi[apron], |m, &x| if x > m { x } else { m });
+                *o = [low, high];
+            }
+        }
+        // Pass 2: y, within the slice.
         for j in 0..cy {
-            let (lo, hi) = window(j as u32, ny);
+            let (lo_row, hi_row) = window(j as u32, ny);
             let out = &mut planes[(k * cy + j) * cx..][..cx];
-            for y in lo..=hi {
-                let row = &rows[(k * nyu + y) * cx..][..cx];
-                for (o, r) in out.iter_mut().zip(row) {
+            for y in lo_row..=hi_row {
+                for (o, r) in out.iter_mut().zip(&rows[y * cx..][..cx]) {
                     *o = union(*o, *r);
                 }
             }
