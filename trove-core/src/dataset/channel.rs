@@ -315,6 +315,9 @@ impl Channel {
 /// read; the typed views below ([`U8Voxels`], [`U16LeVoxels`], ...) decode one type only,
 /// so code made generic over `Voxels` is compiled once per type with no dispatch per voxel.
 pub trait Voxels: Copy + Send + Sync {
+    /// Whether every value is finite (integer types), so scans need not test.
+    const ALWAYS_FINITE: bool = false;
+
     /// The value at linear index `i` (x fastest, then y, then z). Panics if out of range.
     fn get(&self, i: usize) -> f32;
 
@@ -349,7 +352,7 @@ impl Voxels for ChannelReader<'_> {
 }
 
 macro_rules! typed_voxels {
-    ($(#[$doc:meta])* $name:ident, $variant:ident, $ty:ty, $bytes:literal, $from:ident) => {
+    ($(#[$doc:meta])* $name:ident, $variant:ident, $ty:ty, $bytes:literal, $from:ident, $finite:literal) => {
         $(#[$doc])*
         #[derive(Clone, Copy, Debug)]
         pub struct $name<'a>(&'a [u8]);
@@ -370,6 +373,8 @@ macro_rules! typed_voxels {
         }
 
         impl Voxels for $name<'_> {
+            const ALWAYS_FINITE: bool = $finite;
+
             #[inline(always)]
             fn get(&self, i: usize) -> f32 {
                 self.number(i) as f32
@@ -410,15 +415,15 @@ macro_rules! typed_voxels {
 
 typed_voxels!(
     /// A `u8` channel.
-    U8Voxels, U8, u8, 1, from_le_bytes
+    U8Voxels, U8, u8, 1, from_le_bytes, true
 );
 typed_voxels!(
     /// A little-endian `u16` channel.
-    U16LeVoxels, U16Le, u16, 2, from_le_bytes
+    U16LeVoxels, U16Le, u16, 2, from_le_bytes, true
 );
 typed_voxels!(
     /// A little-endian `f32` channel.
-    F32LeVoxels, F32Le, f32, 4, from_le_bytes
+    F32LeVoxels, F32Le, f32, 4, from_le_bytes, false
 );
 
 /// A `bit` channel: one LSB-first bit per voxel.
@@ -436,6 +441,8 @@ impl<'a> BitVoxels<'a> {
 }
 
 impl Voxels for BitVoxels<'_> {
+    const ALWAYS_FINITE: bool = true;
+
     #[inline(always)]
     fn get(&self, i: usize) -> f32 {
         ((self.0[i >> 3] >> (i & 7)) & 1) as f32

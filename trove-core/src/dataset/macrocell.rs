@@ -139,6 +139,22 @@ impl Macrocells {
     }
 }
 
+/// `acc[i] = min(acc[i], x[i])` (no NaN: sentinels stand for non-finite values).
+#[inline]
+fn fold_min(acc: &mut [f32], x: &[f32]) {
+    for (a, &x) in acc.iter_mut().zip(x) {
+        *a = if x < *a { x } else { *a };
+    }
+}
+
+/// `acc[i] = max(acc[i], x[i])`.
+#[inline]
+fn fold_max(acc: &mut [f32], x: &[f32]) {
+    for (a, &x) in acc.iter_mut().zip(x) {
+        *a = if x > *a { x } else { *a };
+    }
+}
+
 /// The union of two ranges (neither holds NaN: empty is [+∞, −∞]).
 #[inline(always)]
 fn union(a: [f32; 2], b: [f32; 2]) -> [f32; 2] {
@@ -152,61 +168,60 @@ fn window(c: u32, n: u32) -> (usize, usize) {
     (lo as usize, (lo + MACROCELL).min(n - 1) as usize)
 }
 
-/// Separable min/max, one z slice at a time: along x over each row of the slice (decoded
-/// once into f32, non-finite values replaced by sentinels that min and max pass over, then
-/// reduced cell by cell), along y over the slice's row results, and along z over the
-/// slices' results. Scratch space is one slice's rows and the per-slice planes, so the scan
-/// touches little memory besides the channel itself.
+/// Separable min/max, z first: for each layer of cells along z, the slices of its window
+/// are decoded (non-finite values replaced by sentinels that min and max pass over) and
+/// folded element-wise into one plane; its rows are folded the same way over each y
+/// window; and only those few rows are reduced along x, cell by cell. Element-wise minima
+/// over whole planes vectorise, so the scan costs about what copying the channel costs.
 fn scan<V: Voxels>(v: V, dims: Dims) -> Macrocells {
     let [nx, ny, nz] = dims.as_array();
     let cells = Macrocells::cells_of(dims, Level::Fine);
     let [cx, cy, cz] = cells.map(|c| c as usize);
-    let (nxu, nyu, nzu) = (nx as usize, ny as usize, nz as usize);
+    let (nxu, nyu) = (nx as usize, ny as usize);
+    let plane = nxu * nyu;
     let b = MACROCELL as usize;
 
-    // Per slice k: planes[(k·cy + j)·cx + i] = range of cell (i, j)'s window in slice k.
-    let mut planes = vec![EMPTY; cx * cy * nzu];
-    let mut rows = vec![EMPTY; cx * nyu];
-    let (mut values, mut lo, mut hi) = (vec![0.0f32; nxu], vec![0.0f32; nxu], vec![0.0f32; nxu]);
-    for k in 0..nzu {
-        // Pass 1: x, over the rows of slice k.
-        for (j, out) in rows.chunks_exact_mut(cx).enumerate() {
-            v.decode((k * nyu + j) * nxu, &mut values);
-            for ((value, l), h) in values.iter().zip(lo.iter_mut()).zip(hi.iter_mut()) {
-                let finite = value.is_finite();
-                *l = if finite { *value } else { f32::INFINITY };
-                *h = if finite { *value } else { f32::NEG_INFINITY };
-            }
-            for (i, ((o, l), h)) in out.iter_mut().zip(lo.chunks(b)).zip(hi.chunks(b)).enumerate() {
-                // The cell's own voxels, then its apron: the first voxel of the next cell.
-                let apron = ((i + 1) * b).min(nxu - 1);
-                let low = l.iter().fold(lo[apron], |m, &x| if x < m { x } else { m });
-                let high = h.iter().fold(hi[apron], |m, &x| if x > m { x } else { m });
-                *o = [low, high];
-            }
-        }
-        // Pass 2: y, within the slice.
-        for j in 0..cy {
-            let (lo_row, hi_row) = window(j as u32, ny);
-            let out = &mut planes[(k * cy + j) * cx..][..cx];
-            for y in lo_row..=hi_row {
-                for (o, r) in out.iter_mut().zip(&rows[y * cx..][..cx]) {
-                    *o = union(*o, *r);
+    let mut ranges = vec![EMPTY; cx * cy * cz];
+    let (mut slice, mut slice_hi) = (vec![0.0f32; plane], vec![0.0f32; plane]);
+    let (mut lo, mut hi) = (vec![0.0f32; plane], vec![0.0f32; plane]);
+    let (mut row_lo, mut row_hi) = (vec![0.0f32; nxu], vec![0.0f32; nxu]);
+    for k in 0..cz {
+        // z: fold the slices of layer k's window into (lo, hi).
+        let (z0, z1) = window(k as u32, nz);
+        for z in z0..=z1 {
+            v.decode(z * plane, &mut slice);
+            if !V::ALWAYS_FINITE {
+                for (l, h) in slice.iter_mut().zip(slice_hi.iter_mut()) {
+                    let finite = l.is_finite();
+                    *h = if finite { *l } else { f32::NEG_INFINITY };
+                    *l = if finite { *l } else { f32::INFINITY };
                 }
             }
+            let high = if V::ALWAYS_FINITE { &slice } else { &slice_hi };
+            if z == z0 {
+                lo.copy_from_slice(&slice);
+                hi.copy_from_slice(high);
+            } else {
+                fold_min(&mut lo, &slice);
+                fold_max(&mut hi, high);
+            }
         }
-    }
-    drop(rows);
-
-    // Pass 3: z.
-    let mut ranges = vec![EMPTY; cx * cy * cz];
-    for k in 0..cz {
-        let (lo, hi) = window(k as u32, nz);
-        let out = &mut ranges[k * cy * cx..][..cy * cx];
-        for z in lo..=hi {
-            let plane = &planes[z * cy * cx..][..cy * cx];
-            for (o, p) in out.iter_mut().zip(plane) {
-                *o = union(*o, *p);
+        for j in 0..cy {
+            // y: fold the rows of cell row j's window.
+            let (y0, y1) = window(j as u32, ny);
+            row_lo.copy_from_slice(&lo[y0 * nxu..][..nxu]);
+            row_hi.copy_from_slice(&hi[y0 * nxu..][..nxu]);
+            for y in y0 + 1..=y1 {
+                fold_min(&mut row_lo, &lo[y * nxu..][..nxu]);
+                fold_max(&mut row_hi, &hi[y * nxu..][..nxu]);
+            }
+            // x: each cell's own voxels, then its apron (the first voxel of the next cell).
+            let out = &mut ranges[(k * cy + j) * cx..][..cx];
+            for (i, ((o, l), h)) in out.iter_mut().zip(row_lo.chunks(b)).zip(row_hi.chunks(b)).enumerate() {
+                let apron = ((i + 1) * b).min(nxu - 1);
+                let low = l.iter().fold(row_lo[apron], |m, &x| if x < m { x } else { m });
+                let high = h.iter().fold(row_hi[apron], |m, &x| if x > m { x } else { m });
+                *o = [low, high];
             }
         }
     }
