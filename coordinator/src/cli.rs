@@ -1,4 +1,4 @@
-//! The command line: argument parsing, the `render` command and the `bench` experiments.
+//! The command line: argument parsing and the `render` command.
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -7,8 +7,12 @@ use std::sync::Arc;
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
+use trove_coordinator::client::FarmClient;
+use trove_coordinator::farm::{self, FarmConfig};
 use trove_core::render::{self, Algorithm, RenderOptions};
 use trove_core::scene::Scene;
+use trove_proto::parse_bytes;
+use trove_proto::v1 as pb;
 
 #[derive(Parser)]
 #[command(name = "trove", version, about = "Renders scenes composed of many volumetric datasets (Leu & Chen 1997)")]
@@ -19,11 +23,10 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Render a scene to a PNG (or a .pfm float image) in this process.
+    /// Render a scene to a PNG (or a .pfm float image), in this process or through a farm.
     Render(RenderArgs),
-    /// Run one of the paper's experiments and print its table.
-    #[command(subcommand)]
-    Bench(crate::bench::BenchCommand),
+    /// Serve a farm's job API and worker membership (SPEC §5).
+    Coordinator(CoordinatorArgs),
 }
 
 #[derive(clap::Args)]
@@ -47,6 +50,25 @@ struct RenderArgs {
     /// Override the scene's `[render] distorted_sampling` for every distorted box.
     #[arg(long, value_enum)]
     distorted_sampling: Option<DistortedSampling>,
+    /// Render through the farm whose coordinator listens at this URL (e.g.
+    /// http://127.0.0.1:7000) instead of in this process. The scene's dataset paths are
+    /// keys that the workers resolve under their data roots.
+    #[arg(long, value_name = "URL")]
+    coordinator: Option<String>,
+}
+
+#[derive(clap::Args)]
+struct CoordinatorArgs {
+    /// Address to listen on (port 0 picks a free port); the bound address is printed as the
+    /// first line of standard output.
+    #[arg(long, default_value = "127.0.0.1:7000")]
+    listen: String,
+    /// How often workers send heartbeats, in milliseconds; one that misses five is lost.
+    #[arg(long, default_value_t = 1000)]
+    heartbeat_ms: u64,
+    /// Seconds a batch may take before it is given to another worker.
+    #[arg(long, default_value_t = 120)]
+    batch_deadline_s: u64,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -74,49 +96,12 @@ impl From<AlgorithmArg> for Algorithm {
     }
 }
 
-/// A byte count: a plain number of bytes, or a number (decimals allowed) followed by
-/// `B`, `KiB`, `MiB` or `GiB` (any case, optional space). Fractions of a byte round down.
-pub fn parse_bytes(text: &str) -> Result<u64, String> {
-    let t = text.trim();
-    let split = t.find(|c: char| !(c.is_ascii_digit() || c == '.')).unwrap_or(t.len());
-    let (number, unit) = (&t[..split], t[split..].trim());
-    let scale: u64 = match unit.to_ascii_lowercase().as_str() {
-        "" | "b" => 1,
-        "kib" => 1 << 10,
-        "mib" => 1 << 20,
-        "gib" => 1 << 30,
-        _ => {
-            return Err(format!(
-                "`{text}`: unknown unit `{unit}`; expected bytes, or a number followed by KiB, MiB or GiB"
-            ))
-        }
-    };
-    let bad = || format!("`{text}`: expected a number of bytes, optionally followed by KiB, MiB or GiB");
-    if number.is_empty() || number.matches('.').count() > 1 {
-        return Err(bad());
-    }
-    let bytes = if number.contains('.') {
-        let v: f64 = number.parse().map_err(|_| bad())?;
-        let b = v * scale as f64;
-        if !b.is_finite() || b >= u64::MAX as f64 {
-            return Err(format!("`{text}`: too large"));
-        }
-        b.floor() as u64
-    } else {
-        let v: u64 = number.parse().map_err(|_| format!("`{text}`: too large"))?;
-        v.checked_mul(scale).ok_or_else(|| format!("`{text}`: too large"))?
-    };
-    if bytes == 0 {
-        return Err(format!("`{text}`: a memory budget must be at least one byte"));
-    }
-    Ok(bytes)
-}
-
 /// Parses the arguments and runs the command.
 pub fn run() -> Result<()> {
     match Cli::parse().command {
+        Command::Render(args) if args.coordinator.is_some() => farm_render(args),
         Command::Render(args) => render_command(args),
-        Command::Bench(bench) => bench.run(),
+        Command::Coordinator(args) => coordinator_command(args),
     }
 }
 
@@ -129,13 +114,19 @@ fn render_command(args: RenderArgs) -> Result<()> {
     if let Some(mode) = args.distorted_sampling {
         scene.set_straight_distorted_sampling(matches!(mode, DistortedSampling::Straight));
     }
-    let bar = progress_bar(scene.image.height as u64);
+    let bar = progress_bar(scene.image().height as u64);
     let options = RenderOptions {
         algorithm: args.algorithm.into(),
         memory_budget: args.memory_budget,
         progress: bar.clone().map(|b| Arc::new(move |rows: u64| b.set_position(rows)) as render::Progress),
     };
-    let rendered = render::render(&scene, &options).with_context(|| format!("rendering {}", args.scene.display()))?;
+    let rendered = render::render(&scene, &options).map_err(|e| {
+        let hint = match &e {
+            render::RenderError::Store(render::StoreError::BudgetTooSmall { .. }) => " (see --memory-budget)",
+            _ => "",
+        };
+        anyhow::Error::new(e).context(format!("rendering {}{hint}", args.scene.display()))
+    })?;
     if let Some(b) = bar {
         b.finish_and_clear();
     }
@@ -176,21 +167,66 @@ fn progress_bar(rows: u64) -> Option<ProgressBar> {
     Some(bar)
 }
 
-#[cfg(test)]
-mod tests {
-    use super::parse_bytes;
-
-    #[test]
-    fn byte_counts_take_binary_suffixes() {
-        assert_eq!(parse_bytes("4096"), Ok(4096));
-        assert_eq!(parse_bytes("64KiB"), Ok(64 << 10));
-        assert_eq!(parse_bytes("3 MiB"), Ok(3 << 20));
-        assert_eq!(parse_bytes("1.5GiB"), Ok(3 << 29));
-        assert_eq!(parse_bytes("2gib"), Ok(2 << 30));
-        assert_eq!(parse_bytes("100B"), Ok(100));
-        for bad in ["", "MiB", "12 MB", "1.2.3KiB", "-5", "0", "99999999999999999999", "20000000000GiB", "1e3"] {
-            assert!(parse_bytes(bad).is_err(), "{bad}");
-        }
-        assert!(parse_bytes("12 MB").unwrap_err().contains("KiB, MiB or GiB"));
+/// `trove render --coordinator URL`: the same files as local mode, made by a farm.
+fn farm_render(args: RenderArgs) -> Result<()> {
+    let url = args.coordinator.clone().expect("checked by the caller");
+    check_output(&args.output, &["png", "pfm"])?;
+    if let Some(stats) = &args.stats {
+        check_output(stats, &["json"])?;
     }
+    if args.memory_budget.is_some()
+        || args.distorted_sampling.is_some()
+        || !matches!(args.algorithm, AlgorithmArg::Grouped)
+    {
+        bail!("--memory-budget, --distorted-sampling and --algorithm apply to local renders; a farm's workers set their own budgets and always cast grouped by dataset");
+    }
+    let text = std::fs::read_to_string(&args.scene)
+        .with_context(|| format!("{}: cannot read the scene file", args.scene.display()))?;
+    let name = args.scene.display().to_string();
+    let want_pfm = is_pfm(&args.output);
+    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
+    let files = runtime.block_on(async {
+        let mut client = FarmClient::connect(&url).await?;
+        let bar = progress_bar(0);
+        let options = pb::JobOptions { want_pfm, ..Default::default() };
+        let files = client
+            .render(text, name.clone(), options, |status| {
+                if let Some(b) = &bar {
+                    b.set_length(status.pieces_total.max(1));
+                    b.set_position(status.pieces_done);
+                }
+            })
+            .await;
+        if let Some(b) = bar {
+            b.finish_and_clear();
+        }
+        files
+    });
+    let files = files.with_context(|| format!("rendering {name} through {url}"))?;
+    let image = if want_pfm { files.pfm.context("the farm sent no PFM")? } else { files.png };
+    std::fs::write(&args.output, image).with_context(|| format!("cannot write {}", args.output.display()))?;
+    if let Some(path) = &args.stats {
+        std::fs::write(path, &files.stats_json).with_context(|| format!("writing statistics to {}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// `trove coordinator`: serves until Ctrl-C or SIGTERM.
+fn coordinator_command(args: CoordinatorArgs) -> Result<()> {
+    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
+    runtime.block_on(async {
+        let listener = tokio::net::TcpListener::bind(&args.listen)
+            .await
+            .with_context(|| format!("cannot listen on {}", args.listen))?;
+        println!("{}", listener.local_addr().context("the listener has no address")?);
+        let config = FarmConfig {
+            heartbeat: std::time::Duration::from_millis(args.heartbeat_ms.max(10)),
+            driver: farm::DriverConfig { batch_deadline: std::time::Duration::from_secs(args.batch_deadline_s.max(1)) },
+        };
+        farm::run(listener, trove_proto::shutdown_signal(), config).await.context("coordinator")
+    })
+}
+
+fn is_pfm(path: &Path) -> bool {
+    path.extension().is_some_and(|e| e.eq_ignore_ascii_case("pfm"))
 }

@@ -1,16 +1,13 @@
-//! `trove`: renders TROVE scenes (SPEC §5). Local mode runs the whole pipeline in this
-//! process; the farm's coordinator will live here too.
+//! `trove`: renders TROVE scenes (SPEC §5), in this process or through a farm, and serves
+//! a farm's coordinator. The binary only parses arguments and reports errors; the work is in
+//! `trove-core` (rendering) and this crate's library (the farm and its client).
 
-mod bench;
 mod cli;
 
 use std::process::ExitCode;
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
-        .with_writer(std::io::stderr)
-        .init();
+    trove_proto::init_logging();
     match cli::run() {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

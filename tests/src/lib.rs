@@ -1,5 +1,12 @@
 //! Helpers shared by the integration tests: scratch folders, rendering scene text, and the
-//! location of the shared real data (tests that need it skip with a message when absent).
+//! location of the shared real data (tests that need it skip with a message when absent);
+//! [`reference`] holds the scenes with closed-form ray integrals that the accuracy tests and
+//! `trove-bench accuracy` measure the renderer against. None of this belongs in
+//! `trove-core`: the library ships only what renders.
+
+pub mod reference;
+
+pub mod farm;
 
 use std::path::{Path, PathBuf};
 
@@ -17,6 +24,68 @@ pub fn scratch(name: &str) -> PathBuf {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).expect("create scratch folder");
     dir
+}
+
+/// The `[image]` and `[camera]` tables a test scene starts with. [`Header::new`] fixes
+/// what every test states (size, eye, target, field of view) and defaults the rest (black
+/// background, +y up); the builder methods change those where a test depends on them.
+/// `Display` writes the two tables as TOML, numbers in Rust's round-trip form (`25.0`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Header {
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Linear RGB background.
+    pub background: [f64; 3],
+    /// The camera's position.
+    pub eye: [f64; 3],
+    /// The point the camera looks at.
+    pub target: [f64; 3],
+    /// The camera's up direction.
+    pub up: [f64; 3],
+    /// Vertical field of view in degrees.
+    pub fov_y: f64,
+}
+
+impl Header {
+    /// A `side`×`side` image on black, seen from `eye` looking at `target` with +y up.
+    pub fn new(side: u32, eye: [f64; 3], target: [f64; 3], fov_y: f64) -> Header {
+        Header { width: side, height: side, background: [0.0; 3], eye, target, up: [0.0, 1.0, 0.0], fov_y }
+    }
+
+    /// The same with another image size.
+    pub fn size(self, width: u32, height: u32) -> Header {
+        Header { width, height, ..self }
+    }
+
+    /// The same on another background.
+    pub fn background(self, background: [f64; 3]) -> Header {
+        Header { background, ..self }
+    }
+
+    /// The same with another up direction.
+    pub fn up(self, up: [f64; 3]) -> Header {
+        Header { up, ..self }
+    }
+}
+
+impl std::fmt::Display for Header {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let v = |p: [f64; 3]| format!("[{:?}, {:?}, {:?}]", p[0], p[1], p[2]);
+        write!(
+            f,
+            "[image]\nwidth = {}\nheight = {}\nbackground = {}\n\n\
+             [camera]\neye = {}\ntarget = {}\nup = {}\nfov_y = {:?}\n\n",
+            self.width,
+            self.height,
+            v(self.background),
+            v(self.eye),
+            v(self.target),
+            v(self.up),
+            self.fov_y
+        )
+    }
 }
 
 /// Parses `toml` as if it were `dir/scene.toml` and renders it with `algorithm` (checking
@@ -40,17 +109,17 @@ pub const SAMPLER_PATHS: [CastOptions; 4] = [
 /// with `options`; returns the image and the samples cast. The sampler's oracle: every
 /// [`SAMPLER_PATHS`] entry must give the same image.
 pub fn render_with_cast_options(scene: &Scene, options: CastOptions) -> (Image, u64) {
-    let (w, h) = (scene.image.width, scene.image.height);
-    let volumes: Vec<_> = scene.datasets.iter().map(|d| d.load().unwrap_or_else(|e| panic!("load: {e}"))).collect();
+    let (w, h) = (scene.image().width, scene.image().height);
+    let volumes: Vec<_> = scene.datasets().iter().map(|d| d.load().unwrap_or_else(|e| panic!("load: {e}"))).collect();
     let casters: Vec<ObjectCaster<'_>> = scene
-        .objects
+        .objects()
         .iter()
         .map(|o| {
-            ObjectCaster::with_options(o, &volumes[o.dataset], scene.render.opacity_correction, options)
-                .unwrap_or_else(|e| panic!("bind `{}`: {e}", o.name))
+            ObjectCaster::with_options(o, &volumes[o.dataset()], scene.render().opacity_correction, options)
+                .unwrap_or_else(|e| panic!("bind `{}`: {e}", o.name()))
         })
         .collect();
-    let termination = scene.render.termination;
+    let termination = scene.render().termination;
     let rows: Vec<(Vec<[f64; 3]>, u64)> = (0..h)
         .into_par_iter()
         .map(|row| {
@@ -58,10 +127,10 @@ pub fn render_with_cast_options(scene: &Scene, options: CastOptions) -> (Image, 
             let mut samples = 0;
             let pixels = (0..w)
                 .map(|col| {
-                    let ray = scene.camera.ray(col, row, w, h);
+                    let ray = scene.camera().ray(col, row, w, h);
                     segments.clear();
-                    for (i, o) in scene.objects.iter().enumerate() {
-                        if let Some((t_near, t_far)) = o.placement.segment(&ray) {
+                    for (i, o) in scene.objects().iter().enumerate() {
+                        if let Some((t_near, t_far)) = o.placement().segment(&ray) {
                             if t_far > t_near {
                                 segments.push(Segment { object: i as u32, t_near, t_far });
                             }
@@ -90,7 +159,7 @@ pub fn render_with_cast_options(scene: &Scene, options: CastOptions) -> (Image, 
                             acc.over(Rgba::colocated(parts));
                         }
                     }
-                    acc.with_background(scene.image.background)
+                    acc.with_background(scene.image().background)
                 })
                 .collect();
             (pixels, samples)
@@ -111,11 +180,15 @@ pub fn assert_sampler_paths_agree(scene: &Scene) {
         assert!(
             image.pixels() == reference.pixels(),
             "{}: {options:?} differs from the general loop without skipping by {} (max byte {})",
-            scene.path.display(),
+            scene.path().display(),
             image.max_abs_difference(reference),
             image.max_byte_difference(reference)
         );
-        assert!(samples <= all_samples, "{}: {options:?} cast {samples} > {all_samples} samples", scene.path.display());
+        assert!(
+            samples <= all_samples,
+            "{}: {options:?} cast {samples} > {all_samples} samples",
+            scene.path().display()
+        );
     }
 }
 
@@ -135,7 +208,7 @@ pub fn render_text(dir: &Path, toml: &str) -> Image {
     };
     let reference = run(Algorithm::PerRay).image;
     let grouped = run(Algorithm::Grouped).image;
-    let slack = 1e-6 + (1.0 - scene.render.termination);
+    let slack = 1e-6 + (1.0 - scene.render().termination);
     let diff = max_abs_difference(&reference, &grouped);
     assert!(diff <= slack, "grouped differs from per-ray by {diff} (allowed {slack})");
     reference
@@ -164,10 +237,11 @@ pub fn example_scenes(max_side: u32) -> Vec<(PathBuf, Scene)> {
             eprintln!("skipping {}: it reads ../shared/data, which is absent", path.display());
             continue;
         }
-        let mut scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
-        let scale = max_side as f64 / scene.image.width.max(scene.image.height) as f64;
-        scene.image.width = ((scene.image.width as f64 * scale).round() as u32).max(1);
-        scene.image.height = ((scene.image.height as f64 * scale).round() as u32).max(1);
+        let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
+        let (width, height) = (scene.image().width, scene.image().height);
+        let scale = max_side as f64 / width.max(height) as f64;
+        let shrink = |side: u32| ((side as f64 * scale).round() as u32).max(1);
+        let scene = scene.with_image_size(shrink(width), shrink(height)).unwrap_or_else(|e| panic!("{e}"));
         scenes.push((path, scene));
     }
     scenes
@@ -202,4 +276,118 @@ pub fn repo_root() -> PathBuf {
 pub fn write_f32(path: &Path, values: &[f32]) {
     let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
     std::fs::write(path, bytes).expect("write raw file");
+}
+
+/// Reads an RGB Portable FloatMap (as `Image::save` writes for `.pfm`), for comparing the
+/// unquantised output with expectations. Panics, naming the file, on anything malformed: a
+/// test that reads a broken PFM has failed.
+pub fn read_pfm(path: &Path) -> Image {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let bad = |what: &str| -> ! { panic!("{}: PFM {what}", path.display()) };
+    // Four whitespace-separated header fields, then exactly one whitespace byte.
+    let mut fields = Vec::new();
+    let mut pos = 0;
+    while fields.len() < 4 {
+        pos += bytes[pos..].iter().take_while(|b| b.is_ascii_whitespace()).count();
+        let len = bytes[pos..].iter().take_while(|b| !b.is_ascii_whitespace()).count();
+        if len == 0 {
+            bad("header is truncated");
+        }
+        fields.push(String::from_utf8_lossy(&bytes[pos..pos + len]).into_owned());
+        pos += len;
+    }
+    if fields[0] != "PF" {
+        bad("magic is not PF (only RGB PFM is read)");
+    }
+    let w: usize = fields[1].parse().unwrap_or_else(|_| bad("width"));
+    let h: usize = fields[2].parse().unwrap_or_else(|_| bad("height"));
+    let scale: f64 = fields[3].parse().unwrap_or_else(|_| bad("scale"));
+    let data = bytes.get(pos + 1..pos + 1 + w * h * 12).unwrap_or_else(|| bad("data is truncated"));
+    let value = |i: usize| {
+        let b: [u8; 4] = data[i * 4..i * 4 + 4].try_into().expect("4 bytes");
+        (if scale < 0.0 { f32::from_le_bytes(b) } else { f32::from_be_bytes(b) }) as f64
+    };
+    // Rows are stored bottom to top.
+    let pixels = (0..w * h)
+        .map(|i| {
+            let (row, col) = (i / w, i % w);
+            let src = 3 * ((h - 1 - row) * w + col);
+            [value(src), value(src + 1), value(src + 2)]
+        })
+        .collect();
+    Image::new(w as u32, h as u32, pixels)
+}
+
+/// The text of example scene `path` as a farm job: every dataset path rewritten as a key
+/// under `data` (its path relative to `data`, which must hold it), and the image shrunk so
+/// its longer side is `max_side` pixels, as [`example_scenes`] shrinks it.
+pub fn keyed_scene_text(path: &Path, data: &Path, max_side: u32) -> String {
+    let text = std::fs::read_to_string(path).expect("read scene");
+    let mut table: toml::Table = text.parse().unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let folder = path.parent().expect("a scene file has a folder");
+    let data = data.canonicalize().expect("data folder");
+    let key = |value: &mut toml::Value| {
+        let rel = value.as_str().expect("a path string");
+        let full = folder.join(rel).canonicalize().unwrap_or_else(|e| panic!("{rel}: {e}"));
+        let key = full.strip_prefix(&data).unwrap_or_else(|_| panic!("{rel} is not under {}", data.display()));
+        *value = toml::Value::String(key.to_string_lossy().replace('\\', "/"));
+    };
+    for d in table.get_mut("datasets").and_then(|v| v.as_array_mut()).into_iter().flatten() {
+        let d = d.as_table_mut().expect("dataset table");
+        for field in ["file", "image"] {
+            if let Some(v) = d.get_mut(field) {
+                key(v);
+            }
+        }
+        for c in
+            d.get_mut("channels").and_then(|v| v.as_table_mut()).into_iter().flat_map(|t| t.iter_mut().map(|(_, v)| v))
+        {
+            for field in ["raw", "nrrd"] {
+                if let Some(v) = c.get_mut(field) {
+                    key(v);
+                }
+            }
+        }
+    }
+    let image = table.get_mut("image").and_then(|v| v.as_table_mut()).expect("[image]");
+    let (w, h) = (image["width"].as_integer().unwrap() as f64, image["height"].as_integer().unwrap() as f64);
+    let scale = max_side as f64 / w.max(h);
+    image.insert("width".into(), toml::Value::Integer(((w * scale).round() as i64).max(1)));
+    image.insert("height".into(), toml::Value::Integer(((h * scale).round() as i64).max(1)));
+    toml::to_string(&table).expect("serialise scene")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_header_is_the_scene_format_s_image_and_camera() {
+        let h = Header::new(7, [0.5, 0.5, 3.0], [0.5, 0.5, 0.5], 25.0).size(7, 5).background([0.2, 0.4, 0.6]);
+        let text = h.to_string();
+        assert!(text.contains("width = 7\nheight = 5\n") && text.contains("fov_y = 25.0\n"), "{text}");
+        let scene = trove_core::scene::Scene::parse(&text, "header.toml").unwrap_or_else(|e| panic!("{e}\n{text}"));
+        assert_eq!((scene.image().width, scene.image().height, scene.image().background), (7, 5, [0.2, 0.4, 0.6]));
+        let ray = scene.camera().ray(3, 2, 7, 5);
+        assert_eq!(ray.origin.to_array(), [0.5, 0.5, 3.0]);
+        assert!((ray.dir.to_array()[2] + 1.0).abs() < 1e-12, "the centre ray looks down −z: {:?}", ray.dir);
+    }
+
+    #[test]
+    fn a_saved_pfm_reads_back_to_f32_precision_with_row_zero_on_top() {
+        let img = Image::new(
+            2,
+            3,
+            vec![[0.1, 0.2, 0.3], [0.4, 0.5, 0.6], [0.7, 0.8, 0.9], [1.5, -0.5, 0.0], [0.0; 3], [1.0; 3]],
+        );
+        let path = scratch("pfm").join("img.pfm");
+        img.save(&path).expect("save");
+        let back = read_pfm(&path);
+        assert_eq!((back.width(), back.height()), (2, 3));
+        for (a, b) in img.pixels().iter().zip(back.pixels()) {
+            for i in 0..3 {
+                assert!((a[i] - b[i]).abs() < 1e-7, "{a:?} vs {b:?}");
+            }
+        }
+    }
 }

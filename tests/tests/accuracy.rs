@@ -1,9 +1,9 @@
-//! Convergence against the closed-form reference scenes of `trove_core::reference`: cheap
-//! versions of what `trove bench accuracy` measures at full size, as tests (no timings).
+//! Convergence against the closed-form reference scenes of `trove_tests::reference`: cheap
+//! versions of what `trove-bench accuracy` measures at full size, as tests (no timings).
 
 use trove_core::interp::Interpolation;
-use trove_core::reference::{log_log_slope, rmse_and_max, Reference, Setup};
 use trove_core::render::{render, Algorithm, RenderOptions};
+use trove_tests::reference::{log_log_slope, rmse_and_max, Reference, Setup};
 
 /// The red channel (= accumulated opacity: white objects on black) of a reference render.
 fn render_alpha(r: Reference, s: &Setup) -> Vec<f64> {
@@ -15,7 +15,7 @@ fn render_alpha(r: Reference, s: &Setup) -> Vec<f64> {
 
 fn exact(r: Reference, s: &Setup) -> Vec<f64> {
     let scene = r.scene(s).expect("scene");
-    r.exact_image(&scene.camera, s.image_side, s.image_side)
+    r.exact_image(scene.camera(), s.image_side, s.image_side)
 }
 
 fn setup(dims: u32, interpolation: Interpolation, step_voxels: f64, opacity_correction: bool) -> Setup {
@@ -26,7 +26,7 @@ fn setup(dims: u32, interpolation: Interpolation, step_voxels: f64, opacity_corr
 fn trilinear_with_opacity_correction_converges_at_second_order_on_a_gaussian() {
     // The sampling error against a render of the same voxels at 1/256 voxel, over steps ¼ …
     // 1/32 voxel (at 1 and ½ voxel the samples are commensurate with the grid and errors
-    // partly cancel, see `trove bench accuracy`). The midpoint rule's order is 2.
+    // partly cancel, see `trove-bench accuracy`). The midpoint rule's order is 2.
     let g = Reference::Gaussian;
     let converged = render_alpha(g, &setup(16, Interpolation::Trilinear, 1.0 / 256.0, true));
     let points: Vec<(f64, f64)> = [0.25, 0.125, 1.0 / 16.0, 1.0 / 32.0]

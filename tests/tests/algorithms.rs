@@ -5,10 +5,11 @@
 
 use std::path::Path;
 
+use trove_core::render::StoreError;
 use trove_core::render::{Algorithm, Rendered};
 use trove_core::scene::Scene;
 use trove_core::RenderError;
-use trove_tests::{example_scenes, max_abs_difference, render_with, scratch, write_f32};
+use trove_tests::{example_scenes, max_abs_difference, render_with, scratch, write_f32, Header};
 
 fn parse(dir: &Path, text: &str) -> Scene {
     Scene::parse(text, dir.join("scene.toml")).unwrap_or_else(|e| panic!("scene: {e}"))
@@ -21,21 +22,8 @@ fn both(scene: &Scene, budget: Option<u64>) -> (Rendered, Rendered) {
 }
 
 fn header(size: u32, termination: f64) -> String {
-    format!(
-        r#"
-[image]
-width = {size}
-height = {size}
-background = [0.1, 0.2, 0.3]
-[camera]
-eye = [0.0, 0.6, 4.0]
-target = [0.0, 0.0, 0.0]
-up = [0, 1, 0]
-fov_y = 40.0
-[render]
-termination = {termination}
-"#
-    )
+    let header = Header::new(size, [0.0, 0.6, 4.0], [0.0, 0.0, 0.0], 40.0).background([0.1, 0.2, 0.3]);
+    format!("{header}[render]\ntermination = {termination}\n")
 }
 
 /// `count` generated datasets `d0..`, each `n`³ f32 (a radial sphere of a different size).
@@ -175,6 +163,57 @@ fn grouped_early_termination_casts_about_as_many_samples_as_per_ray() {
     }
 }
 
+/// A wide slab of `depth` in z from `z0`, covering x and y over [−1, 2], of a constant
+/// dataset `dataset`, with constant opacity `opacity` and an explicit sampling distance.
+fn constant_slab(name: &str, dataset: &str, z0: f64, depth: f64, opacity: f64, step: f64) -> String {
+    format!(
+        "[[datasets]]\nname = \"{dataset}\"\ndims = [2, 2, 2]\n[datasets.channels.voxel]\n\
+         generator = {{ kind = \"constant\", value = 0.0 }}\n\
+         [[objects]]\nname = \"{name}\"\ndataset = \"{dataset}\"\n\
+         colour = {{ type = \"constant\", red = [1.0], green = [1.0], blue = [1.0] }}\n\
+         opacity = {{ type = \"constant\", coefficients = [{opacity:?}] }}\nsampling_distance = {step:?}\n\
+         transform = {{ matrix = [[3, 0, 0, -1], [0, 3, 0, -1], [0, 0, {depth:?}, {z0:?}], [0, 0, 0, 1]] }}\n"
+    )
+}
+
+#[test]
+fn samples_skipped_counts_every_sample_position_hidden_behind_an_opaque_object() {
+    // Every ray meets an opaque slab (z in [1, 1.2]; its first sample makes the ray opaque)
+    // and then a translucent one (z in [0, 0.5]) that it never casts. Each of those rays skips
+    // exactly the back slab's SPEC §4.2 sample count, computed here from SPEC §4.1's rays.
+    let (side, fov, step, depth) = (9u32, 20.0f64, 0.0173, 0.5);
+    let text = Header::new(side, [0.5, 0.5, 3.0], [0.5, 0.5, 0.0], fov).to_string()
+        + "[render]\ntermination = 0.999\n"
+        + &constant_slab("front", "a", 1.0, 0.2, 1.0, 0.05)
+        + &constant_slab("back", "b", 0.0, depth, 0.1, step);
+    let scene = parse(&scratch("alg-skipped"), &text);
+    let s = (fov.to_radians() / 2.0).tan();
+    let mut expected = 0u64;
+    for row in 0..side {
+        for col in 0..side {
+            // The camera looks down −z with +y up, so dir ∝ (x·s, y·s, −1).
+            let x = (2.0 * (col as f64 + 0.5) / side as f64 - 1.0) * s;
+            let y = (1.0 - 2.0 * (row as f64 + 0.5) / side as f64) * s;
+            // The ray crosses the back slab through its front and back faces (|x|, |y| stay
+            // far inside [−1, 2]), over a length depth / |dir.z|.
+            let samples = depth * (1.0 + x * x + y * y).sqrt() / step;
+            assert!(((samples.fract()) - 0.5).abs() > 1e-6, "pixel ({col}, {row}) sits on a rounding tie");
+            expected += samples.round().max(1.0) as u64;
+        }
+    }
+    let pixels = (side * side) as u64;
+    for algorithm in [Algorithm::PerRay, Algorithm::Grouped] {
+        let r = render_with(&scene, algorithm, None).unwrap_or_else(|e| panic!("{e}"));
+        let name = algorithm.name();
+        assert_eq!(r.stats.samples_skipped, expected, "{name}: samples skipped behind the opaque slab");
+        if algorithm == Algorithm::PerRay {
+            // One sample in the front slab per ray, and nothing cast behind it.
+            assert_eq!(r.stats.samples, pixels, "{name}: samples cast");
+        }
+        assert!(r.image.pixels().iter().all(|p| *p == [1.0; 3]), "{name}: every pixel is the white front slab");
+    }
+}
+
 /// Four datasets of 24³ f32 in rows, so rays alternate between them; with the total bytes
 /// they occupy once loaded (55 296 voxel bytes each plus their macrocell ranges).
 fn budget_scene(dir: &Path) -> (Scene, u64) {
@@ -190,7 +229,7 @@ fn budget_scene(dir: &Path) -> (Scene, u64) {
         }
     }
     let scene = parse(dir, &text);
-    let total = scene.datasets[..4].iter().map(|d| d.resident_bytes()).sum();
+    let total = scene.datasets()[..4].iter().map(|d| d.resident_bytes()).sum();
     assert!(total > 4 * 24u64.pow(3) * 4);
     (scene, total)
 }
@@ -265,10 +304,8 @@ fn a_budget_smaller_than_a_dataset_is_a_clear_error() {
     let (scene, total) = budget_scene(&scratch("alg-small"));
     for algorithm in [Algorithm::PerRay, Algorithm::Grouped] {
         match render_with(&scene, algorithm, Some(total / 4 - 1)) {
-            Err(e @ RenderError::BudgetTooSmall { .. }) => {
-                let message = e.to_string();
-                assert!(message.contains("`d0`") && message.contains("--memory-budget"), "{message}");
-                assert!(message.contains(&(total / 4).to_string()), "{message}");
+            Err(RenderError::Store(StoreError::BudgetTooSmall { name, needed, budget })) => {
+                assert_eq!((name.as_str(), needed, budget), ("d0", total / 4, total / 4 - 1));
             }
             Err(e) => panic!("{}: wrong error {e}", algorithm.name()),
             Ok(_) => panic!("{}: rendered under a budget smaller than a dataset", algorithm.name()),
@@ -287,7 +324,7 @@ fn under_a_budget_a_mapped_raw_file_is_read_into_memory_and_counted() {
         + &object("o", 0, [-0.5, -0.5, -0.5], 1.0, false);
     let scene = parse(&dir, &text);
     // The voxels and their macrocell ranges.
-    let bytes = scene.datasets[0].resident_bytes();
+    let bytes = scene.datasets()[0].resident_bytes();
     assert!(bytes > (n * n * n * 4) as u64);
     let mapped = render_with(&scene, Algorithm::Grouped, None).unwrap();
     let copied = render_with(&scene, Algorithm::Grouped, Some(bytes)).unwrap();

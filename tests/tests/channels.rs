@@ -2,21 +2,13 @@
 //! user channels included, so effects that use them can rely on them.
 
 use trove_core::dataset::{ChannelName, VoxelType};
-use trove_core::scene::Scene;
-use trove_tests::scratch;
+use trove_core::scene::{Scene, SceneErrorKind};
+use trove_tests::{scratch, Header};
 
 fn scene_with(channels: &str) -> String {
+    let header = Header::new(8, [0.5, 0.5, 3.0], [0.5, 0.5, 0.5], 30.0);
     format!(
-        r#"
-[image]
-width = 8
-height = 8
-background = [0, 0, 0]
-[camera]
-eye = [0.5, 0.5, 3]
-target = [0.5, 0.5, 0.5]
-up = [0, 1, 0]
-fov_y = 30
+        r#"{header}
 [[datasets]]
 name = "all"
 dims = [4, 3, 2]
@@ -51,8 +43,8 @@ fn all_sixteen_channels_load_with_their_types() {
     text += &channel("user3", "{ kind = \"constant\", value = 1, type = \"bit\" }");
     text += &channel("user4", "{ kind = \"constant\", value = 300, type = \"u16\" }");
     let scene = Scene::parse(&scene_with(&text), dir.join("scene.toml")).unwrap_or_else(|e| panic!("{e}"));
-    let info = &scene.datasets[0];
-    assert_eq!(info.channels.len(), 16);
+    let info = &scene.datasets()[0];
+    assert_eq!(info.channels().len(), 16);
     let volume = info.load().unwrap();
     let expect = |name: ChannelName, ty: VoxelType, value: f32| {
         let c = volume.channel(name).unwrap_or_else(|| panic!("{name} missing"));
@@ -69,7 +61,7 @@ fn all_sixteen_channels_load_with_their_types() {
     expect(ChannelName::User(3), VoxelType::Bit, 1.0);
     expect(ChannelName::User(4), VoxelType::U16, 300.0);
     // Raw colour prefers red/green/blue over grey and bit.
-    assert_eq!(scene.objects[0].colour, trove_core::mapping::ColourMap::Raw(trove_core::mapping::RawColour::Rgb));
+    assert_eq!(*scene.objects()[0].colour(), trove_core::mapping::ColourMap::Raw(trove_core::mapping::RawColour::Rgb));
 }
 
 #[test]
@@ -78,13 +70,17 @@ fn colour_model_channels_must_be_bytes() {
     for name in ["red2", "green2", "blue2", "beta", "interp", "alpha"] {
         let text = scene_with(&channel(name, "{ kind = \"constant\", value = 1.5 }"));
         let err = Scene::parse(&text, dir.join("scene.toml")).unwrap_err();
-        assert_eq!(err.key, format!("datasets[0].channels.{name}.generator"), "{err}");
-        assert!(err.message.contains("u8"), "{err}");
+        assert_eq!(err.key, Some(format!("datasets[0].channels.{name}.generator")), "{err}");
+        assert!(
+            matches!(err.kind, SceneErrorKind::ChannelType { got: VoxelType::F32, .. }),
+            "{name} must be u8: {err}"
+        );
     }
     let err = Scene::parse(
         &scene_with(&channel("bit", "{ kind = \"constant\", value = 1, type = \"u8\" }")),
         dir.join("s.toml"),
     )
     .unwrap_err();
-    assert_eq!(err.key, "datasets[0].channels.bit.generator");
+    assert_eq!(err.key.as_deref(), Some("datasets[0].channels.bit.generator"));
+    assert!(matches!(err.kind, SceneErrorKind::ChannelType { channel: ChannelName::Bit, got: VoxelType::U8 }), "{err}");
 }

@@ -2,8 +2,8 @@
 //! placements, convergence as the distortion vanishes, and refusal of folded boxes.
 
 use trove_core::geometry::Shape;
-use trove_core::scene::Scene;
-use trove_tests::{render_text, scratch};
+use trove_core::scene::{Scene, SceneErrorKind};
+use trove_tests::{render_text, scratch, Header};
 
 const M: [[f64; 4]; 3] = [[1.2, 0.3, 0.0, -0.7], [-0.2, 1.0, 0.1, -0.5], [0.1, 0.0, 0.9, -0.4]];
 
@@ -26,17 +26,9 @@ fn corners(distortion: f64) -> [[f64; 3]; 8] {
 }
 
 fn scene(transform: &str, extra_render: &str) -> String {
+    let header = Header::new(40, [0.6, 0.8, 3.5], [0.0, 0.0, 0.0], 45.0).background([0.1; 3]);
     format!(
-        r#"
-[image]
-width = 40
-height = 40
-background = [0.1, 0.1, 0.1]
-[camera]
-eye = [0.6, 0.8, 3.5]
-target = [0.0, 0.0, 0.0]
-up = [0, 1, 0]
-fov_y = 45.0
+        r#"{header}
 [render]
 termination = 1.0
 {extra_render}
@@ -87,7 +79,7 @@ fn a_slightly_distorted_box_converges_to_the_affine_one() {
         let text = scene(&corners_text(corners(eps)), "");
         let parsed = Scene::parse(&text, dir.join("scene.toml")).unwrap();
         assert!(
-            matches!(parsed.objects[0].placement.shape(), Shape::Distorted { .. }),
+            matches!(parsed.objects()[0].placement().shape(), Shape::Distorted { .. }),
             "ε = {eps} must take the distorted path"
         );
         let err = trove_tests::max_abs_difference(&render_text(&dir, &text), &affine);
@@ -122,6 +114,7 @@ fn a_folded_hexahedron_is_refused_naming_transform_corners() {
     let mut c = corners(0.0);
     c.swap(0, 7);
     let err = Scene::parse(&scene(&corners_text(c), ""), dir.join("scene.toml")).unwrap_err();
-    assert_eq!(err.key, "objects[0].transform.corners");
+    assert_eq!(err.key.as_deref(), Some("objects[0].transform.corners"));
+    assert!(matches!(err.kind, SceneErrorKind::Hexahedron(_)), "{err:?}");
     assert!(err.to_string().contains("scene.toml"), "{err}");
 }

@@ -4,12 +4,13 @@
 use glam::{DMat4, DVec3};
 use proptest::prelude::*;
 use trove_core::dataset::Dims;
-use trove_core::geometry::hexahedron::Hexahedron;
+use trove_core::geometry::hexahedron::{Hexahedron, HexahedronError};
 use trove_core::geometry::{Extent, Placement, Ray, Shape};
-use trove_core::reference::unit_cube_chord;
 use trove_core::render::{render, Image, RenderOptions};
 use trove_core::sampling::corrected_opacity;
-use trove_core::scene::Scene;
+use trove_core::scene::{Scene, SceneErrorKind};
+use trove_tests::reference::unit_cube_chord;
+use trove_tests::Header;
 
 /// Scene text: an image, a camera and `body` (datasets and objects).
 struct View {
@@ -27,17 +28,9 @@ impl View {
     }
 
     fn text(&self, body: &str) -> String {
-        format!(
-            "[image]\nwidth = {s}\nheight = {s}\nbackground = [0.0, 0.0, 0.0]\n\
-             [camera]\neye = {}\ntarget = {}\nup = {}\nfov_y = {:?}\n\
-             [render]\ntermination = 1.0\nopacity_correction = {}\n{body}",
-            v(self.eye),
-            v(self.target),
-            v(self.up),
-            self.fov,
-            self.correction,
-            s = self.side
-        )
+        let header =
+            Header::new(self.side, self.eye.to_array(), self.target.to_array(), self.fov).up(self.up.to_array());
+        format!("{header}[render]\ntermination = 1.0\nopacity_correction = {}\n{body}", self.correction)
     }
 }
 
@@ -285,7 +278,7 @@ fn a_box_seen_from_a_million_units_away_matches_its_chord_lengths() {
         let mut hit = 0;
         for row in 0..33 {
             for col in 0..33 {
-                let ray = scene.camera.ray(col, row, 33, 33);
+                let ray = scene.camera().ray(col, row, 33, 33);
                 let want = unit_cube_chord(ray.origin, ray.dir).map_or(0.0, |(a, b)| through(o, (b - a) * n as f64));
                 let got = img.pixel(col, row)[0];
                 hit += (want > 0.0) as u32;
@@ -314,7 +307,7 @@ fn sampling_distances_from_1e_minus_6_to_1e6_agree_with_the_closed_form() {
         let img = draw(&scene);
         for row in (0..33).step_by(4) {
             for col in (0..33).step_by(4) {
-                let ray = scene.camera.ray(col, row, 33, 33);
+                let ray = scene.camera().ray(col, row, 33, 33);
                 let (o_box, d_box) = (ray.origin / s, ray.dir / s);
                 let want = unit_cube_chord(o_box, d_box).map_or(0.0, |(a, b)| through(o, (b - a) * 16.0 / s));
                 assert!((img.pixel(col, row)[0] - want).abs() < 1e-9, "scale {s} ({col}, {row})");
@@ -348,7 +341,7 @@ fn a_camera_inside_a_box_or_on_its_boundary_sees_the_exact_depth() {
         let mut seen = 0;
         for row in 0..33 {
             for col in 0..33 {
-                let ray = scene.camera.ray(col, row, 33, 33);
+                let ray = scene.camera().ray(col, row, 33, 33);
                 let want = unit_cube_chord(ray.origin, ray.dir).map_or(0.0, |(a, b)| through(o, (b - a) * n as f64));
                 seen += (want > 0.0) as u32;
                 let got = img.pixel(col, row)[0];
@@ -385,7 +378,7 @@ fn a_box_a_millionth_as_thick_as_it_is_wide_gets_its_exact_voxel_depth() {
     let mut hit = 0;
     for row in 0..33 {
         for col in 0..33 {
-            let ray = scene.camera.ray(col, row, 33, 33);
+            let ray = scene.camera().ray(col, row, 33, 33);
             let (ob, db) = (inv.transform_point3(ray.origin), inv.transform_vector3(ray.dir));
             let want = unit_cube_chord(ob, db).map_or(0.0, |(a, b)| {
                 let dq = (b - a) * db;
@@ -456,17 +449,15 @@ fn boxes_approaching_a_fold_are_inverted_exactly_until_they_are_refused() {
             .text(&constant_box("f", [256; 3], 0.1, &transform, ""));
         match Scene::parse(&text, "numerics.toml") {
             Err(e) => {
-                let e = e.to_string();
-                assert!(
-                    e.contains("objects[0].transform.corners") && (e.contains("fold") || e.contains("degenerate")),
-                    "{e}"
-                );
+                assert_eq!(e.key.as_deref(), Some("objects[0].transform.corners"), "{e}");
+                // Folding or degenerate (the fold proof), or too close to folding to invert.
+                assert!(matches!(e.kind, SceneErrorKind::Hexahedron(_) | SceneErrorKind::Inversion(_)), "{e:?}");
                 refused.push(delta);
             }
             Ok(scene) => {
                 accepted.push(delta);
                 assert!(delta > 0.0, "a box with det J ≤ 0 at a corner was accepted (δ = {delta})");
-                let Shape::Distorted { hex, .. } = scene.objects[0].placement.shape() else { panic!("distorted") };
+                let Shape::Distorted { hex, .. } = scene.objects()[0].placement().shape() else { panic!("distorted") };
                 let tol_q = 1e-6 / 256.0;
                 for i in 0..=8 {
                     for j in 0..=8 {
@@ -490,8 +481,9 @@ fn a_folding_box_in_a_scene_is_refused_at_load_naming_its_corners() {
     let folded = "{ corners = [[0,0,0],[1,0,0],[0,1,0],[1,1,0],[0,0,1],[1,0,1],[0,1,1],[-0.5,-0.5,-0.5]] }";
     let text =
         View::new(DVec3::new(0.5, 0.5, 3.0), DVec3::splat(0.5), 30.0).text(&constant_box("f", [4; 3], 0.1, folded, ""));
-    let e = Scene::parse(&text, "numerics.toml").expect_err("a folding box must be refused").to_string();
-    assert!(e.contains("objects[0].transform.corners"), "{e}");
+    let e = Scene::parse(&text, "numerics.toml").expect_err("a folding box must be refused");
+    assert_eq!(e.key.as_deref(), Some("objects[0].transform.corners"), "{e}");
+    assert!(matches!(e.kind, SceneErrorKind::Hexahedron(HexahedronError::Folds { .. })), "{e:?}");
 }
 
 // ---------------------------------------------------------------------------------------
@@ -644,7 +636,7 @@ fn a_tiny_sampling_distance_is_refused_at_load_instead_of_rendering_for_hours() 
     let out = render(&scene, &f64_path()).unwrap();
     let expected: u64 = (0..9)
         .map(|i| {
-            let ray = scene.camera.ray(i % 3, i / 3, 3, 3);
+            let ray = scene.camera().ray(i % 3, i / 3, 3, 3);
             unit_cube_chord(ray.origin, ray.dir)
                 .map_or(0, |(a, b)| trove_core::geometry::sample_count(b - a, 1e-4, 0.0))
         })
@@ -744,7 +736,10 @@ fn a_matrix_and_its_eight_corners_render_the_same_and_tiny_distortions_converge_
     for bump in [1e-2, 1e-4, 1e-6] {
         let text = placed_blob(&corners_of(&m, DVec3::new(bump, -bump, bump)));
         let scene = parse(&text);
-        assert!(matches!(scene.objects[0].placement.shape(), Shape::Distorted { .. }), "bump {bump} must be distorted");
+        assert!(
+            matches!(scene.objects()[0].placement().shape(), Shape::Distorted { .. }),
+            "bump {bump} must be distorted"
+        );
         diffs.push(max_diff(&by_matrix, &draw(&scene)));
     }
     assert!(diffs[2] < 1e-5 && diffs[1] < diffs[0] && diffs[2] < diffs[1], "{diffs:?}");

@@ -6,9 +6,9 @@
 //! `trove-core/src/sampling/tests.rs`.
 
 use trove_core::interp::Interpolation;
-use trove_core::reference::{Reference, Setup};
 use trove_core::sampling::ObjectCaster;
 use trove_core::scene::Scene;
+use trove_tests::reference::{Reference, Setup};
 use trove_tests::{assert_sampler_paths_agree, example_scenes, render_with_cast_options, repo_root, SAMPLER_PATHS};
 
 #[test]
@@ -35,9 +35,7 @@ fn the_peers_benchmark_scenes_render_alike_and_skip_empty_space() {
             eprintln!("skipping {}: its data is absent (see the scene's comment)", path.display());
             continue;
         }
-        let mut scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
-        scene.image.width = 48;
-        scene.image.height = 48;
+        let scene = Scene::load(&path).and_then(|s| s.with_image_size(48, 48)).unwrap_or_else(|e| panic!("{e}"));
         assert_sampler_paths_agree(&scene);
         let (_, with_skipping) = render_with_cast_options(&scene, SAMPLER_PATHS[0]);
         let (_, without) = render_with_cast_options(&scene, SAMPLER_PATHS[3]);
@@ -71,9 +69,9 @@ fn example_scenes_use_specialised_loops() {
     // general loop keeps (bit voxels, mixed raw and voxel maps).
     let (mut specialised, mut objects) = (0, 0);
     for (path, scene) in example_scenes(8) {
-        let volumes: Vec<_> = scene.datasets.iter().map(|d| d.load().expect("load")).collect();
-        for o in &scene.objects {
-            let caster = ObjectCaster::new(o, &volumes[o.dataset], scene.render.opacity_correction)
+        let volumes: Vec<_> = scene.datasets().iter().map(|d| d.load().expect("load")).collect();
+        for o in scene.objects() {
+            let caster = ObjectCaster::new(o, &volumes[o.dataset()], scene.render().opacity_correction)
                 .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
             objects += 1;
             specialised += usize::from(caster.is_specialised());

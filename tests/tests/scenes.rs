@@ -10,7 +10,7 @@ fn every_example_scene_renders_at_reduced_size() {
     assert!(count >= 9, "expected the example and figure scenes, found {count} files");
     for (path, scene) in example_scenes(48) {
         let out = render(&scene, &RenderOptions::default()).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-        let background = scene.image.background;
+        let background = scene.image().background;
         let px = out.image.pixels();
         assert!(px.iter().flatten().all(|c| c.is_finite()), "{}: non-finite pixel", path.display());
         let covered = px.iter().filter(|p| **p != background).count();

@@ -2,28 +2,14 @@
 //! scene parser, checked on Algorithm 1 (f64 end to end) and held to it for Algorithm 2.
 
 use trove_core::render::Image;
-use trove_tests::{render_text, scratch, write_f32};
+use trove_tests::{render_text, scratch, write_f32, Header};
 
 const W: u32 = 33;
 
 /// A camera looking down −z at the unit box's centre, plus `body`.
 fn scene(termination: f64, correction: bool, body: &str) -> String {
-    format!(
-        r#"
-[image]
-width = {W}
-height = {W}
-background = [0.2, 0.4, 0.6]
-[camera]
-eye = [0.5, 0.5, 3.0]
-target = [0.5, 0.5, 0.5]
-up = [0, 1, 0]
-fov_y = 20.0
-[render]
-termination = {termination}
-opacity_correction = {correction}
-{body}"#
-    )
+    let header = Header::new(W, [0.5, 0.5, 3.0], [0.5, 0.5, 0.5], 20.0).background([0.2, 0.4, 0.6]);
+    format!("{header}[render]\ntermination = {termination}\nopacity_correction = {correction}\n{body}")
 }
 
 /// The ray direction of pixel (col, row) for the camera above (SPEC §4.1).

@@ -4,113 +4,19 @@
 //! Every message names the file and, for scenes, the TOML key path, so a user can find the
 //! mistake without reading our code.
 
-use std::path::PathBuf;
+pub use crate::dataset::DatasetError;
+pub use crate::scene::{SceneError, SceneErrorKind};
 
-use thiserror::Error;
-
-/// A scene file that cannot be rendered as written.
-#[derive(Debug, Error)]
-#[error("{}: {key}: {message}", file.display())]
-pub struct SceneError {
-    /// The scene file.
-    pub file: PathBuf,
-    /// TOML path of the offending key, e.g. `objects[3].opacity.bounds`.
-    pub key: String,
-    /// What was wrong and what was expected.
-    pub message: String,
-}
-
-impl SceneError {
-    /// An error at `key` of `file`.
-    pub fn new(file: impl Into<PathBuf>, key: impl Into<String>, message: impl Into<String>) -> Self {
-        SceneError { file: file.into(), key: key.into(), message: message.into() }
+/// `error: cause: its cause…` on one line, as anyhow's `{:#}` prints a chain: for code that
+/// has to keep an error as text. Each error displays only its own level and names the rest as
+/// its source, so this shows every level once.
+pub fn with_causes(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        text.push_str(": ");
+        text.push_str(&c.to_string());
+        cause = c.source();
     }
-}
-
-/// A dataset file that cannot be read, or whose header, size and dims disagree.
-#[derive(Debug, Error)]
-pub enum DatasetError {
-    /// The file could not be opened or read.
-    #[error("cannot read {}: {source}", path.display())]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// What the OS said.
-        #[source]
-        source: std::io::Error,
-    },
-    /// The byte count differs from what dims × type need.
-    #[error("{} holds {actual} bytes of voxel data but {what} needs exactly {expected} bytes", path.display())]
-    SizeMismatch {
-        /// The file.
-        path: PathBuf,
-        /// Bytes the header/dims call for.
-        expected: u64,
-        /// Bytes actually present.
-        actual: u64,
-        /// What makes the expectation, e.g. `dims [256, 256, 113] of u16`.
-        what: String,
-    },
-    /// A header is malformed or disagrees with the scene.
-    #[error("{}: {message}", path.display())]
-    Format {
-        /// The file.
-        path: PathBuf,
-        /// What is wrong.
-        message: String,
-    },
-}
-
-impl DatasetError {
-    /// A format error in `path`.
-    pub fn format(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
-        DatasetError::Format { path: path.into(), message: message.into() }
-    }
-
-    /// An I/O error on `path`.
-    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        DatasetError::Io { path: path.into(), source }
-    }
-}
-
-/// A failure while rendering a valid scene.
-#[derive(Debug, Error)]
-pub enum RenderError {
-    /// Loading a dataset's voxels failed (the file changed since the scene was validated,
-    /// or a budget cannot hold it).
-    #[error("dataset `{name}`: {source}")]
-    Dataset {
-        /// The dataset's name in the scene.
-        name: String,
-        /// Why.
-        #[source]
-        source: DatasetError,
-    },
-    /// A memory budget too small for what must be resident at once.
-    #[error("memory budget of {budget} bytes cannot hold dataset `{name}` ({needed} bytes); raise --memory-budget")]
-    BudgetTooSmall {
-        /// The dataset.
-        name: String,
-        /// Its resident size.
-        needed: u64,
-        /// The budget.
-        budget: u64,
-    },
-    /// An object could not be bound to the volume loaded for its dataset.
-    #[error("object `{object}`: {source}")]
-    Bind {
-        /// The object's name.
-        object: String,
-        /// Why.
-        #[source]
-        source: crate::sampling::BindError,
-    },
-    /// Writing the output failed.
-    #[error("cannot write {}: {message}", path.display())]
-    Output {
-        /// The output file.
-        path: PathBuf,
-        /// Why.
-        message: String,
-    },
+    text
 }

@@ -10,8 +10,7 @@
 //! front-to-back waves, composition — over a volume store with a memory budget; the image
 //! and statistics they yield).
 //! [`dataset`] is the voxel level: channels stored once and shared by every object that
-//! names them. [`reference`] builds scenes whose ray integrals have closed forms, against
-//! which the accuracy benchmark and tests measure the renderer.
+//! names them.
 #![deny(missing_docs)]
 
 pub mod composite;
@@ -20,9 +19,9 @@ pub mod error;
 pub mod geometry;
 pub mod interp;
 pub mod mapping;
-pub mod reference;
 pub mod render;
 pub mod sampling;
 pub mod scene;
 
-pub use error::{DatasetError, RenderError, SceneError};
+pub use error::{DatasetError, SceneError};
+pub use render::RenderError;

@@ -4,8 +4,20 @@ use std::fmt;
 use std::sync::Arc;
 
 use memmap2::Mmap;
+use thiserror::Error;
 
 use super::Dims;
+
+/// Bytes that do not hold exactly `dims` voxels of a channel's type ([`Channel::new`]).
+/// Callers that know the file add its name (`DatasetError::SizeMismatch`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Error)]
+#[error("{actual} bytes do not hold the voxels, which need exactly {expected} bytes")]
+pub struct ChannelSizeError {
+    /// Bytes `dims` voxels of the type need.
+    pub expected: u64,
+    /// Bytes given.
+    pub actual: u64,
+}
 
 /// How one voxel of a channel is stored (SPEC §1.1).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -234,25 +246,24 @@ pub struct Channel {
 }
 
 impl Channel {
-    /// Wraps `bytes`; `Err((expected, actual))` byte counts when they do not hold exactly
-    /// `dims` voxels of `ty`.
-    pub fn new(ty: VoxelType, endian: Endian, bytes: VoxelBytes, dims: Dims) -> Result<Channel, (u64, u64)> {
+    /// Wraps `bytes`, refusing them unless they hold exactly `dims` voxels of `ty`.
+    pub fn new(ty: VoxelType, endian: Endian, bytes: VoxelBytes, dims: Dims) -> Result<Channel, ChannelSizeError> {
         let expected = ty.byte_len(dims.voxel_count()).unwrap_or(u64::MAX);
         let actual = bytes.as_slice().len() as u64;
         if expected != actual {
-            return Err((expected, actual));
+            return Err(ChannelSizeError { expected, actual });
         }
         Ok(Channel { ty, endian, bytes, voxels: dims.voxel_count() as usize })
     }
 
     /// An owned f32 channel (little-endian storage).
-    pub fn from_f32(values: &[f32], dims: Dims) -> Result<Channel, (u64, u64)> {
+    pub fn from_f32(values: &[f32], dims: Dims) -> Result<Channel, ChannelSizeError> {
         let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
         Channel::new(VoxelType::F32, Endian::Little, VoxelBytes::Owned(Arc::new(bytes)), dims)
     }
 
     /// An owned u8 channel.
-    pub fn from_u8(values: Vec<u8>, dims: Dims) -> Result<Channel, (u64, u64)> {
+    pub fn from_u8(values: Vec<u8>, dims: Dims) -> Result<Channel, ChannelSizeError> {
         Channel::new(VoxelType::U8, Endian::Little, VoxelBytes::Owned(Arc::new(values)), dims)
     }
 

@@ -32,53 +32,133 @@
 use std::sync::Arc;
 
 use serde::Deserialize;
+use thiserror::Error;
 
 use super::{Channel, Dims, Endian, VoxelBytes, VoxelType};
 
-/// The storage type of a generated channel (`type` key).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum SampleType {
-    /// One bit per voxel (values 0 or 1).
-    Bit,
-    /// Unsigned 8-bit.
-    U8,
-    /// Unsigned 16-bit.
-    U16,
-    /// Unsigned 32-bit.
-    U32,
-    /// IEEE single precision.
-    F32,
+/// Largest value `ty` stores: the integer types' maximum, or the largest finite f32.
+fn max_value(ty: VoxelType) -> f64 {
+    match ty {
+        VoxelType::Bit => 1.0,
+        VoxelType::U8 => u8::MAX as f64,
+        VoxelType::U16 => u16::MAX as f64,
+        VoxelType::U32 => u32::MAX as f64,
+        VoxelType::F32 => f32::MAX as f64,
+    }
 }
 
-impl SampleType {
-    /// The channel's voxel type.
-    pub fn voxel_type(self) -> VoxelType {
-        match self {
-            SampleType::Bit => VoxelType::Bit,
-            SampleType::U8 => VoxelType::U8,
-            SampleType::U16 => VoxelType::U16,
-            SampleType::U32 => VoxelType::U32,
-            SampleType::F32 => VoxelType::F32,
+/// Whether `v` is stored in `ty` without clamping (after rounding, for integer types).
+fn fits(ty: VoxelType, v: f64) -> bool {
+    match ty {
+        VoxelType::F32 => v.is_finite() && v.abs() <= max_value(ty),
+        _ => v.is_finite() && (0.0..=max_value(ty)).contains(&v.round()),
+    }
+}
+
+/// The range a value of `ty` must lie in, for messages.
+struct Range(VoxelType);
+
+impl std::fmt::Display for Range {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.0 {
+            VoxelType::F32 => f.write_str("the finite f32 range"),
+            ty => write!(f, "0..={} once rounded", max_value(ty)),
         }
     }
+}
 
-    /// Largest storable value (integer types), or the largest finite f32.
-    fn max(self) -> f64 {
-        match self {
-            SampleType::Bit => 1.0,
-            SampleType::U8 => u8::MAX as f64,
-            SampleType::U16 => u16::MAX as f64,
-            SampleType::U32 => u32::MAX as f64,
-            SampleType::F32 => f32::MAX as f64,
-        }
-    }
+/// Why a generator table or its parameters were refused. Each names the key it is about
+/// ([`GeneratorError::key`]), so the scene loader can extend the key path without reading
+/// the message.
+#[derive(Clone, Debug, PartialEq, Error)]
+pub enum GeneratorError {
+    /// A key that another kind takes.
+    #[error("key `{key}` does not apply to kind `{kind}` (its keys: {})", keys.join(", "))]
+    KeyNotForKind {
+        /// The key given.
+        key: &'static str,
+        /// The generator's kind.
+        kind: &'static str,
+        /// The keys this kind takes.
+        keys: &'static [&'static str],
+    },
+    /// A required key is absent.
+    #[error("kind `{kind}` needs key `{key}`")]
+    MissingKey {
+        /// The generator's kind.
+        kind: &'static str,
+        /// The key it needs.
+        key: &'static str,
+    },
+    /// `type` is not a storage type.
+    #[error("expected bit, u8, u16, u32 or f32, got \"{got}\"")]
+    UnknownType {
+        /// The text given.
+        got: String,
+    },
+    /// A NaN or infinite number.
+    #[error("`{key}` = {value}: must be a finite number")]
+    NotFinite {
+        /// The key.
+        key: &'static str,
+        /// Its value.
+        value: f64,
+    },
+    /// A radius or width that must be positive is not.
+    #[error("`{key}` = {value}: must be greater than 0")]
+    NotPositive {
+        /// The key.
+        key: &'static str,
+        /// Its value.
+        value: f64,
+    },
+    /// A weight that must not be negative is.
+    #[error("`{key}` = {value}: must be at least 0")]
+    Negative {
+        /// The key.
+        key: &'static str,
+        /// Its value.
+        value: f64,
+    },
+    /// A value the storage type cannot hold.
+    #[error("`{key}` = {value} does not fit type {ty}: must be within {}", Range(*ty))]
+    DoesNotFit {
+        /// The key.
+        key: &'static str,
+        /// Its value.
+        value: f64,
+        /// The storage type.
+        ty: VoxelType,
+    },
+    /// A chessboard with zero squares along an axis.
+    #[error("`squares` = {squares:?}: every entry must be at least 1")]
+    ZeroSquares {
+        /// The value given.
+        squares: [u32; 3],
+    },
+    /// The generated channel would not fit in memory.
+    #[error("dims {dims} of {ty} do not fit in memory")]
+    TooLarge {
+        /// The dataset's dims.
+        dims: Dims,
+        /// The channel's type.
+        ty: VoxelType,
+    },
+}
 
-    /// Whether `v` is stored without clamping (after rounding, for integer types).
-    fn fits(self, v: f64) -> bool {
+impl GeneratorError {
+    /// The generator key the error is about; `None` when it concerns the generator as a whole.
+    pub fn key(&self) -> Option<&'static str> {
         match self {
-            SampleType::F32 => v.is_finite() && v.abs() <= self.max(),
-            _ => v.is_finite() && (0.0..=self.max()).contains(&v.round()),
+            GeneratorError::KeyNotForKind { key, .. }
+            | GeneratorError::MissingKey { key, .. }
+            | GeneratorError::NotFinite { key, .. }
+            | GeneratorError::NotPositive { key, .. }
+            | GeneratorError::Negative { key, .. }
+            | GeneratorError::DoesNotFit { key, .. } => Some(key),
+            GeneratorError::UnknownType { .. } => Some("type"),
+            GeneratorError::ZeroSquares { .. } => Some("squares"),
+            GeneratorError::TooLarge { .. } => None,
         }
     }
 }
@@ -154,11 +234,12 @@ impl Axis {
 
 /// A generated channel; see the module documentation for the reference.
 ///
-/// Deserialised through a flat table (`kind` plus every key any kind takes) rather than a
-/// serde internally tagged enum: a tagged enum buffers its fields, and the scene's error path
-/// (SPEC §1: `datasets[0].channels.voxel.generator.radius`) would then stop at `generator`.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
-#[serde(try_from = "GeneratorTable")]
+/// Read from a scene through a flat [`GeneratorTable`] (`kind` plus every key any kind
+/// takes) rather than a serde internally tagged enum: a tagged enum buffers its fields, and
+/// the scene's error path (SPEC §1: `datasets[0].channels.voxel.generator.radius`) would then
+/// stop at `generator`. The table is converted by `TryFrom`, outside serde, so that its
+/// errors stay typed and name their key.
+#[derive(Clone, Debug, PartialEq)]
 pub enum Generator {
     /// A solid or radially graded sphere.
     Sphere {
@@ -171,7 +252,7 @@ pub enum Generator {
         /// Solid or radial.
         profile: Profile,
         /// Storage type (the `type` key).
-        ty: SampleType,
+        ty: VoxelType,
     },
     /// A 3-D chessboard as a bit channel.
     Chessboard {
@@ -187,7 +268,7 @@ pub enum Generator {
         /// Value at NVC 1 of the axis.
         to: f64,
         /// Storage type (the `type` key).
-        ty: SampleType,
+        ty: VoxelType,
     },
     /// The Marschner–Lobb test function (f32, values in [0, 1]).
     MarschnerLobb {
@@ -210,7 +291,7 @@ pub enum Generator {
         /// The value (required).
         value: f64,
         /// Storage type (the `type` key).
-        ty: SampleType,
+        ty: VoxelType,
     },
 }
 
@@ -226,17 +307,18 @@ enum Kind {
     Constant,
 }
 
-/// A generator as written: `kind` and any keys, checked against the kind in `try_from`.
-#[derive(Deserialize)]
+/// A generator as written in a scene: `kind` and any keys, checked against the kind by
+/// `Generator::try_from`.
+#[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
-struct GeneratorTable {
+pub struct GeneratorTable {
     kind: Kind,
     centre: Option<[f64; 3]>,
     radius: Option<f64>,
     value: Option<f64>,
     profile: Option<Profile>,
     #[serde(rename = "type")]
-    ty: Option<SampleType>,
+    ty: Option<String>,
     squares: Option<[u32; 3]>,
     axis: Option<Axis>,
     from: Option<f64>,
@@ -248,9 +330,9 @@ struct GeneratorTable {
 }
 
 impl TryFrom<GeneratorTable> for Generator {
-    type Error = String;
+    type Error = GeneratorError;
 
-    fn try_from(t: GeneratorTable) -> Result<Generator, String> {
+    fn try_from(t: GeneratorTable) -> Result<Generator, GeneratorError> {
         let (kind, keys): (&str, &[&str]) = match t.kind {
             Kind::Sphere => ("sphere", &["centre", "radius", "value", "profile", "type"]),
             Kind::Chessboard => ("chessboard", &["squares"]),
@@ -274,23 +356,27 @@ impl TryFrom<GeneratorTable> for Generator {
             ("sigma", t.sigma.is_some()),
             ("peak", t.peak.is_some()),
         ];
-        if let Some((key, _)) = given.iter().find(|(k, g)| *g && !keys.contains(k)) {
-            return Err(format!("key `{key}` does not apply to kind `{kind}` (its keys: {})", keys.join(", ")));
+        if let Some(&(key, _)) = given.iter().find(|(k, g)| *g && !keys.contains(k)) {
+            return Err(GeneratorError::KeyNotForKind { key, kind, keys });
         }
+        let ty = |default: VoxelType| match &t.ty {
+            None => Ok(default),
+            Some(text) => VoxelType::parse(text).ok_or_else(|| GeneratorError::UnknownType { got: text.clone() }),
+        };
         Ok(match t.kind {
             Kind::Sphere => Generator::Sphere {
                 centre: t.centre.unwrap_or([0.5; 3]),
                 radius: t.radius.unwrap_or(0.5),
                 value: t.value.unwrap_or(255.0),
                 profile: t.profile.unwrap_or_default(),
-                ty: t.ty.unwrap_or(SampleType::U8),
+                ty: ty(VoxelType::U8)?,
             },
             Kind::Chessboard => Generator::Chessboard { squares: t.squares.unwrap_or([8, 8, 1]) },
             Kind::Ramp => Generator::Ramp {
                 axis: t.axis.unwrap_or_default(),
                 from: t.from.unwrap_or(0.0),
                 to: t.to.unwrap_or(1.0),
-                ty: t.ty.unwrap_or(SampleType::F32),
+                ty: ty(VoxelType::F32)?,
             },
             Kind::MarschnerLobb => Generator::MarschnerLobb { fm: t.fm.unwrap_or(6.0), alpha: t.alpha.unwrap_or(0.25) },
             Kind::Gaussian => Generator::Gaussian {
@@ -299,8 +385,8 @@ impl TryFrom<GeneratorTable> for Generator {
                 peak: t.peak.unwrap_or(1.0),
             },
             Kind::Constant => Generator::Constant {
-                value: t.value.ok_or("kind `constant` needs key `value`")?,
-                ty: t.ty.unwrap_or(SampleType::F32),
+                value: t.value.ok_or(GeneratorError::MissingKey { kind, key: "value" })?,
+                ty: ty(VoxelType::F32)?,
             },
         })
     }
@@ -310,81 +396,100 @@ impl Generator {
     /// The generated channel's storage type.
     pub fn voxel_type(&self) -> VoxelType {
         match self {
-            Generator::Sphere { ty, .. } | Generator::Ramp { ty, .. } | Generator::Constant { ty, .. } => {
-                ty.voxel_type()
-            }
+            Generator::Sphere { ty, .. } | Generator::Ramp { ty, .. } | Generator::Constant { ty, .. } => *ty,
             Generator::Chessboard { .. } => VoxelType::Bit,
             Generator::MarschnerLobb { .. } | Generator::Gaussian { .. } => VoxelType::F32,
         }
     }
 
-    /// Checks the parameters (and that `dims` of this type fit in memory); the message names
-    /// the offending key and says what is expected.
-    pub fn check(&self, dims: Dims) -> Result<(), String> {
-        fn finite(name: &str, v: f64) -> Result<(), String> {
-            if v.is_finite() {
+    /// Checks the parameters (and that `dims` of this type fit in memory); the error names the
+    /// offending key and says what is expected.
+    pub fn check(&self, dims: Dims) -> Result<(), GeneratorError> {
+        fn finite(key: &'static str, value: f64) -> Result<(), GeneratorError> {
+            if value.is_finite() {
                 Ok(())
             } else {
-                Err(format!("`{name}` = {v}: must be a finite number"))
+                Err(GeneratorError::NotFinite { key, value })
             }
         }
-        fn positive(name: &str, v: f64) -> Result<(), String> {
-            finite(name, v)?;
-            if v > 0.0 {
+        fn positive(key: &'static str, value: f64) -> Result<(), GeneratorError> {
+            finite(key, value)?;
+            if value > 0.0 {
                 Ok(())
             } else {
-                Err(format!("`{name}` = {v}: must be greater than 0"))
+                Err(GeneratorError::NotPositive { key, value })
             }
         }
-        fn fits(name: &str, v: f64, ty: SampleType) -> Result<(), String> {
-            finite(name, v)?;
-            if ty.fits(v) {
+        fn fits_type(key: &'static str, value: f64, ty: VoxelType) -> Result<(), GeneratorError> {
+            finite(key, value)?;
+            if fits(ty, value) {
                 Ok(())
             } else {
-                let range = match ty {
-                    SampleType::F32 => "the finite f32 range".to_string(),
-                    _ => format!("0..={} once rounded", ty.max()),
-                };
-                Err(format!("`{name}` = {v} does not fit type {}: must be within {range}", ty.voxel_type()))
+                Err(GeneratorError::DoesNotFit { key, value, ty })
             }
         }
-        fn centre(c: &[f64; 3]) -> Result<(), String> {
+        fn centre(c: &[f64; 3]) -> Result<(), GeneratorError> {
             c.iter().try_for_each(|&v| finite("centre", v))
         }
         match self {
             Generator::Sphere { centre: c, radius, value, ty, .. } => {
                 centre(c)?;
                 positive("radius", *radius)?;
-                fits("value", *value, *ty)?;
+                fits_type("value", *value, *ty)?;
             }
             Generator::Chessboard { squares } => {
                 if squares.contains(&0) {
-                    return Err(format!("`squares` = {squares:?}: every entry must be at least 1"));
+                    return Err(GeneratorError::ZeroSquares { squares: *squares });
                 }
             }
             Generator::Ramp { from, to, ty, .. } => {
-                fits("from", *from, *ty)?;
-                fits("to", *to, *ty)?;
+                fits_type("from", *from, *ty)?;
+                fits_type("to", *to, *ty)?;
             }
             Generator::MarschnerLobb { fm, alpha } => {
                 finite("fm", *fm)?;
                 finite("alpha", *alpha)?;
                 if *alpha < 0.0 {
-                    return Err(format!("`alpha` = {alpha}: must be at least 0"));
+                    return Err(GeneratorError::Negative { key: "alpha", value: *alpha });
                 }
             }
             Generator::Gaussian { centre: c, sigma, peak } => {
                 centre(c)?;
                 positive("sigma", *sigma)?;
-                fits("peak", *peak, SampleType::F32)?;
+                fits_type("peak", *peak, VoxelType::F32)?;
             }
-            Generator::Constant { value, ty } => fits("value", *value, *ty)?,
+            Generator::Constant { value, ty } => fits_type("value", *value, *ty)?,
         }
-        let bytes = self.voxel_type().byte_len(dims.voxel_count());
+        let ty = self.voxel_type();
+        let bytes = ty.byte_len(dims.voxel_count());
         if bytes.is_none_or(|b| b > isize::MAX as u64) {
-            return Err(format!("dims {dims} of {} do not fit in memory", self.voxel_type()));
+            return Err(GeneratorError::TooLarge { dims, ty });
         }
         Ok(())
+    }
+
+    /// The kind and every parameter, numbers by their bits: equal exactly when two
+    /// generators make the same channel (`DatasetInfo::id`).
+    pub(crate) fn identity(&self) -> Vec<u64> {
+        let bits = |xs: &[f64]| xs.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let ty = |t: VoxelType| t as u64;
+        match self {
+            Generator::Sphere { centre, radius, value, profile, ty: t } => {
+                let mut v = vec![0, *profile as u64, ty(*t)];
+                v.extend(bits(centre));
+                v.extend(bits(&[*radius, *value]));
+                v
+            }
+            Generator::Chessboard { squares } => vec![1, squares[0] as u64, squares[1] as u64, squares[2] as u64],
+            Generator::Ramp { axis, from, to, ty: t } => {
+                let mut v = vec![2, axis.index() as u64, ty(*t)];
+                v.extend(bits(&[*from, *to]));
+                v
+            }
+            Generator::MarschnerLobb { fm, alpha } => [vec![3], bits(&[*fm, *alpha])].concat(),
+            Generator::Gaussian { centre, sigma, peak } => [vec![4], bits(centre), bits(&[*sigma, *peak])].concat(),
+            Generator::Constant { value, ty: t } => vec![5, ty(*t), value.to_bits()],
+        }
     }
 
     /// The value at NVC point `p` (before storage rounding).
@@ -421,13 +526,6 @@ impl Generator {
         let ty = self.voxel_type();
         let [nx, ny, nz] = dims.as_array().map(|n| n as usize);
         let centre = |i: usize, n: usize| (i as f64 + 0.5) / n as f64;
-        let stype = match ty {
-            VoxelType::Bit => SampleType::Bit,
-            VoxelType::U8 => SampleType::U8,
-            VoxelType::U16 => SampleType::U16,
-            VoxelType::U32 => SampleType::U32,
-            VoxelType::F32 => SampleType::F32,
-        };
         let bytes = if ty == VoxelType::Bit {
             let count = nx * ny * nz;
             let mut out = vec![0u8; count.div_ceil(8)];
@@ -457,10 +555,10 @@ impl Generator {
                 let (py, pz) = (centre(j, ny), centre(k, nz));
                 for (i, dst) in line.chunks_exact_mut(bpv).enumerate() {
                     let v = self.eval([centre(i, nx), py, pz]);
-                    match stype {
-                        SampleType::U8 => dst[0] = encode_int(v, 255.0) as u8,
-                        SampleType::U16 => dst.copy_from_slice(&(encode_int(v, 65535.0) as u16).to_le_bytes()),
-                        SampleType::U32 => dst.copy_from_slice(&(encode_int(v, u32::MAX as f64) as u32).to_le_bytes()),
+                    match ty {
+                        VoxelType::U8 => dst[0] = encode_int(v, 255.0) as u8,
+                        VoxelType::U16 => dst.copy_from_slice(&(encode_int(v, 65535.0) as u16).to_le_bytes()),
+                        VoxelType::U32 => dst.copy_from_slice(&(encode_int(v, u32::MAX as f64) as u32).to_le_bytes()),
                         _ => dst.copy_from_slice(&(v as f32).to_le_bytes()),
                     }
                 }
@@ -498,8 +596,13 @@ mod tests {
         Dims::new([x, y, z]).unwrap()
     }
 
-    fn parse(s: &str) -> Result<Generator, String> {
-        toml::from_str::<Generator>(s).map_err(|e| e.to_string())
+    /// The table as serde reads it; its own refusals (unknown keys, wrong types) are serde's.
+    fn table(s: &str) -> Result<GeneratorTable, toml::de::Error> {
+        toml::from_str::<GeneratorTable>(s)
+    }
+
+    fn parse(s: &str) -> Result<Generator, GeneratorError> {
+        Generator::try_from(table(s).unwrap_or_else(|e| panic!("{s:?}: {e}")))
     }
 
     #[test]
@@ -511,13 +614,13 @@ mod tests {
                 radius: 0.5,
                 value: 255.0,
                 profile: Profile::Solid,
-                ty: SampleType::U8
+                ty: VoxelType::U8
             }
         );
         assert_eq!(parse("kind = \"chessboard\"").unwrap(), Generator::Chessboard { squares: [8, 8, 1] });
         assert_eq!(
             parse("kind = \"ramp\"\naxis = \"y\"\nto = 10").unwrap(),
-            Generator::Ramp { axis: Axis::Y, from: 0.0, to: 10.0, ty: SampleType::F32 }
+            Generator::Ramp { axis: Axis::Y, from: 0.0, to: 10.0, ty: VoxelType::F32 }
         );
         assert_eq!(
             parse("kind = \"ramp\"\naxis = 2").unwrap().clone(),
@@ -530,28 +633,35 @@ mod tests {
         );
         assert_eq!(
             parse("kind = \"constant\"\nvalue = 3\ntype = \"u16\"").unwrap(),
-            Generator::Constant { value: 3.0, ty: SampleType::U16 }
+            Generator::Constant { value: 3.0, ty: VoxelType::U16 }
         );
         assert_eq!(
             parse("kind = \"sphere\"\nprofile = \"radial\"\ntype = \"f32\"\nvalue = 1.5").unwrap().voxel_type(),
             VoxelType::F32
         );
+        // Refused by serde while reading the table (its messages, reported at the key's path).
         for (bad, needle) in [
             ("kind = \"sphere\"\nradius = 0.3\nradious = 1", "radious"),
-            ("kind = \"constant\"", "value"),
             ("kind = \"cube\"", "cube"),
             ("kind = \"ramp\"\naxis = 3", "axis"),
             ("kind = \"ramp\"\naxis = \"w\"", "axis"),
-            ("kind = \"sphere\"\ntype = \"i16\"", "i16"),
             ("kind = \"sphere\"\nprofile = \"hollow\"", "hollow"),
             ("kind = \"chessboard\"\nsquares = [1, 2]", "squares"),
             ("radius = 1.0", "kind"),
-            ("kind = \"chessboard\"\nradius = 1.0", "key `radius` does not apply to kind `chessboard`"),
-            ("kind = \"gaussian\"\ntype = \"u8\"", "key `type` does not apply to kind `gaussian`"),
         ] {
-            let e = parse(bad).unwrap_err();
+            let e = table(bad).unwrap_err().to_string();
             assert!(e.contains(needle), "{bad:?}: {e}");
         }
+        // Refused by the conversion, each naming its key.
+        let e = parse("kind = \"constant\"").unwrap_err();
+        assert_eq!(e, GeneratorError::MissingKey { kind: "constant", key: "value" });
+        let e = parse("kind = \"sphere\"\ntype = \"i16\"").unwrap_err();
+        assert_eq!((e.key(), e), (Some("type"), GeneratorError::UnknownType { got: "i16".into() }));
+        let e = parse("kind = \"chessboard\"\nradius = 1.0").unwrap_err();
+        assert!(matches!(e, GeneratorError::KeyNotForKind { key: "radius", kind: "chessboard", .. }), "{e:?}");
+        assert_eq!(e.to_string(), "key `radius` does not apply to kind `chessboard` (its keys: squares)");
+        let e = parse("kind = \"gaussian\"\ntype = \"u8\"").unwrap_err();
+        assert!(matches!(e, GeneratorError::KeyNotForKind { key: "type", kind: "gaussian", .. }), "{e:?}");
     }
 
     /// The scene reports errors by TOML path (SPEC §1); it must reach the generator's key.
@@ -560,7 +670,7 @@ mod tests {
         #[derive(Deserialize, Debug)]
         #[allow(dead_code)]
         struct Scene {
-            generator: Generator,
+            generator: GeneratorTable,
         }
         for (text, path) in [
             ("generator = { kind = \"chessboard\", squares = [1, 2] }", "generator.squares"),
@@ -598,7 +708,7 @@ mod tests {
             radius: 0.5,
             value: 200.0,
             profile: Profile::Radial,
-            ty: SampleType::F32,
+            ty: VoxelType::F32,
         };
         let d = dims(10, 1, 1);
         let ch = g.generate(d);
@@ -612,7 +722,7 @@ mod tests {
             radius: 0.25,
             value: 1.0,
             profile: Profile::Solid,
-            ty: SampleType::Bit,
+            ty: VoxelType::Bit,
         };
         let d = dims(4, 4, 1);
         let ch = g.generate(d);
@@ -644,24 +754,24 @@ mod tests {
 
     #[test]
     fn ramp_exact_values_and_rounding() {
-        let g = Generator::Ramp { axis: Axis::X, from: 0.0, to: 1.0, ty: SampleType::F32 };
+        let g = Generator::Ramp { axis: Axis::X, from: 0.0, to: 1.0, ty: VoxelType::F32 };
         let ch = g.generate(dims(4, 2, 1));
         assert_eq!((0..4).map(|i| ch.value(i)).collect::<Vec<_>>(), [0.125, 0.375, 0.625, 0.875]);
         assert_eq!(ch.value(5), 0.375);
-        let g = Generator::Ramp { axis: Axis::Z, from: 10.0, to: -10.0, ty: SampleType::F32 };
+        let g = Generator::Ramp { axis: Axis::Z, from: 10.0, to: -10.0, ty: VoxelType::F32 };
         let d = dims(1, 1, 5);
         let ch = g.generate(d);
         assert_eq!((0..5).map(|k| ch.value(k)).collect::<Vec<_>>(), [8.0, 4.0, 0.0, -4.0, -8.0]);
         // u8: 255 · 0.25 = 63.75 → 64; 255 · 0.75 = 191.25 → 191.
-        let g = Generator::Ramp { axis: Axis::Y, from: 0.0, to: 255.0, ty: SampleType::U8 };
+        let g = Generator::Ramp { axis: Axis::Y, from: 0.0, to: 255.0, ty: VoxelType::U8 };
         let ch = g.generate(dims(1, 2, 1));
         assert_eq!((ch.value(0), ch.value(1)), (64.0, 191.0));
         // Half away from zero: 2.5 → 3; u16 and u32 storage.
-        let ch = Generator::Constant { value: 2.5, ty: SampleType::U8 }.generate(dims(2, 1, 1));
+        let ch = Generator::Constant { value: 2.5, ty: VoxelType::U8 }.generate(dims(2, 1, 1));
         assert_eq!(ch.value(1), 3.0);
-        let ch = Generator::Constant { value: 65535.0, ty: SampleType::U16 }.generate(dims(2, 1, 1));
+        let ch = Generator::Constant { value: 65535.0, ty: VoxelType::U16 }.generate(dims(2, 1, 1));
         assert_eq!((ch.ty(), ch.value(1)), (VoxelType::U16, 65535.0));
-        let ch = Generator::Constant { value: 70000.0, ty: SampleType::U32 }.generate(dims(2, 1, 1));
+        let ch = Generator::Constant { value: 70000.0, ty: VoxelType::U32 }.generate(dims(2, 1, 1));
         assert_eq!((ch.ty(), ch.value(1)), (VoxelType::U32, 70000.0));
     }
 
@@ -696,50 +806,66 @@ mod tests {
     #[test]
     fn check_refusals_name_the_field() {
         let d = dims(4, 4, 4);
-        let sphere = |radius: f64, value: f64, ty: SampleType| Generator::Sphere {
+        let sphere = |radius: f64, value: f64, ty: VoxelType| Generator::Sphere {
             centre: [0.5; 3],
             radius,
             value,
             profile: Profile::Solid,
             ty,
         };
-        for (g, needle) in [
-            (sphere(0.0, 1.0, SampleType::U8), "`radius`"),
-            (sphere(-1.0, 1.0, SampleType::U8), "`radius`"),
-            (sphere(f64::NAN, 1.0, SampleType::U8), "`radius`"),
-            (sphere(0.5, 256.0, SampleType::U8), "`value`"),
-            (sphere(0.5, -0.6, SampleType::U8), "`value`"),
-            (sphere(0.5, 2.0, SampleType::Bit), "`value`"),
-            (sphere(0.5, 65536.0, SampleType::U16), "`value`"),
-            (sphere(0.5, 1e39, SampleType::F32), "`value`"),
+        use GeneratorError::*;
+        type Expected = fn(&GeneratorError) -> bool;
+        let refusals: [(Generator, Expected); 17] = [
+            (sphere(0.0, 1.0, VoxelType::U8), |e| *e == NotPositive { key: "radius", value: 0.0 }),
+            (sphere(-1.0, 1.0, VoxelType::U8), |e| *e == NotPositive { key: "radius", value: -1.0 }),
+            (sphere(f64::NAN, 1.0, VoxelType::U8), |e| matches!(e, NotFinite { key: "radius", .. })),
+            (sphere(0.5, 256.0, VoxelType::U8), |e| *e == DoesNotFit { key: "value", value: 256.0, ty: VoxelType::U8 }),
+            (sphere(0.5, -0.6, VoxelType::U8), |e| matches!(e, DoesNotFit { key: "value", .. })),
+            (sphere(0.5, 2.0, VoxelType::Bit), |e| matches!(e, DoesNotFit { key: "value", ty: VoxelType::Bit, .. })),
+            (sphere(0.5, 65536.0, VoxelType::U16), |e| matches!(e, DoesNotFit { key: "value", .. })),
+            (sphere(0.5, 1e39, VoxelType::F32), |e| matches!(e, DoesNotFit { key: "value", ty: VoxelType::F32, .. })),
             (
                 Generator::Sphere {
                     centre: [0.5, f64::INFINITY, 0.5],
                     radius: 0.5,
                     value: 1.0,
                     profile: Profile::Solid,
-                    ty: SampleType::U8,
+                    ty: VoxelType::U8,
                 },
-                "`centre`",
+                |e| matches!(e, NotFinite { key: "centre", .. }),
             ),
-            (Generator::Chessboard { squares: [8, 0, 1] }, "`squares`"),
-            (Generator::Ramp { axis: Axis::X, from: -1.0, to: 255.0, ty: SampleType::U8 }, "`from`"),
-            (Generator::Ramp { axis: Axis::X, from: 0.0, to: f64::NAN, ty: SampleType::F32 }, "`to`"),
-            (Generator::MarschnerLobb { fm: 6.0, alpha: -0.5 }, "`alpha`"),
-            (Generator::MarschnerLobb { fm: f64::INFINITY, alpha: 0.25 }, "`fm`"),
-            (Generator::Gaussian { centre: [0.5; 3], sigma: 0.0, peak: 1.0 }, "`sigma`"),
-            (Generator::Gaussian { centre: [0.5; 3], sigma: 0.1, peak: f64::NAN }, "`peak`"),
-            (Generator::Constant { value: 4294967296.0, ty: SampleType::U32 }, "`value`"),
-        ] {
+            (Generator::Chessboard { squares: [8, 0, 1] }, |e| *e == ZeroSquares { squares: [8, 0, 1] }),
+            (Generator::Ramp { axis: Axis::X, from: -1.0, to: 255.0, ty: VoxelType::U8 }, |e| {
+                matches!(e, DoesNotFit { key: "from", .. })
+            }),
+            (Generator::Ramp { axis: Axis::X, from: 0.0, to: f64::NAN, ty: VoxelType::F32 }, |e| {
+                matches!(e, NotFinite { key: "to", .. })
+            }),
+            (Generator::MarschnerLobb { fm: 6.0, alpha: -0.5 }, |e| *e == Negative { key: "alpha", value: -0.5 }),
+            (Generator::MarschnerLobb { fm: f64::INFINITY, alpha: 0.25 }, |e| matches!(e, NotFinite { key: "fm", .. })),
+            (Generator::Gaussian { centre: [0.5; 3], sigma: 0.0, peak: 1.0 }, |e| {
+                matches!(e, NotPositive { key: "sigma", .. })
+            }),
+            (Generator::Gaussian { centre: [0.5; 3], sigma: 0.1, peak: f64::NAN }, |e| {
+                matches!(e, NotFinite { key: "peak", .. })
+            }),
+            (Generator::Constant { value: 4294967296.0, ty: VoxelType::U32 }, |e| {
+                matches!(e, DoesNotFit { key: "value", .. })
+            }),
+        ];
+        for (g, expected) in refusals {
             let e = g.check(d).unwrap_err();
-            assert!(e.contains(needle), "{g:?}: {e}");
+            assert!(expected(&e), "{g:?}: {e:?}");
         }
+        // The wording a user sees after the key path.
+        let e = sphere(0.5, 256.0, VoxelType::U8).check(d).unwrap_err();
+        assert_eq!(e.to_string(), "`value` = 256 does not fit type u8: must be within 0..=255 once rounded");
         for ok in [
-            sphere(0.5, 255.4, SampleType::U8),
-            sphere(0.5, -0.4, SampleType::U8),
-            sphere(0.5, 1.0, SampleType::Bit),
-            sphere(0.5, -3.0, SampleType::F32),
-            Generator::Constant { value: 4294967295.0, ty: SampleType::U32 },
+            sphere(0.5, 255.4, VoxelType::U8),
+            sphere(0.5, -0.4, VoxelType::U8),
+            sphere(0.5, 1.0, VoxelType::Bit),
+            sphere(0.5, -3.0, VoxelType::F32),
+            Generator::Constant { value: 4294967295.0, ty: VoxelType::U32 },
         ] {
             ok.check(d).unwrap();
         }

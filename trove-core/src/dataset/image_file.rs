@@ -11,7 +11,7 @@ use std::path::Path;
 
 use image::{ColorType, ImageDecoder, ImageReader};
 
-use super::{Channel, ChannelName, ChannelSource, Dims, VoxelType};
+use super::{Channel, ChannelName, ChannelSource, DataFile, Dims};
 use crate::DatasetError;
 
 /// The layout of an accepted image: which byte of a pixel is which component.
@@ -89,22 +89,23 @@ fn decoder(path: &Path) -> Result<impl ImageDecoder, DatasetError> {
         .map_err(|e| image_error(path, e))
 }
 
-/// The channels an image provides: name, storage type (always u8) and source.
-pub type ImageChannels = Vec<(ChannelName, VoxelType, ChannelSource)>;
-
-/// Reads only the image header: dims and the channels the image provides.
-pub fn open(path: &Path) -> Result<(Dims, ImageChannels), DatasetError> {
+/// Reads only the image header: dims and the channels the image provides (each u8).
+pub fn open(path: &Path) -> Result<(Dims, Vec<(ChannelName, ChannelSource)>), DatasetError> {
     let dec = decoder(path)?;
     let layout = Layout::from_color(path, dec.color_type())?;
     let (w, h) = dec.dimensions();
-    let dims = Dims::new([w as u64, h as u64, 1]).map_err(|m| DatasetError::format(path, m))?;
+    let dims = Dims::new([w as u64, h as u64, 1]).map_err(|source| DatasetError::Dims {
+        path: path.to_path_buf(),
+        field: "image size",
+        source,
+    })?;
     let mut names = vec![ChannelName::Red, ChannelName::Green, ChannelName::Blue];
     if layout.has_alpha() {
         names.push(ChannelName::Alpha);
     }
     let channels = names
         .into_iter()
-        .map(|c| (c, VoxelType::U8, ChannelSource::Image { path: path.to_path_buf(), channel: c }))
+        .map(|c| (c, ChannelSource::Image { file: DataFile::Local(path.to_path_buf()), channel: c }))
         .collect();
     Ok((dims, channels))
 }
@@ -137,7 +138,7 @@ pub fn load(path: &Path, channel: ChannelName, dims: Dims) -> Result<Channel, Da
         let row = &pixels[(h - 1 - y) * w * bpp..(h - y) * w * bpp];
         out.extend(row.chunks_exact(bpp).map(|p| p[component]));
     }
-    Channel::from_u8(out, dims).map_err(|(expected, actual)| DatasetError::SizeMismatch {
+    Channel::from_u8(out, dims).map_err(|super::ChannelSizeError { expected, actual }| DatasetError::SizeMismatch {
         path: path.to_path_buf(),
         expected,
         actual,
@@ -148,9 +149,10 @@ pub fn load(path: &Path, channel: ChannelName, dims: Dims) -> Result<Channel, Da
 #[cfg(test)]
 mod tests {
     use super::super::raw::testutil::{data_dir, TempFile};
+    use super::super::VoxelType;
     use super::*;
 
-    fn names(chs: &[(ChannelName, VoxelType, ChannelSource)]) -> Vec<ChannelName> {
+    fn names(chs: &[(ChannelName, ChannelSource)]) -> Vec<ChannelName> {
         chs.iter().map(|c| c.0).collect()
     }
 
@@ -161,10 +163,9 @@ mod tests {
         let (dims, chs) = open(&path).unwrap();
         assert_eq!(dims.as_array(), [451, 300, 1]);
         assert_eq!(names(&chs), [ChannelName::Red, ChannelName::Green, ChannelName::Blue]);
-        assert!(chs.iter().all(|c| c.1 == VoxelType::U8));
         let reference = image::open(&path).unwrap().to_rgb8();
         let h = reference.height();
-        for (c, (name, _, src)) in chs.iter().enumerate() {
+        for (c, (name, src)) in chs.iter().enumerate() {
             let ch = src.load(dims).unwrap();
             assert_eq!(ch.ty(), VoxelType::U8);
             assert_eq!(load(&path, *name, dims).unwrap().value(0), ch.value(0));

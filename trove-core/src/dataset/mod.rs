@@ -7,7 +7,9 @@
 //! [`Volume`], produced by [`DatasetInfo::load`] when a renderer needs them, so a
 //! memory-budgeted store can drop and reload them.
 
+mod catalog;
 mod channel;
+mod error;
 pub mod generator;
 pub mod image_file;
 pub mod macrocell;
@@ -18,9 +20,11 @@ pub mod raw;
 mod source;
 mod volume;
 
+pub use catalog::{Catalog, DataFile, FileInfo, FileKind, FsCatalog, VolumeFormat};
 pub use channel::{
-    BitVoxels, Channel, ChannelName, ChannelReader, Endian, F32LeVoxels, U16LeVoxels, U8Voxels, VoxelBytes, VoxelType,
-    Voxels,
+    BitVoxels, Channel, ChannelName, ChannelReader, ChannelSizeError, Endian, F32LeVoxels, U16LeVoxels, U8Voxels,
+    VoxelBytes, VoxelType, Voxels,
 };
-pub use source::{ChannelSource, DatasetInfo, Encoding};
-pub use volume::{Dims, Volume};
+pub use error::{DatasetError, KeyProblem};
+pub use source::{ChannelSource, DatasetId, DatasetInfo, Encoding};
+pub use volume::{Dims, DimsError, Volume};

@@ -26,7 +26,7 @@ use nifti::{NiftiHeader, NiftiType};
 
 use super::nrrd::FileChannel;
 use super::raw::{self, StoredType};
-use super::{Channel, ChannelSource, Dims, Encoding, Endian, VoxelBytes, VoxelType};
+use super::{Channel, ChannelSource, DataFile, Dims, Encoding, Endian, VoxelBytes, VoxelType};
 use crate::DatasetError;
 
 /// What the header says, reduced to what loading needs.
@@ -82,7 +82,7 @@ pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
     Ok(FileChannel {
         dims: layout.dims,
         ty: layout.loaded_type(),
-        source: ChannelSource::Nifti { path: path.to_path_buf() },
+        source: ChannelSource::Nifti { file: DataFile::Local(path.to_path_buf()) },
     })
 }
 
@@ -121,9 +121,14 @@ pub fn load(path: &Path, dims: Dims) -> Result<Channel, DatasetError> {
             (VoxelType::F32, Endian::Little, f)
         }
     };
-    Channel::new(ty, endian, VoxelBytes::Owned(Arc::new(bytes)), dims).map_err(|(expected, actual)| {
-        DatasetError::SizeMismatch { path: path.to_path_buf(), expected, actual, what: layout.what() }
-    })
+    Channel::new(ty, endian, VoxelBytes::Owned(Arc::new(bytes)), dims).map_err(
+        |super::ChannelSizeError { expected, actual }| DatasetError::SizeMismatch {
+            path: path.to_path_buf(),
+            expected,
+            actual,
+            what: layout.what(),
+        },
+    )
 }
 
 /// Discards exactly `n` bytes (the header and extensions inside a gzip stream).
@@ -138,7 +143,31 @@ fn skip_exact(path: &Path, reader: &mut impl Read, n: u64) -> Result<(), Dataset
     Ok(())
 }
 
+/// What the header says, checked field by field.
 fn read_layout(path: &Path) -> Result<Layout, DatasetError> {
+    let (header, gzip) = read_header(path)?;
+    check_magic(path, &header)?;
+    let endian = match header.endianness {
+        nifti::Endianness::Little => Endian::Little,
+        nifti::Endianness::Big => Endian::Big,
+    };
+    Ok(Layout {
+        dims: dims(path, &header)?,
+        stored: stored_type(path, &header)?,
+        endian,
+        offset: vox_offset(path, &header)?,
+        scale: scaling(path, &header)?,
+        gzip,
+    })
+}
+
+/// A refusal of header field `field`.
+fn field_error(path: &Path, field: &str, message: impl std::fmt::Display) -> DatasetError {
+    DatasetError::format(path, format!("NIfTI header field `{field}`: {message}"))
+}
+
+/// The parsed header, and whether the file is gzip-compressed.
+fn read_header(path: &Path) -> Result<(NiftiHeader, bool), DatasetError> {
     // Compression is told by the gzip magic bytes, not the file name, so a misnamed file
     // still reads (or fails with a header error rather than garbage).
     let mut magic = [0u8; 2];
@@ -158,27 +187,35 @@ fn read_layout(path: &Path) -> Result<Layout, DatasetError> {
         nifti::NiftiError::Io(io) => DatasetError::io(path, io),
         e => DatasetError::format(path, format!("not a readable NIfTI-1 header: {e}")),
     })?;
-    let field = |f: &str, m: String| DatasetError::format(path, format!("NIfTI header field `{f}`: {m}"));
+    Ok((header, gzip))
+}
 
+/// Only single-file NIfTI-1 (`n+1`).
+fn check_magic(path: &Path, header: &NiftiHeader) -> Result<(), DatasetError> {
     if &header.magic == b"ni1\0" {
-        return Err(field(
+        return Err(field_error(
+            path,
             "magic",
-            "`ni1` (header and image in separate .hdr/.img files) is not supported; use a single .nii file".into(),
+            "`ni1` (header and image in separate .hdr/.img files) is not supported; use a single .nii file",
         ));
     }
     if &header.magic != b"n+1\0" {
-        return Err(field("magic", format!("{:?} is not `n+1`", String::from_utf8_lossy(&header.magic))));
+        return Err(field_error(path, "magic", format!("{:?} is not `n+1`", String::from_utf8_lossy(&header.magic))));
     }
+    Ok(())
+}
 
+/// `dim`: 1 to 3 axes; more only if every further axis has size 1.
+fn dims(path: &Path, header: &NiftiHeader) -> Result<Dims, DatasetError> {
     let ndim = header.dim[0] as usize;
     if !(1..=7).contains(&ndim) {
-        return Err(field("dim", format!("dim[0] = {ndim} is not between 1 and 7")));
+        return Err(field_error(path, "dim", format!("dim[0] = {ndim} is not between 1 and 7")));
     }
     // The file stores dims as signed 16-bit; the crate hands them back as u16.
     let d = |i: usize| -> Result<u64, DatasetError> {
         let v = header.dim[i];
         if v == 0 || v > i16::MAX as u16 {
-            return Err(field("dim", format!("dim[{i}] = {} is not a size ≥ 1", v as i16)));
+            return Err(field_error(path, "dim", format!("dim[{i}] = {} is not a size ≥ 1", v as i16)));
         }
         Ok(v as u64)
     };
@@ -188,16 +225,26 @@ fn read_layout(path: &Path) -> Result<Layout, DatasetError> {
     }
     for i in 4..=ndim {
         if d(i)? != 1 {
-            return Err(field(
+            return Err(field_error(
+                path,
                 "dim",
                 format!("{ndim} dimensions with dim[{i}] = {}: only 3-D scalar volumes are read", header.dim[i]),
             ));
         }
     }
-    let dims = Dims::new(sizes).map_err(|m| field("dim", m))?;
+    Dims::new(sizes).map_err(|source| DatasetError::Dims {
+        path: path.to_path_buf(),
+        field: "NIfTI header field `dim`",
+        source,
+    })
+}
 
-    let dt = header.data_type().map_err(|_| field("datatype", format!("unknown datatype code {}", header.datatype)))?;
-    let stored = match dt {
+/// `datatype`: scalar 8/16/32-bit integers, float32 and float64.
+fn stored_type(path: &Path, header: &NiftiHeader) -> Result<StoredType, DatasetError> {
+    let dt = header
+        .data_type()
+        .map_err(|_| field_error(path, "datatype", format!("unknown datatype code {}", header.datatype)))?;
+    Ok(match dt {
         NiftiType::Uint8 => StoredType::U8,
         NiftiType::Uint16 => StoredType::U16,
         NiftiType::Uint32 => StoredType::U32,
@@ -207,7 +254,8 @@ fn read_layout(path: &Path) -> Result<Layout, DatasetError> {
         NiftiType::Int32 => StoredType::I32,
         NiftiType::Float64 => StoredType::F64,
         other => {
-            return Err(field(
+            return Err(field_error(
+                path,
                 "datatype",
                 format!(
                     "{other:?} (code {}) is not supported; scalar 8/16/32-bit integers, float32 and float64 are",
@@ -215,27 +263,29 @@ fn read_layout(path: &Path) -> Result<Layout, DatasetError> {
                 ),
             ))
         }
-    };
+    })
+}
 
+/// `vox_offset`: a whole byte offset past the 352-byte header.
+fn vox_offset(path: &Path, header: &NiftiHeader) -> Result<u64, DatasetError> {
     let vo = header.vox_offset;
     if !vo.is_finite() || vo < 352.0 || vo.fract() != 0.0 || vo > u32::MAX as f32 {
-        return Err(field("vox_offset", format!("{vo} is not a whole byte offset ≥ 352")));
+        return Err(field_error(path, "vox_offset", format!("{vo} is not a whole byte offset ≥ 352")));
     }
+    Ok(vo as u64)
+}
 
+/// `scl_slope`, `scl_inter`: `Some((slope, inter))` when values must be scaled (see the
+/// module documentation for what counts as "no scaling").
+fn scaling(path: &Path, header: &NiftiHeader) -> Result<Option<(f64, f64)>, DatasetError> {
     let (slope, inter) = (header.scl_slope as f64, header.scl_inter as f64);
-    let scale = if slope == 0.0 || !slope.is_finite() || (slope == 1.0 && inter == 0.0) {
-        None
+    if slope == 0.0 || !slope.is_finite() || (slope == 1.0 && inter == 0.0) {
+        Ok(None)
     } else if !inter.is_finite() {
-        return Err(field("scl_inter", format!("{inter} is not finite")));
+        Err(field_error(path, "scl_inter", format!("{inter} is not finite")))
     } else {
-        Some((slope, inter))
-    };
-
-    let endian = match header.endianness {
-        nifti::Endianness::Little => Endian::Little,
-        nifti::Endianness::Big => Endian::Big,
-    };
-    Ok(Layout { dims, stored, endian, offset: vo as u64, scale, gzip })
+        Ok(Some((slope, inter)))
+    }
 }
 
 #[cfg(test)]
@@ -278,7 +328,7 @@ mod tests {
         let fc = open(&path).unwrap();
         assert_eq!(fc.dims.as_array(), [33, 41, 25]);
         assert_eq!(fc.ty, VoxelType::F32);
-        assert!(matches!(&fc.source, ChannelSource::Nifti { path: p } if *p == path));
+        assert!(matches!(&fc.source, ChannelSource::Nifti { file: DataFile::Local(p) } if *p == path));
         let ch = fc.source.load(fc.dims).unwrap();
         assert_eq!(ch.ty(), VoxelType::F32);
         let off = h.vox_offset as usize;

@@ -36,105 +36,43 @@ pub struct FileChannel {
 /// file that is not NRRD from being read whole in search of one.
 const MAX_HEADER: usize = 1 << 20;
 
-/// Reads the header of `path` (`.nrrd` or `.nhdr`) and checks the data's size against it.
+/// Reads the header of `path` (`.nrrd` or `.nhdr`) and checks the data's size against it. A
+/// detached header's `data file` is read relative to the header's folder.
 pub fn open(path: &Path) -> Result<FileChannel, DatasetError> {
+    open_in(path, &|_, joined| Ok(joined))
+}
+
+/// As [`open`], with `locate` deciding where a detached header's data file is: it gets the
+/// `data file` value as written and that value joined to the header's folder, and returns
+/// the path to read (a sandboxed catalog canonicalises it and refuses one outside its root).
+pub(crate) fn open_in(path: &Path, locate: &DataFileLocator<'_>) -> Result<FileChannel, DatasetError> {
     let (lines, attached_offset) = read_header(path)?;
     let fields = Fields::parse(path, &lines)?;
-    let err = |field: &str, msg: String| DatasetError::format(path, format!("field `{field}`: {msg}"));
-
-    let dimension: usize = fields.required("dimension")?.parse().map_err(|_| {
-        err("dimension", format!("`{}` is not a whole number", fields.get("dimension").unwrap_or_default()))
-    })?;
-    if !(1..=3).contains(&dimension) {
-        return Err(err(
-            "dimension",
-            format!("{dimension} is not supported; TROVE reads scalar volumes of 1 to 3 dimensions"),
-        ));
-    }
-    let sizes_text = fields.required("sizes")?;
-    let mut sizes = Vec::new();
-    for s in sizes_text.split_whitespace() {
-        sizes.push(s.parse::<u64>().map_err(|_| err("sizes", format!("`{s}` is not a whole number")))?);
-    }
-    if sizes.len() != dimension {
-        return Err(err("sizes", format!("gives {} sizes but `dimension` is {dimension}", sizes.len())));
-    }
-    sizes.resize(3, 1);
-    let dims = Dims::new([sizes[0], sizes[1], sizes[2]]).map_err(|m| err("sizes", m))?;
-
-    let ty_text = fields.required("type")?;
-    let stored = parse_type(ty_text).map_err(|m| err("type", m))?;
-
-    let endian = match fields.get("endian") {
-        Some(e) => match e.to_ascii_lowercase().as_str() {
-            "little" => Endian::Little,
-            "big" => Endian::Big,
-            other => return Err(err("endian", format!("`{other}` is neither `little` nor `big`"))),
-        },
-        None if stored.bytes_per_voxel().is_some_and(|b| b > 1) => {
-            return Err(DatasetError::format(
-                path,
-                format!("missing field `endian`, which NRRD requires for type `{ty_text}` (say `endian: little` or `endian: big`)"),
-            ));
-        }
-        None => Endian::Little,
-    };
-
-    let encoding = match fields.required("encoding")?.to_ascii_lowercase().as_str() {
-        "raw" => Encoding::Raw,
-        "gzip" | "gz" => Encoding::Gzip,
-        other @ ("ascii" | "text" | "txt" | "hex" | "bzip2" | "bz2" | "zrl" | "zstd") => {
-            return Err(err("encoding", format!("`{other}` is not supported; TROVE reads `raw` and `gzip`")));
-        }
-        other => return Err(err("encoding", format!("unknown encoding `{other}`; TROVE reads `raw` and `gzip`"))),
-    };
-
-    let (data_path, mut offset) = match fields.get("data file") {
-        Some(name) => (data_file(path, name).map_err(|m| err("data file", m))?, 0),
-        None => match attached_offset {
-            Some(off) => (path.to_path_buf(), off),
-            None => {
-                return Err(DatasetError::format(
-                    path,
-                    "the header has no `data file` field and no blank line after which attached data would begin",
-                ))
-            }
-        },
-    };
-
-    if let Some(text) = fields.get("line skip") {
-        let n: u64 = text.parse().map_err(|_| err("line skip", format!("`{text}` is not a whole number ≥ 0")))?;
-        offset = skip_lines(&data_path, offset, n).map_err(|e| match e {
-            DatasetError::Format { path, message } => {
-                DatasetError::format(path, format!("field `line skip` of the header: {message}"))
-            }
+    let layout = fields.layout()?;
+    let (data_path, offset) = fields.data_location(attached_offset, layout.encoding, locate)?;
+    let source = raw::open_with(&data_path, offset, layout.encoding, layout.stored, layout.endian, layout.dims)
+        .map_err(|e| match e {
+            DatasetError::SizeMismatch { path: p, expected, actual, what } => DatasetError::SizeMismatch {
+                path: p,
+                expected,
+                actual,
+                what: format!("{what} (fields `sizes` and `type` of {})", path.display()),
+            },
             e => e,
         })?;
-    }
-    if let Some(text) = fields.get("byte skip") {
-        let n: i64 = text.parse().map_err(|_| err("byte skip", format!("`{text}` is not a whole number")))?;
-        if n < 0 {
-            return Err(err(
-                "byte skip",
-                format!("{n} (data at the end of the file) is not supported; give the exact offset"),
-            ));
-        }
-        if n > 0 && encoding == Encoding::Gzip {
-            return Err(err("byte skip", "skipping decompressed bytes of gzip data is not supported".to_string()));
-        }
-        offset += n as u64;
-    }
+    Ok(FileChannel { dims: layout.dims, ty: layout.stored.loaded_type(), source })
+}
 
-    let source = raw::open_with(&data_path, offset, encoding, stored, endian, dims).map_err(|e| match e {
-        DatasetError::SizeMismatch { path: p, expected, actual, what } => DatasetError::SizeMismatch {
-            path: p,
-            expected,
-            actual,
-            what: format!("{what} (fields `sizes` and `type` of {})", path.display()),
-        },
-        e => e,
-    })?;
-    Ok(FileChannel { dims, ty: stored.loaded_type(), source })
+/// Where a detached header's data file is: `(value as written, value joined to the header's
+/// folder) → path to read`.
+pub(crate) type DataFileLocator<'a> = dyn Fn(&str, PathBuf) -> Result<PathBuf, DatasetError> + 'a;
+
+/// What the header says about the numbers: which one sits at which voxel.
+struct Layout {
+    dims: Dims,
+    stored: StoredType,
+    endian: Endian,
+    encoding: Encoding,
 }
 
 /// The header's lines (magic first), and where attached data would begin: just after the
@@ -221,6 +159,118 @@ impl<'a> Fields<'a> {
         Ok(Fields { path, fields })
     }
 
+    /// A refusal of field `field`.
+    fn error(&self, field: &str, message: impl std::fmt::Display) -> DatasetError {
+        DatasetError::format(self.path, format!("field `{field}`: {message}"))
+    }
+
+    /// `dimension`, `sizes`, `type`, `endian` and `encoding`.
+    fn layout(&self) -> Result<Layout, DatasetError> {
+        let dims = self.dims()?;
+        let ty_text = self.required("type")?;
+        let stored = parse_type(ty_text).map_err(|m| self.error("type", m))?;
+        let endian = match self.get("endian") {
+            Some(e) => match e.to_ascii_lowercase().as_str() {
+                "little" => Endian::Little,
+                "big" => Endian::Big,
+                other => return Err(self.error("endian", format!("`{other}` is neither `little` nor `big`"))),
+            },
+            None if stored.bytes_per_voxel().is_some_and(|b| b > 1) => {
+                return Err(DatasetError::format(
+                    self.path,
+                    format!(
+                        "missing field `endian`, which NRRD requires for type `{ty_text}` (say `endian: little` or \
+                         `endian: big`)"
+                    ),
+                ));
+            }
+            None => Endian::Little,
+        };
+        let encoding = match self.required("encoding")?.to_ascii_lowercase().as_str() {
+            "raw" => Encoding::Raw,
+            "gzip" | "gz" => Encoding::Gzip,
+            other @ ("ascii" | "text" | "txt" | "hex" | "bzip2" | "bz2" | "zrl" | "zstd") => {
+                return Err(self.error("encoding", format!("`{other}` is not supported; TROVE reads `raw` and `gzip`")));
+            }
+            other => {
+                return Err(self.error("encoding", format!("unknown encoding `{other}`; TROVE reads `raw` and `gzip`")))
+            }
+        };
+        Ok(Layout { dims, stored, endian, encoding })
+    }
+
+    /// `dimension` and `sizes`: 1 to 3 axes, missing trailing axes of size 1.
+    fn dims(&self) -> Result<Dims, DatasetError> {
+        let text = self.required("dimension")?;
+        let dimension: usize =
+            text.parse().map_err(|_| self.error("dimension", format!("`{text}` is not a whole number")))?;
+        if !(1..=3).contains(&dimension) {
+            return Err(self.error(
+                "dimension",
+                format!("{dimension} is not supported; TROVE reads scalar volumes of 1 to 3 dimensions"),
+            ));
+        }
+        let mut sizes = Vec::new();
+        for s in self.required("sizes")?.split_whitespace() {
+            sizes.push(s.parse::<u64>().map_err(|_| self.error("sizes", format!("`{s}` is not a whole number")))?);
+        }
+        if sizes.len() != dimension {
+            return Err(self.error("sizes", format!("gives {} sizes but `dimension` is {dimension}", sizes.len())));
+        }
+        sizes.resize(3, 1);
+        Dims::new([sizes[0], sizes[1], sizes[2]]).map_err(|source| DatasetError::Dims {
+            path: self.path.to_path_buf(),
+            field: "field `sizes`",
+            source,
+        })
+    }
+
+    /// The file holding the data and the offset of the first voxel in it: `data file` (or
+    /// the header's own file after its blank line), then `line skip` and `byte skip`.
+    fn data_location(
+        &self,
+        attached_offset: Option<u64>,
+        encoding: Encoding,
+        locate: &DataFileLocator<'_>,
+    ) -> Result<(PathBuf, u64), DatasetError> {
+        let (data_path, mut offset) =
+            match self.get("data file") {
+                Some(name) => (locate(name, data_file(self.path, name).map_err(|m| self.error("data file", m))?)?, 0),
+                None => match attached_offset {
+                    Some(off) => (self.path.to_path_buf(), off),
+                    None => return Err(DatasetError::format(
+                        self.path,
+                        "the header has no `data file` field and no blank line after which attached data would begin",
+                    )),
+                },
+            };
+        if let Some(text) = self.get("line skip") {
+            let n: u64 =
+                text.parse().map_err(|_| self.error("line skip", format!("`{text}` is not a whole number ≥ 0")))?;
+            offset = skip_lines(&data_path, offset, n).map_err(|e| match e {
+                DatasetError::Format { path, message } => {
+                    DatasetError::format(path, format!("field `line skip` of the header: {message}"))
+                }
+                e => e,
+            })?;
+        }
+        if let Some(text) = self.get("byte skip") {
+            let n: i64 =
+                text.parse().map_err(|_| self.error("byte skip", format!("`{text}` is not a whole number")))?;
+            if n < 0 {
+                return Err(self.error(
+                    "byte skip",
+                    format!("{n} (data at the end of the file) is not supported; give the exact offset"),
+                ));
+            }
+            if n > 0 && encoding == Encoding::Gzip {
+                return Err(self.error("byte skip", "skipping decompressed bytes of gzip data is not supported"));
+            }
+            offset += n as u64;
+        }
+        Ok((data_path, offset))
+    }
+
     fn get(&self, name: &str) -> Option<&str> {
         self.fields.iter().find(|(n, _)| n == name).map(|(_, v)| v.as_str())
     }
@@ -230,8 +280,30 @@ impl<'a> Fields<'a> {
     }
 }
 
+/// Why a `type` value is refused (the caller names the file and field).
+#[derive(Debug, PartialEq, Eq)]
+enum TypeProblem {
+    SixtyFourBit(String),
+    Block,
+    Unknown(String),
+}
+
+impl std::fmt::Display for TypeProblem {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            TypeProblem::SixtyFourBit(text) => write!(
+                f,
+                "64-bit integers (`{text}`) are not supported: voxels are read as f32 and most 64-bit values would \
+                 not survive; convert the data to 32 bits or float"
+            ),
+            TypeProblem::Block => f.write_str("`block` data is not supported"),
+            TypeProblem::Unknown(text) => write!(f, "unknown type `{text}`"),
+        }
+    }
+}
+
 /// Every spelling NRRD allows for each type, case and spacing insensitive.
-fn parse_type(text: &str) -> Result<StoredType, String> {
+fn parse_type(text: &str) -> Result<StoredType, TypeProblem> {
     let t = text.split_whitespace().collect::<Vec<_>>().join(" ").to_ascii_lowercase();
     Ok(match t.as_str() {
         "signed char" | "int8" | "int8_t" => StoredType::I8,
@@ -253,27 +325,44 @@ fn parse_type(text: &str) -> Result<StoredType, String> {
         | "unsigned long long"
         | "unsigned long long int"
         | "uint64"
-        | "uint64_t" => {
-            return Err(format!(
-                "64-bit integers (`{text}`) are not supported: voxels are read as f32 and most 64-bit values \
-                 would not survive; convert the data to 32 bits or float"
-            ))
-        }
-        "block" => return Err("`block` data is not supported".to_string()),
-        _ => return Err(format!("unknown type `{text}`")),
+        | "uint64_t" => return Err(TypeProblem::SixtyFourBit(text.to_string())),
+        "block" => return Err(TypeProblem::Block),
+        _ => return Err(TypeProblem::Unknown(text.to_string())),
     })
 }
 
+/// Why a `data file` value is refused (the caller names the file and field).
+#[derive(Debug)]
+enum DataFileProblem {
+    List,
+    Pattern(String),
+    Empty,
+}
+
+impl std::fmt::Display for DataFileProblem {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            DataFileProblem::List => {
+                f.write_str("`LIST` (data in several files) is not supported; concatenate them into one file")
+            }
+            DataFileProblem::Pattern(value) => {
+                write!(f, "`{value}` names several files by a pattern, which is not supported; concatenate them")
+            }
+            DataFileProblem::Empty => f.write_str("no file name given"),
+        }
+    }
+}
+
 /// The single data file named by `data file`, relative to the header's folder.
-fn data_file(header: &Path, value: &str) -> Result<PathBuf, String> {
+fn data_file(header: &Path, value: &str) -> Result<PathBuf, DataFileProblem> {
     if value == "LIST" || value.starts_with("LIST ") {
-        return Err("`LIST` (data in several files) is not supported; concatenate them into one file".into());
+        return Err(DataFileProblem::List);
     }
     if value.contains('%') && value.split_whitespace().count() > 1 {
-        return Err(format!("`{value}` names several files by a pattern, which is not supported; concatenate them"));
+        return Err(DataFileProblem::Pattern(value.to_string()));
     }
     if value.is_empty() {
-        return Err("no file name given".into());
+        return Err(DataFileProblem::Empty);
     }
     let dir = header.parent().unwrap_or_else(|| Path::new(""));
     Ok(dir.join(value))
@@ -305,11 +394,12 @@ fn skip_lines(path: &Path, from: u64, n: u64) -> Result<u64, DatasetError> {
 #[cfg(test)]
 mod tests {
     use super::super::raw::testutil::{data_dir, gzip, TempFile};
+    use super::super::DataFile;
     use super::*;
 
     fn file_source(fc: &FileChannel) -> (&Path, u64, Encoding, StoredType, Endian) {
         match &fc.source {
-            ChannelSource::File { path, offset, encoding, stored, endian } => {
+            ChannelSource::File { file: DataFile::Local(path), offset, encoding, stored, endian } => {
                 (path.as_path(), *offset, *encoding, *stored, *endian)
             }
             s => panic!("not a file source: {s:?}"),
@@ -507,7 +597,6 @@ mod tests {
             (base("uint8", "4", "1 2 2 1", "raw"), &["`dimension`", "4"]),
             (base("uint8", "2", "4", "raw"), &["`sizes`", "1 sizes"]),
             (base("uint8", "1", "4 x", "raw"), &["`sizes`"]),
-            (base("uint8", "1", "0", "raw"), &["`sizes`", "at least 1"]),
             ("NRRD0004\ntype: uint8\ndimension: 1\nencoding: raw\n\n".into(), &["missing required field `sizes`"]),
             ("NRRD0004\ntype: uint16\ndimension: 1\nsizes: 2\nencoding: raw\n\n".into(), &["`endian`"]),
             ("NRRD0004\ntype: uint8\ntype: uint8\n\n".into(), &["`type` is given twice"]),
@@ -535,6 +624,26 @@ mod tests {
                 assert!(msg.contains(n), "`{msg}` lacks `{n}` for header {header:?}");
             }
         }
+    }
+
+    #[test]
+    fn sizes_that_dims_refuse_name_the_field_and_the_rule() {
+        let f = nrrd("NRRD0004\ntype: uint8\ndimension: 2\nsizes: 4 0\nencoding: raw\n\n", &[]);
+        let e = open(&f.0).unwrap_err();
+        match &e {
+            DatasetError::Dims {
+                path,
+                field: "field `sizes`",
+                source: crate::dataset::DimsError::ZeroAxis { dims },
+            } => {
+                assert_eq!((path, *dims), (&f.0, [4, 0, 1]));
+            }
+            e => panic!("unexpected {e:?}"),
+        }
+        assert_eq!(
+            crate::error::with_causes(&e),
+            format!("{}: field `sizes`: dims [4, 0, 1]: every axis must be at least 1", f.0.display())
+        );
     }
 
     #[test]

@@ -21,11 +21,11 @@ use std::sync::Arc;
 
 use flate2::read::MultiGzDecoder;
 
-use super::{Channel, ChannelSource, Dims, Encoding, Endian, VoxelBytes, VoxelType};
+use super::{Channel, ChannelSource, DataFile, Dims, Encoding, Endian, VoxelBytes, VoxelType};
 use crate::DatasetError;
 
 /// How numbers are stored in a file, including the types converted to f32 on load.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum StoredType {
     /// One bit per voxel, LSB first, x fastest, no row padding.
     Bit,
@@ -130,20 +130,10 @@ fn expected_bytes(dims: Dims, ty: StoredType) -> u64 {
 }
 
 /// Checks that `path` holds exactly the bytes `dims` voxels of `ty` need after `offset`
-/// uncompressed bytes, and describes it as a raw channel source. Nothing is read or mapped.
-pub fn open(
-    path: &Path,
-    offset: u64,
-    ty: StoredType,
-    endian: Endian,
-    dims: Dims,
-) -> Result<ChannelSource, DatasetError> {
-    open_with(path, offset, Encoding::Raw, ty, endian, dims)
-}
-
-/// As [`open`], for either encoding. A gzip stream is inflated and counted (not kept), so a
-/// wrong size is an error at scene load rather than in the middle of a render; inflation
-/// stops once the stream is clearly too long (see [`load`]).
+/// uncompressed bytes, and describes it as a channel source. Raw data is only measured; a
+/// gzip stream is inflated and counted (not kept), so a wrong size is an error at scene load
+/// rather than in the middle of a render; inflation stops once the stream is clearly too
+/// long (see [`load`]).
 pub fn open_with(
     path: &Path,
     offset: u64,
@@ -152,17 +142,14 @@ pub fn open_with(
     endian: Endian,
     dims: Dims,
 ) -> Result<ChannelSource, DatasetError> {
-    let expected = expected_bytes(dims, ty);
     match encoding {
-        Encoding::Raw => {
-            check_file_size(path, offset, expected, || what(dims, ty))?;
-        }
+        Encoding::Raw => check_file_size(path, offset, ty, dims)?,
         Encoding::Gzip => {
             let reader = gzip_reader(path, offset)?;
-            read_counted(path, reader, expected, None, || what(dims, ty))?;
+            read_counted(path, reader, expected_bytes(dims, ty), None, || what(dims, ty))?;
         }
     }
-    Ok(ChannelSource::File { path: path.to_path_buf(), offset, encoding, stored: ty, endian })
+    Ok(ChannelSource::File { file: DataFile::Local(path.to_path_buf()), offset, encoding, stored: ty, endian })
 }
 
 /// Reads one channel: `dims` numbers stored as `stored` from byte `offset` of `path`.
@@ -184,7 +171,7 @@ pub fn load(
         usize::try_from(dims.voxel_count()).map_err(|_| DatasetError::format(path, "volume too large for memory"))?;
     let bytes = match (encoding, stored.is_native()) {
         (Encoding::Raw, true) => {
-            check_file_size(path, offset, expected, || what(dims, stored))?;
+            check_file_size(path, offset, stored, dims)?;
             let map = super::mmap::map_file(path)?;
             let actual = (map.len() as u64).saturating_sub(offset);
             if actual != expected {
@@ -196,7 +183,7 @@ pub fn load(
             VoxelBytes::Mapped { map, offset, len }
         }
         (Encoding::Raw, false) => {
-            check_file_size(path, offset, expected, || what(dims, stored))?;
+            check_file_size(path, offset, stored, dims)?;
             let mut file = File::open(path).map_err(|e| DatasetError::io(path, e))?;
             file.seek(SeekFrom::Start(offset)).map_err(|e| DatasetError::io(path, e))?;
             let mut buf = Vec::new();
@@ -215,24 +202,29 @@ pub fn load(
     };
     let endian = if stored.is_native() { endian } else { Endian::Little };
     Channel::new(stored.loaded_type(), endian, bytes, dims)
-        .map_err(|(e, a)| mismatch(path, e, a, what(dims, stored.loaded_type().into())))
+        .map_err(|e| mismatch(path, e.expected, e.actual, what(dims, stored.loaded_type().into())))
 }
 
 fn mismatch(path: &Path, expected: u64, actual: u64, what: String) -> DatasetError {
     DatasetError::SizeMismatch { path: path.to_path_buf(), expected, actual, what }
 }
 
-/// Checks an uncompressed file's length minus `offset` against `expected`.
-fn check_file_size(path: &Path, offset: u64, expected: u64, what: impl Fn() -> String) -> Result<(), DatasetError> {
+/// Checks an uncompressed file's length against [`check_len`].
+fn check_file_size(path: &Path, offset: u64, ty: StoredType, dims: Dims) -> Result<(), DatasetError> {
     let len = std::fs::metadata(path).map_err(|e| DatasetError::io(path, e))?.len();
+    check_len(path, len, offset, ty, dims)
+}
+
+/// Checks that an uncompressed file of `len` bytes holds exactly `dims` voxels of `ty` after
+/// `offset` bytes (SPEC §1.1: never "at least"). `path` names the file in the error. The
+/// scene loader calls this with the length a catalog reported for a raw channel's file.
+pub(crate) fn check_len(path: &Path, len: u64, offset: u64, ty: StoredType, dims: Dims) -> Result<(), DatasetError> {
     if len < offset {
-        return Err(DatasetError::format(
-            path,
-            format!("the file has {len} bytes, fewer than the {offset} bytes that precede the voxel data"),
-        ));
+        return Err(DatasetError::ShorterThanOffset { path: path.to_path_buf(), len, offset });
     }
+    let expected = expected_bytes(dims, ty);
     if len - offset != expected {
-        return Err(mismatch(path, expected, len - offset, what()));
+        return Err(mismatch(path, expected, len - offset, what(dims, ty)));
     }
     Ok(())
 }
@@ -511,7 +503,7 @@ mod tests {
     fn wrong_sizes_name_both_sizes() {
         let d = dims(4, 4, 2);
         let f = TempFile::with("short.raw", &[0u8; 63]);
-        let e = open(&f.0, 0, StoredType::U16, Endian::Little, d).unwrap_err();
+        let e = open_with(&f.0, 0, Encoding::Raw, StoredType::U16, Endian::Little, d).unwrap_err();
         match &e {
             DatasetError::SizeMismatch { expected: 64, actual: 63, what, .. } => {
                 assert_eq!(what, "dims [4, 4, 2] of u16")
@@ -523,12 +515,12 @@ mod tests {
         // Too long by one byte is refused too.
         let f = TempFile::with("long.raw", &[0u8; 65]);
         assert!(matches!(
-            open(&f.0, 0, StoredType::U16, Endian::Little, d),
+            open_with(&f.0, 0, Encoding::Raw, StoredType::U16, Endian::Little, d),
             Err(DatasetError::SizeMismatch { expected: 64, actual: 65, .. })
         ));
         // Load re-checks: the file may have been truncated since open.
         let f = TempFile::with("trunc.raw", &[0u8; 64]);
-        open(&f.0, 0, StoredType::U16, Endian::Little, d).unwrap();
+        open_with(&f.0, 0, Encoding::Raw, StoredType::U16, Endian::Little, d).unwrap();
         std::fs::write(&f.0, [0u8; 40]).unwrap();
         for ty in [StoredType::U16, StoredType::I16] {
             assert!(matches!(
@@ -537,7 +529,16 @@ mod tests {
             ));
         }
         // An offset past the end of the file.
-        assert!(matches!(open(&f.0, 100, StoredType::U8, Endian::Little, d), Err(DatasetError::Format { .. })));
+        assert!(matches!(
+            open_with(&f.0, 100, Encoding::Raw, StoredType::U8, Endian::Little, d),
+            Err(DatasetError::ShorterThanOffset { len: 40, offset: 100, .. })
+        ));
+        // The check a scene loader makes from a catalog's length alone.
+        assert!(check_len(&f.0, 64, 0, StoredType::U16, d).is_ok());
+        assert!(matches!(
+            check_len(&f.0, 70, 4, StoredType::U16, d),
+            Err(DatasetError::SizeMismatch { expected: 64, actual: 66, .. })
+        ));
     }
 
     #[test]
@@ -582,6 +583,10 @@ mod tests {
     #[test]
     fn missing_file_is_an_io_error() {
         let f = TempFile::new("absent.raw");
-        assert!(matches!(open(&f.0, 0, StoredType::U8, Endian::Little, dims(1, 1, 1)), Err(DatasetError::Io { .. })));
+        let e = open_with(&f.0, 0, Encoding::Raw, StoredType::U8, Endian::Little, dims(1, 1, 1)).unwrap_err();
+        assert!(
+            matches!(&e, DatasetError::Io { path, source } if *path == f.0 && source.kind() == io::ErrorKind::NotFound)
+        );
+        assert!(!e.is_retryable());
     }
 }

@@ -1,17 +1,16 @@
 //! Where a dataset's voxels come from, validated at scene load, loaded on demand.
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
 use std::sync::Arc;
 
 use super::generator::Generator;
 use super::macrocell::{Macrocells, RANGED_CHANNELS};
 use super::raw::StoredType;
-use super::{Channel, ChannelName, Dims, Endian, Volume, VoxelType};
+use super::{Channel, ChannelName, DataFile, Dims, Endian, Volume, VoxelType};
 use crate::DatasetError;
 
 /// How a file region is encoded.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Encoding {
     /// Plain bytes: memory-mapped, zero copy, when no conversion is needed.
     Raw,
@@ -27,7 +26,7 @@ pub enum ChannelSource {
     /// A region of a file (raw files, NRRD data): `stored` numbers from byte `offset`.
     File {
         /// The data file.
-        path: PathBuf,
+        file: DataFile,
         /// Bytes to skip (an attached header, NRRD `byte skip`).
         offset: u64,
         /// Raw or gzip.
@@ -40,12 +39,12 @@ pub enum ChannelSource {
     /// A NIfTI-1 volume (`.nii`, `.nii.gz`), decoded whole.
     Nifti {
         /// The file.
-        path: PathBuf,
+        file: DataFile,
     },
     /// One channel of a PNG/JPEG image, flipped so y points up.
     Image {
         /// The image file.
-        path: PathBuf,
+        file: DataFile,
         /// Which of red, green, blue, alpha.
         channel: ChannelName,
     },
@@ -54,32 +53,85 @@ pub enum ChannelSource {
 }
 
 impl ChannelSource {
-    /// Reads, decodes or generates the channel.
+    /// Reads, decodes or generates the channel; a [`DataFile::Remote`] source is
+    /// [`DatasetError::Remote`].
     pub fn load(&self, dims: Dims) -> Result<Channel, DatasetError> {
         match self {
-            ChannelSource::File { path, offset, encoding, stored, endian } => {
-                super::raw::load(path, *offset, *encoding, *stored, *endian, dims)
+            ChannelSource::File { file, offset, encoding, stored, endian } => {
+                super::raw::load(file.local()?, *offset, *encoding, *stored, *endian, dims)
             }
-            ChannelSource::Nifti { path } => super::nifti_file::load(path, dims),
-            ChannelSource::Image { path, channel } => super::image_file::load(path, *channel, dims),
+            ChannelSource::Nifti { file } => super::nifti_file::load(file.local()?, dims),
+            ChannelSource::Image { file, channel } => super::image_file::load(file.local()?, *channel, dims),
             ChannelSource::Generated(g) => Ok(g.generate(dims)),
         }
     }
 }
 
 /// A dataset as the object level sees it: enough to place and intersect objects (dims,
-/// channel types) and to load its voxels when a renderer needs them.
+/// channel types) and to load its voxels when a renderer needs them. Built once, by the
+/// scene loader, from sources it checked against the dims.
 #[derive(Clone, Debug)]
 pub struct DatasetInfo {
-    /// Unique name in the scene.
-    pub name: String,
-    /// Voxels per axis.
-    pub dims: Dims,
-    /// Each channel's storage type once loaded, and where it comes from.
-    pub channels: BTreeMap<ChannelName, (VoxelType, ChannelSource)>,
+    name: String,
+    dims: Dims,
+    channels: BTreeMap<ChannelName, (VoxelType, ChannelSource)>,
+    /// Computed once: a store looks datasets up by it for every cast.
+    id: DatasetId,
 }
 
 impl DatasetInfo {
+    /// A dataset of `dims` whose channels come from `channels` (each checked against `dims`
+    /// by whoever built it).
+    pub(crate) fn new(
+        name: String,
+        dims: Dims,
+        channels: BTreeMap<ChannelName, (VoxelType, ChannelSource)>,
+    ) -> DatasetInfo {
+        let id = identity(dims, &channels);
+        DatasetInfo { name, dims, channels, id }
+    }
+
+    /// Its unique name in the scene.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Voxels per axis.
+    pub fn dims(&self) -> Dims {
+        self.dims
+    }
+
+    /// Each channel's storage type once loaded, and where it comes from.
+    pub fn channels(&self) -> &BTreeMap<ChannelName, (VoxelType, ChannelSource)> {
+        &self.channels
+    }
+
+    /// The files its channels read, each once (none for a generated dataset).
+    pub fn files(&self) -> Vec<&DataFile> {
+        let mut files: Vec<&DataFile> = Vec::new();
+        for (_, source) in self.channels.values() {
+            let file = match source {
+                ChannelSource::File { file, .. }
+                | ChannelSource::Nifti { file }
+                | ChannelSource::Image { file, .. } => file,
+                ChannelSource::Generated(_) => continue,
+            };
+            if !files.contains(&file) {
+                files.push(file);
+            }
+        }
+        files
+    }
+
+    /// The keys (or local paths) of [`DatasetInfo::files`], as text.
+    pub fn file_keys(&self) -> Vec<String> {
+        self.files().iter().map(|f| f.path().to_string_lossy().into_owned()).collect()
+    }
+
+    /// Whether this process can load it: every file it reads is local.
+    pub fn is_local(&self) -> bool {
+        self.files().iter().all(|f| matches!(f, DataFile::Local(_)))
+    }
     /// Whether the dataset has `channel`.
     pub fn has(&self, channel: ChannelName) -> bool {
         self.channels.contains_key(&channel)
@@ -95,6 +147,15 @@ impl DatasetInfo {
             .fold(ranged * Macrocells::byte_len(self.dims), u64::saturating_add)
     }
 
+    /// The dataset's identity: what it reads (each channel's file region, or its generator
+    /// and parameters) and its dims, not its name. Two scenes that name the same files (or
+    /// the same generators) with the same dims give equal ids, so a long-lived store can
+    /// keep the voxels between them. Local files compare by path as resolved (a sandboxed
+    /// catalog resolves to canonical paths).
+    pub fn id(&self) -> &DatasetId {
+        &self.id
+    }
+
     /// Loads every channel.
     pub fn load(&self) -> Result<Arc<Volume>, DatasetError> {
         let mut channels = BTreeMap::new();
@@ -102,5 +163,123 @@ impl DatasetInfo {
             channels.insert(*name, source.load(self.dims)?);
         }
         Ok(Arc::new(Volume::new(self.dims, channels)))
+    }
+}
+
+/// The identity of a dataset of `dims` reading `channels` ([`DatasetInfo::id`]).
+fn identity(dims: Dims, channels: &BTreeMap<ChannelName, (VoxelType, ChannelSource)>) -> DatasetId {
+    let channels = channels
+        .iter()
+        .map(|(name, (_, source))| {
+            let id = match source {
+                ChannelSource::File { file, offset, encoding, stored, endian } => SourceId::File {
+                    file: file.clone(),
+                    offset: *offset,
+                    encoding: *encoding,
+                    stored: *stored,
+                    endian: *endian,
+                },
+                ChannelSource::Nifti { file } => SourceId::Nifti(file.clone()),
+                ChannelSource::Image { file, channel } => SourceId::Image(file.clone(), *channel),
+                ChannelSource::Generated(g) => SourceId::Generated(g.identity()),
+            };
+            (*name, id)
+        })
+        .collect();
+    DatasetId { dims, channels }
+}
+
+/// What a dataset reads, independent of its name in a scene ([`DatasetInfo::id`]): the key a
+/// volume store caches voxels by.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct DatasetId {
+    dims: Dims,
+    channels: Vec<(ChannelName, SourceId)>,
+}
+
+/// One channel's source, comparable and hashable (generator parameters by their bits).
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+enum SourceId {
+    File { file: DataFile, offset: u64, encoding: Encoding, stored: StoredType, endian: Endian },
+    Nifti(DataFile),
+    Image(DataFile, ChannelName),
+    Generated(Vec<u64>),
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::PathBuf;
+
+    use super::*;
+
+    fn dims(n: u64) -> Dims {
+        Dims::new([n, n, n]).unwrap()
+    }
+
+    fn info(name: &str, n: u64, channels: Vec<(ChannelName, ChannelSource)>) -> DatasetInfo {
+        DatasetInfo::new(name.into(), dims(n), channels.into_iter().map(|(c, s)| (c, (VoxelType::U8, s))).collect())
+    }
+
+    fn raw(path: &str, offset: u64) -> ChannelSource {
+        ChannelSource::File {
+            file: DataFile::Local(PathBuf::from(path)),
+            offset,
+            encoding: Encoding::Raw,
+            stored: StoredType::U8,
+            endian: Endian::Little,
+        }
+    }
+
+    fn sphere(radius: f64) -> ChannelSource {
+        ChannelSource::Generated(Generator::Sphere {
+            centre: [0.5; 3],
+            radius,
+            value: 255.0,
+            profile: Default::default(),
+            ty: VoxelType::U8,
+        })
+    }
+
+    #[test]
+    fn ids_follow_sources_and_dims_not_names() {
+        use std::collections::HashSet;
+        let a = info("a", 4, vec![(ChannelName::Voxel, raw("/d/v.raw", 0))]);
+        let same_file_other_name = info("b", 4, vec![(ChannelName::Voxel, raw("/d/v.raw", 0))]);
+        assert_eq!(a.id(), same_file_other_name.id());
+        let different = [
+            info("a", 5, vec![(ChannelName::Voxel, raw("/d/v.raw", 0))]),
+            info("a", 4, vec![(ChannelName::Voxel, raw("/d/w.raw", 0))]),
+            info("a", 4, vec![(ChannelName::Voxel, raw("/d/v.raw", 8))]),
+            info("a", 4, vec![(ChannelName::Grey, raw("/d/v.raw", 0))]),
+            info("a", 4, vec![(ChannelName::Voxel, sphere(0.4))]),
+        ];
+        let mut ids: HashSet<DatasetId> = different.iter().map(|d| d.id().clone()).collect();
+        assert_eq!(ids.len(), different.len(), "every difference in source or dims changes the id");
+        assert!(ids.insert(a.id().clone()));
+        // Generators compare by kind and parameters.
+        let g = info("g", 4, vec![(ChannelName::Voxel, sphere(0.4))]);
+        assert_eq!(g.id(), info("h", 4, vec![(ChannelName::Voxel, sphere(0.4))]).id());
+        assert_ne!(g.id(), info("g", 4, vec![(ChannelName::Voxel, sphere(0.41))]).id());
+        let remote = |key: &str| ChannelSource::Nifti { file: DataFile::Remote(key.into()) };
+        assert_eq!(
+            info("r", 4, vec![(ChannelName::Voxel, remote("k.nii"))]).id(),
+            info("s", 4, vec![(ChannelName::Voxel, remote("k.nii"))]).id()
+        );
+    }
+
+    #[test]
+    fn a_remote_source_is_a_typed_error_when_loaded() {
+        let source = ChannelSource::File {
+            file: DataFile::Remote("data/v.raw".into()),
+            offset: 0,
+            encoding: Encoding::Raw,
+            stored: StoredType::U8,
+            endian: Endian::Little,
+        };
+        let e = source.load(dims(2)).unwrap_err();
+        assert!(matches!(&e, DatasetError::Remote { key } if key == "data/v.raw"), "{e:?}");
+        assert!(!e.is_retryable());
+        let e = info("r", 2, vec![(ChannelName::Red, source)]).load().unwrap_err();
+        assert!(matches!(e, DatasetError::Remote { .. }), "{e:?}");
     }
 }

@@ -4,8 +4,33 @@ use std::collections::BTreeMap;
 use std::fmt;
 use std::sync::Arc;
 
+use thiserror::Error;
+
 use super::macrocell::{Macrocells, RANGED_CHANNELS};
 use super::{Channel, ChannelName};
+
+/// Why [`Dims::new`] refused three sizes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Error)]
+pub enum DimsError {
+    /// An axis of size 0.
+    #[error("dims {dims:?}: every axis must be at least 1")]
+    ZeroAxis {
+        /// The sizes given.
+        dims: [u64; 3],
+    },
+    /// An axis beyond `i32::MAX` voxels (indices are computed in signed arithmetic).
+    #[error("dims {dims:?}: an axis exceeds {}", i32::MAX)]
+    AxisTooLarge {
+        /// The sizes given.
+        dims: [u64; 3],
+    },
+    /// More than [`Dims::MAX_VOXELS`] voxels in all.
+    #[error("dims {dims:?}: more than {} voxels", Dims::MAX_VOXELS)]
+    TooManyVoxels {
+        /// The sizes given.
+        dims: [u64; 3],
+    },
+}
 
 /// Voxels per axis, each ≥ 1, with a total that indexes safely in `usize` and whose bytes
 /// fit in `u64` for every channel type. Established once, in [`Dims::new`].
@@ -16,18 +41,18 @@ impl Dims {
     /// Largest voxel count accepted (2^40, one TiB of u8 voxels).
     pub const MAX_VOXELS: u64 = 1 << 40;
 
-    /// Checked constructor; the message says what was expected.
-    pub fn new(d: [u64; 3]) -> Result<Dims, String> {
+    /// Checked constructor.
+    pub fn new(d: [u64; 3]) -> Result<Dims, DimsError> {
         if d.contains(&0) {
-            return Err(format!("dims {d:?}: every axis must be at least 1"));
+            return Err(DimsError::ZeroAxis { dims: d });
         }
         if d.iter().any(|&n| n > i32::MAX as u64) {
-            return Err(format!("dims {d:?}: an axis exceeds {}", i32::MAX));
+            return Err(DimsError::AxisTooLarge { dims: d });
         }
         let total = d[0].checked_mul(d[1]).and_then(|v| v.checked_mul(d[2]));
         match total {
             Some(t) if t <= Dims::MAX_VOXELS => Ok(Dims([d[0] as u32, d[1] as u32, d[2] as u32])),
-            _ => Err(format!("dims {d:?}: more than {} voxels", Dims::MAX_VOXELS)),
+            _ => Err(DimsError::TooManyVoxels { dims: d }),
         }
     }
 

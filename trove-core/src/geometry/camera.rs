@@ -1,6 +1,7 @@
 //! The pinhole camera of SPEC §4.1.
 
 use glam::DVec3;
+use thiserror::Error;
 
 /// A ray: origin and unit direction, so `t` is world distance.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -29,29 +30,80 @@ pub struct Camera {
     tan_half_fov: f64,
 }
 
+/// Which camera input an error is about; the scene loader turns it into a key path
+/// (`camera.up`), so the camera itself knows nothing of TOML.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CameraField {
+    /// The eye point.
+    Eye,
+    /// The point looked at.
+    Target,
+    /// The up direction.
+    Up,
+    /// The vertical field of view.
+    FovY,
+}
+
+/// Why [`Camera::new`] refused its inputs.
+#[derive(Clone, Copy, Debug, PartialEq, Error)]
+pub enum CameraError {
+    /// A point or direction with a NaN or infinite coordinate.
+    #[error("expected three finite numbers, got {value:?}")]
+    NotFinite {
+        /// Which input.
+        field: CameraField,
+        /// Its value.
+        value: [f64; 3],
+    },
+    /// A field of view outside (0°, 180°) (NaN included).
+    #[error("expected degrees in (0, 180), got {fov_y}")]
+    FovOutOfRange {
+        /// The value given, in degrees.
+        fov_y: f64,
+    },
+    /// The eye is the target, so there is no view direction.
+    #[error("expected a target different from the eye")]
+    TargetIsEye,
+    /// `up` is zero or parallel to the view direction, so it fixes no frame.
+    #[error("expected a direction not parallel to the view direction, got {up:?}")]
+    UpParallelToView {
+        /// The `up` given.
+        up: [f64; 3],
+    },
+}
+
+impl CameraError {
+    /// The input the error is about.
+    pub fn field(&self) -> CameraField {
+        match self {
+            CameraError::NotFinite { field, .. } => *field,
+            CameraError::FovOutOfRange { .. } => CameraField::FovY,
+            CameraError::TargetIsEye => CameraField::Target,
+            CameraError::UpParallelToView { .. } => CameraField::Up,
+        }
+    }
+}
+
 impl Camera {
-    /// `Err` names the key that is wrong: eye = target, `up` parallel to the view
-    /// direction, a non-finite input, or `fov_y` outside (0°, 180°).
-    pub fn new(eye: DVec3, target: DVec3, up: DVec3, fov_y_degrees: f64) -> Result<Camera, (&'static str, String)> {
-        for (key, v) in [("camera.eye", eye), ("camera.target", target), ("camera.up", up)] {
+    /// A camera at `eye` looking at `target`; refuses a non-finite input, `fov_y` outside
+    /// (0°, 180°), eye = target, and `up` parallel to the view direction.
+    pub fn new(eye: DVec3, target: DVec3, up: DVec3, fov_y_degrees: f64) -> Result<Camera, CameraError> {
+        for (field, v) in [(CameraField::Eye, eye), (CameraField::Target, target), (CameraField::Up, up)] {
             if !v.is_finite() {
-                return Err((key, format!("expected three finite numbers, got {:?}", v.to_array())));
+                return Err(CameraError::NotFinite { field, value: v.to_array() });
             }
         }
         if !(fov_y_degrees > 0.0 && fov_y_degrees < 180.0) {
-            return Err(("camera.fov_y", format!("expected degrees in (0, 180), got {fov_y_degrees}")));
+            return Err(CameraError::FovOutOfRange { fov_y: fov_y_degrees });
         }
         let view = target - eye;
         if view.length() == 0.0 {
-            return Err(("camera.target", "expected a target different from the eye".into()));
+            return Err(CameraError::TargetIsEye);
         }
         let forward = view.normalize();
         let side = forward.cross(up);
         if side.length() <= 1e-12 * up.length() || up.length() == 0.0 {
-            return Err((
-                "camera.up",
-                format!("expected a direction not parallel to the view direction, got {:?}", up.to_array()),
-            ));
+            return Err(CameraError::UpParallelToView { up: up.to_array() });
         }
         let right = side.normalize();
         Ok(Camera {
@@ -96,12 +148,16 @@ mod tests {
     }
 
     #[test]
-    fn refuses_bad_cameras_naming_the_key() {
+    fn refuses_bad_cameras_naming_the_field() {
         let e = DVec3::new(0.0, 0.0, 4.0);
-        assert_eq!(Camera::new(e, DVec3::ZERO, DVec3::Z, 40.0).unwrap_err().0, "camera.up");
-        assert_eq!(Camera::new(e, DVec3::ZERO, DVec3::Y, 180.0).unwrap_err().0, "camera.fov_y");
-        assert_eq!(Camera::new(e, DVec3::ZERO, DVec3::Y, 0.0).unwrap_err().0, "camera.fov_y");
-        assert_eq!(Camera::new(e, e, DVec3::Y, 40.0).unwrap_err().0, "camera.target");
-        assert_eq!(Camera::new(DVec3::NAN, e, DVec3::Y, 40.0).unwrap_err().0, "camera.eye");
+        let err = |eye, target, up, fov| Camera::new(eye, target, up, fov).unwrap_err();
+        assert_eq!(err(e, DVec3::ZERO, DVec3::Z, 40.0), CameraError::UpParallelToView { up: [0.0, 0.0, 1.0] });
+        assert_eq!(err(e, DVec3::ZERO, DVec3::Y, 180.0), CameraError::FovOutOfRange { fov_y: 180.0 });
+        assert_eq!(err(e, DVec3::ZERO, DVec3::Y, 0.0).field(), CameraField::FovY);
+        assert_eq!(err(e, e, DVec3::Y, 40.0), CameraError::TargetIsEye);
+        assert_eq!(err(e, e, DVec3::Y, 40.0).field(), CameraField::Target);
+        let nan = err(DVec3::NAN, e, DVec3::Y, 40.0);
+        assert!(matches!(nan, CameraError::NotFinite { field: CameraField::Eye, .. }), "{nan:?}");
+        assert_eq!(err(e, DVec3::ZERO, DVec3::ZERO, 40.0).field(), CameraField::Up);
     }
 }

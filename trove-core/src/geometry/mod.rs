@@ -7,6 +7,6 @@ pub mod hexahedron;
 mod pieces;
 mod placement;
 
-pub use camera::{Camera, Ray};
+pub use camera::{Camera, CameraError, CameraField, Ray};
 pub use pieces::{split_into_pieces, Piece, Segment};
-pub use placement::{sample_count, Extent, LineSamples, Placement, SampleWalk, Shape, VcLine};
+pub use placement::{sample_count, Extent, InversionPrecisionError, LineSamples, Placement, SampleWalk, Shape, VcLine};

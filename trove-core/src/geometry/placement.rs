@@ -3,8 +3,9 @@
 //! coordinates (VC) that sampling needs.
 
 use glam::{DMat4, DVec3};
+use thiserror::Error;
 
-use super::hexahedron::Hexahedron;
+use super::hexahedron::{Hexahedron, Q};
 use super::Ray;
 use crate::dataset::Dims;
 
@@ -21,6 +22,22 @@ pub struct Extent {
 impl Extent {
     /// The whole dataset.
     pub const FULL: Extent = Extent { min: DVec3::ZERO, max: DVec3::ONE };
+}
+
+/// A distorted box that does not fold but comes so close to folding that f64 cannot invert
+/// its world map to the SPEC §4.2 tolerance somewhere (see
+/// [`Placement::check_inversion_precision`]).
+#[derive(Clone, Copy, Debug, PartialEq, Error)]
+#[error(
+    "the box is too close to folding near box coordinates {}: its map cannot be inverted there to better \
+     than about {attainable_voxels:.1e} voxel in f64 (1e-6 is required); move the corners further from folding",
+    Q(*near)
+)]
+pub struct InversionPrecisionError {
+    /// Box coordinates of the worst-conditioned grid point.
+    pub near: [f64; 3],
+    /// The precision attainable there, in voxels.
+    pub attainable_voxels: f64,
 }
 
 /// The shape of an object's box.
@@ -132,7 +149,7 @@ impl Placement {
     }
 
     /// For a distorted box, whether f64 can invert its world map to the SPEC §4.2 tolerance
-    /// (10⁻⁶ voxel) everywhere in it; `Err` says where it cannot. Affine boxes always can.
+    /// (10⁻⁶ voxel) everywhere in it; the error says where it cannot. Affine boxes always can.
     ///
     /// A box that does not fold (which [`Hexahedron::new`] proves) can still come so close
     /// to folding that its Jacobian is nearly singular somewhere: the world point W(q) is
@@ -143,7 +160,7 @@ impl Placement {
     /// corners and faces included (the polynomial det J is smallest on the boundary unless
     /// the box bends inward, and the grid then still brackets it to a fraction of its
     /// variation); the factor 4 was measured on boxes approaching a fold at a corner.
-    pub fn check_inversion_precision(&self) -> Result<(), String> {
+    pub fn check_inversion_precision(&self) -> Result<(), InversionPrecisionError> {
         let Shape::Distorted { hex, .. } = &self.shape else { return Ok(()) };
         let scale = hex.size() + hex.corners().iter().map(|c| c.abs().max_element()).fold(0.0, f64::max);
         let mut worst = (0.0f64, DVec3::ZERO);
@@ -166,16 +183,7 @@ impl Placement {
         if attainable_q <= self.tol_q {
             return Ok(());
         }
-        let q = worst.1;
-        Err(format!(
-            "the box is too close to folding near box coordinates ({:.3}, {:.3}, {:.3}): its map cannot be \
-             inverted there to better than about {:.1e} voxel in f64 (1e-6 is required); move the corners \
-             further from folding",
-            q.x,
-            q.y,
-            q.z,
-            attainable_q / self.tol_q * 1e-6
-        ))
+        Err(InversionPrecisionError { near: worst.1.to_array(), attainable_voxels: attainable_q / self.tol_q * 1e-6 })
     }
 
     /// The first and last t ≥ 0 at which the ray is inside the closed box (SPEC §4.2).

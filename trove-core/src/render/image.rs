@@ -1,10 +1,9 @@
 //! The rendered image and its two file forms: an 8-bit PNG (SPEC §4.4's quantisation) and
 //! an unquantised Portable FloatMap.
 
-use std::io::Write;
 use std::path::Path;
 
-use crate::RenderError;
+use super::error::{OutputError, RenderError};
 
 /// Linear RGB pixels, row 0 at the top.
 #[derive(Clone, Debug, PartialEq)]
@@ -43,75 +42,26 @@ impl Image {
 
     /// round(255 · clamp(C, 0, 1)) per channel, half away from zero, no gamma.
     pub fn to_rgb8(&self) -> Vec<u8> {
-        self.pixels.iter().flat_map(|p| p.map(|c| (255.0 * c.clamp(0.0, 1.0)).round() as u8)).collect()
+        self.pixels.iter().flat_map(|p| p.map(quantize)).collect()
+    }
+
+    /// The linear values as f32, row-major: what a PFM stores.
+    pub fn to_rgb32f(&self) -> Vec<f32> {
+        self.pixels.iter().flat_map(|p| p.map(|c| c as f32)).collect()
     }
 
     /// Writes a PNG, or a PFM when the path ends in `.pfm`.
     pub fn save(&self, path: &Path) -> Result<(), RenderError> {
         let is_pfm = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("pfm"));
-        let result = if is_pfm { self.write_pfm(path) } else { self.write_png(path) };
-        result.map_err(|message| RenderError::Output { path: path.to_path_buf(), message })
+        let bytes = if is_pfm { Ok(encode_pfm(self.width, self.height, &self.to_rgb32f())) } else { self.encode_png() };
+        bytes
+            .and_then(|b| std::fs::write(path, b).map_err(OutputError::from))
+            .map_err(|source| RenderError::Output { path: path.to_path_buf(), source })
     }
 
-    fn write_png(&self, path: &Path) -> Result<(), String> {
-        image::save_buffer(path, &self.to_rgb8(), self.width, self.height, image::ExtendedColorType::Rgb8)
-            .map_err(|e| e.to_string())
-    }
-
-    /// PFM: "PF", dimensions, a negative scale for little-endian, then rows bottom to top.
-    fn write_pfm(&self, path: &Path) -> Result<(), String> {
-        let mut out = Vec::with_capacity(self.pixels.len() * 12 + 32);
-        write!(out, "PF\n{} {}\n-1.0\n", self.width, self.height).map_err(|e| e.to_string())?;
-        for row in self.pixels.chunks(self.width as usize).rev() {
-            for p in row {
-                for c in p {
-                    out.extend_from_slice(&(*c as f32).to_le_bytes());
-                }
-            }
-        }
-        std::fs::write(path, out).map_err(|e| e.to_string())
-    }
-
-    /// Reads a PFM written by [`Image::save`] (or any RGB PFM), for tests and comparisons.
-    pub fn read_pfm(path: &Path) -> Result<Image, String> {
-        let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let mut fields = Vec::new();
-        let mut pos = 0;
-        while fields.len() < 4 {
-            while pos < bytes.len() && bytes[pos].is_ascii_whitespace() {
-                pos += 1;
-            }
-            let start = pos;
-            while pos < bytes.len() && !bytes[pos].is_ascii_whitespace() {
-                pos += 1;
-            }
-            if start == pos {
-                return Err(format!("{}: truncated PFM header", path.display()));
-            }
-            fields.push(String::from_utf8_lossy(&bytes[start..pos]).to_string());
-        }
-        pos += 1;
-        let bad = |what: &str| format!("{}: PFM {what}", path.display());
-        if fields[0] != "PF" {
-            return Err(bad("magic is not PF (only RGB PFM is read)"));
-        }
-        let w: u32 = fields[1].parse().map_err(|_| bad("width"))?;
-        let h: u32 = fields[2].parse().map_err(|_| bad("height"))?;
-        let scale: f64 = fields[3].parse().map_err(|_| bad("scale"))?;
-        let n = w as usize * h as usize;
-        let data = bytes.get(pos..pos + n * 12).ok_or_else(|| bad("data is truncated"))?;
-        let read = |i: usize| {
-            let b: [u8; 4] = data[i * 4..i * 4 + 4].try_into().expect("4 bytes");
-            (if scale < 0.0 { f32::from_le_bytes(b) } else { f32::from_be_bytes(b) }) as f64
-        };
-        let mut pixels = vec![[0.0; 3]; n];
-        for row in 0..h as usize {
-            for col in 0..w as usize {
-                let src = (h as usize - 1 - row) * w as usize + col;
-                pixels[row * w as usize + col] = [read(src * 3), read(src * 3 + 1), read(src * 3 + 2)];
-            }
-        }
-        Ok(Image::new(w, h, pixels))
+    /// The PNG file's bytes.
+    pub fn encode_png(&self) -> Result<Vec<u8>, OutputError> {
+        encode_png(self.width, self.height, &self.to_rgb8())
     }
 
     /// Largest per-channel difference between two images' linear values.
@@ -147,6 +97,34 @@ impl Image {
     }
 }
 
+/// The PNG byte of a linear value (SPEC §4.4): round(255 · clamp(c, 0, 1)), half away from
+/// zero. Every output path uses this one function, so local mode and the farm agree.
+#[inline]
+pub fn quantize(c: f64) -> u8 {
+    (255.0 * c.clamp(0.0, 1.0)).round() as u8
+}
+
+/// An 8-bit RGB PNG of `rgb` (row-major, row 0 at the top).
+pub fn encode_png(width: u32, height: u32, rgb: &[u8]) -> Result<Vec<u8>, OutputError> {
+    let mut out = Vec::new();
+    let encoder = image::codecs::png::PngEncoder::new(&mut out);
+    image::ImageEncoder::write_image(encoder, rgb, width, height, image::ExtendedColorType::Rgb8)?;
+    Ok(out)
+}
+
+/// A PFM of `rgb` (row-major, row 0 at the top): "PF", dimensions, a negative scale for
+/// little-endian, then rows bottom to top, as pbrt and other renderers write it.
+pub fn encode_pfm(width: u32, height: u32, rgb: &[f32]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(rgb.len() * 4 + 32);
+    out.extend_from_slice(format!("PF\n{width} {height}\n-1.0\n").as_bytes());
+    for row in rgb.chunks(width as usize * 3).rev() {
+        for c in row {
+            out.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -157,20 +135,16 @@ mod tests {
         assert_eq!(img.to_rgb8(), vec![1, 2, 255, 0, 255, 0]);
     }
 
+    /// The whole round trip is checked against a reader in `trove-tests`.
     #[test]
-    fn pfm_round_trips_and_is_bottom_to_top() {
+    fn pfm_is_little_endian_and_bottom_to_top() {
         let img = Image::new(2, 2, vec![[0.1, 0.2, 0.3], [0.4, 0.5, 0.6], [0.7, 0.8, 0.9], [1.5, -0.5, 0.0]]);
         let path = std::env::temp_dir().join(format!("trove-pfm-{}.pfm", std::process::id()));
         img.save(&path).unwrap();
         let bytes = std::fs::read(&path).unwrap();
-        assert!(bytes.starts_with(b"PF\n2 2\n-1.0\n"));
-        let back = Image::read_pfm(&path).unwrap();
         std::fs::remove_file(&path).ok();
-        for (a, b) in img.pixels().iter().zip(back.pixels()) {
-            for i in 0..3 {
-                assert!((a[i] - b[i]).abs() < 1e-7);
-            }
-        }
+        assert!(bytes.starts_with(b"PF\n2 2\n-1.0\n"));
+        assert_eq!(bytes.len(), 12 + 4 * 3 * 4);
         // The first stored row is the image's bottom row.
         let first = f32::from_le_bytes(bytes[12..16].try_into().unwrap());
         assert!((first - 0.7).abs() < 1e-7);

@@ -7,19 +7,25 @@
 //! `piece_start` and `ray_start` delimit pieces and rays. A task's index in `tasks` is also
 //! its result's index, so the composition phase finds every ray's ordered piece slots
 //! without any ids travelling with the work.
+//!
+//! A region is a band of whole image rows, so that a farm can work through a large image a
+//! band at a time and hold only that band's pieces; tasks carry the pixel index in the
+//! whole image either way.
 
 use rayon::prelude::*;
 
 use super::workunit::PieceTask;
-use crate::geometry::{split_into_pieces, Piece, Segment};
+use crate::geometry::{split_into_pieces, Piece, Ray, Segment};
 use crate::scene::Scene;
 
 /// Rows per parallel work item.
 const BAND_ROWS: usize = 4;
 
-/// Every ray's pieces and the work units they make.
+/// Every ray's pieces and the work units they make, for a band of image rows.
 #[derive(Clone, Debug, Default)]
 pub struct Intersections {
+    /// Pixel index of the region's first ray (its first row times the image width).
+    pub first_ray: u32,
     /// One task per (piece, covering object), ray by ray, front to back.
     pub tasks: Vec<PieceTask>,
     /// Piece `p`'s tasks are `tasks[piece_start[p]..piece_start[p + 1]]`.
@@ -31,9 +37,14 @@ pub struct Intersections {
 }
 
 impl Intersections {
-    /// Number of rays (pixels).
+    /// Number of rays (pixels) in the region.
     pub fn rays(&self) -> usize {
         self.ray_start.len() - 1
+    }
+
+    /// The region's ray index of pixel `ray` (a task's `ray`).
+    pub fn local_ray(&self, ray: u32) -> usize {
+        (ray - self.first_ray) as usize
     }
 
     /// Number of pieces over all rays.
@@ -53,7 +64,7 @@ impl Intersections {
 
     /// The piece that task `t` belongs to (binary search within its ray).
     pub fn piece_of(&self, t: usize) -> usize {
-        let pieces = self.pieces_of(self.tasks[t].ray as usize);
+        let pieces = self.pieces_of(self.local_ray(self.tasks[t].ray));
         pieces.start + self.piece_start[pieces.clone()].partition_point(|&s| s <= t) - 1
     }
 }
@@ -67,29 +78,37 @@ struct Band {
     segments: u64,
 }
 
-/// Intersects every ray of `scene` with every object (the scene guarantees at most
-/// [`crate::scene::MAX_OBJECTS`] objects, so an object index fits the task's 16 bits).
-pub fn intersect(scene: &Scene) -> Intersections {
-    let (w, h) = (scene.image.width, scene.image.height);
-    let bands: Vec<Band> = (0..h as usize)
+/// The segments of every object that `ray` crosses over a non-zero length, in scene order
+/// (SPEC §4.2): the one place where rays meet objects, for both algorithms.
+pub(crate) fn segments_of(scene: &Scene, ray: &Ray, segments: &mut Vec<Segment>) {
+    segments.clear();
+    for (i, object) in scene.objects().iter().enumerate() {
+        if let Some((t_near, t_far)) = object.placement().segment(ray) {
+            if t_far > t_near {
+                segments.push(Segment { object: i as u32, t_near, t_far });
+            }
+        }
+    }
+}
+
+/// Intersects every ray of image rows `rows` of `scene` with every object (the scene
+/// guarantees at most [`crate::scene::MAX_OBJECTS`] objects, so an object index fits the
+/// task's 16 bits).
+pub fn intersect(scene: &Scene, rows: std::ops::Range<u32>) -> Intersections {
+    let (w, h) = (scene.image().width, scene.image().height);
+    let rows = rows.start.min(h)..rows.end.min(h);
+    let bands: Vec<Band> = (rows.start as usize..rows.end as usize)
         .into_par_iter()
         .step_by(BAND_ROWS)
         .map(|first_row| {
             let mut band = Band::default();
             let (mut segments, mut cuts, mut pieces, mut cover) =
                 (Vec::new(), Vec::new(), Vec::<Piece>::new(), Vec::new());
-            for row in first_row..(first_row + BAND_ROWS).min(h as usize) {
+            for row in first_row..(first_row + BAND_ROWS).min(rows.end as usize) {
                 for col in 0..w {
                     let ray_index = row as u32 * w + col;
-                    let ray = scene.camera.ray(col, row as u32, w, h);
-                    segments.clear();
-                    for (i, object) in scene.objects.iter().enumerate() {
-                        if let Some((t_near, t_far)) = object.placement.segment(&ray) {
-                            if t_far > t_near {
-                                segments.push(Segment { object: i as u32, t_near, t_far });
-                            }
-                        }
-                    }
+                    let ray = scene.camera().ray(col, row as u32, w, h);
+                    segments_of(scene, &ray, &mut segments);
                     band.segments += segments.len() as u64;
                     split_into_pieces(&segments, &mut cuts, &mut pieces, &mut cover);
                     band.pieces_per_ray.push(pieces.len() as u32);
@@ -97,8 +116,7 @@ pub fn intersect(scene: &Scene) -> Intersections {
                         let objects = &cover[p.cover.0 as usize..p.cover.1 as usize];
                         let shared = objects.len() > 1;
                         for &o in objects {
-                            let object = u16::try_from(o).expect("a scene holds at most MAX_OBJECTS objects");
-                            band.tasks.push(PieceTask::new(ray_index, object, p.t0, p.t1, shared));
+                            band.tasks.push(PieceTask::new(ray_index, o as u16, p.t0, p.t1, shared));
                         }
                         band.tasks_per_piece.push(objects.len() as u32);
                     }
@@ -111,9 +129,10 @@ pub fn intersect(scene: &Scene) -> Intersections {
     let n_tasks = bands.iter().map(|b| b.tasks.len()).sum();
     let n_pieces = bands.iter().map(|b| b.tasks_per_piece.len()).sum::<usize>();
     let mut out = Intersections {
+        first_ray: rows.start * w,
         tasks: Vec::with_capacity(n_tasks),
         piece_start: Vec::with_capacity(n_pieces + 1),
-        ray_start: Vec::with_capacity(w as usize * h as usize + 1),
+        ray_start: Vec::with_capacity(w as usize * rows.len() + 1),
         segments: 0,
     };
     out.piece_start.push(0);
@@ -131,4 +150,19 @@ pub fn intersect(scene: &Scene) -> Intersections {
         }
     }
     out
+}
+
+/// The sample positions `object` takes over [t0, t1] of `ray` (SPEC §4.2): what a cast would
+/// evaluate, for counting the samples that early termination saved.
+pub(crate) fn sample_positions(scene: &Scene, ray: &Ray, object: usize, t0: f64, t1: f64) -> u64 {
+    let object = &scene.objects()[object];
+    object.placement().walk(ray, t0, t1, object.sampling_distance()).len()
+}
+
+/// The sample positions of a task, its ray recomputed from the camera: what culling it
+/// saved, for statistics.
+pub fn task_sample_positions(scene: &Scene, task: &PieceTask) -> u64 {
+    let (w, h) = (scene.image().width, scene.image().height);
+    let ray = scene.camera().ray(task.ray % w, task.ray / w, w, h);
+    sample_positions(scene, &ray, task.object as usize, task.t0, task.t1)
 }

@@ -5,34 +5,39 @@
 //! 1. **Intersection** ([`intersection`]): rays → segments → pieces → [`PieceTask`]s.
 //!    Object-level data only: placements and dataset dims, never a voxel.
 //! 2. **Volume rendering**: casting a task with [`crate::sampling::ObjectCaster::cast`], the
-//!    only sampler, while its dataset is resident in the [`VolumeStore`].
+//!    only sampler, while its dataset is resident in the [`VolumeStore`]; for Algorithm 2,
+//!    batches of tasks handed out by the [`Scheduler`] and cast by a [`BatchCaster`].
 //! 3. **Composition**: a ray's pieces front to back with [`crate::composite::Rgba`]
 //!    (co-located objects combined first, SPEC §4.4).
 //!
 //! `per_ray` is Algorithm 1 (paper §3.1): each ray runs all three stages before the next
 //! ray starts, loading datasets in the order the ray meets them, so under a short memory
-//! budget it thrashes — the paper's point. [`grouped`] is Algorithm 2 (§3.3): each stage
+//! budget it thrashes — the paper's point. `grouped` is Algorithm 2 (§3.3): each stage
 //! runs over all rays before the next, and volume rendering visits each dataset once, in
-//! front-to-back waves that recover early termination. Both render the same image up to
-//! early termination (SPEC §4.4).
+//! front-to-back waves that recover early termination; it is the in-process driver of the
+//! [`Scheduler`], which the farm drives with workers instead. Both algorithms render the
+//! same image up to early termination (SPEC §4.4).
 
-pub mod grouped;
+mod error;
+mod grouped;
 mod image;
 pub mod intersection;
 mod per_ray;
+pub mod schedule;
 mod stats;
 mod store;
 pub mod workunit;
 
 use std::sync::Arc;
 
-pub use image::Image;
+pub use error::{CastError, OutputError, RenderError, ScheduleError, StoreError};
+pub use image::{encode_pfm, encode_png, quantize, Image};
+pub use schedule::{Batch, Scheduler};
 pub use stats::{RenderStats, Seconds};
-pub use store::{Pinned, VolumeStore};
-pub use workunit::{cast_batch, PieceRgba, PieceTask};
+pub use store::{Pinned, StoreStats, VolumeStore};
+pub use workunit::{BatchCaster, PieceRgba, PieceTask};
 
 use crate::scene::Scene;
-use crate::RenderError;
 
 /// Which ray-casting algorithm renders the scene.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -83,12 +88,13 @@ pub struct Rendered {
 /// Renders `scene` with the chosen algorithm.
 pub fn render(scene: &Scene, options: &RenderOptions) -> Result<Rendered, RenderError> {
     let started = std::time::Instant::now();
-    let store = VolumeStore::with_budget(scene, options.memory_budget);
-    store.check_budget()?;
+    let store = VolumeStore::new(options.memory_budget);
+    store.check_budget(scene)?;
     let mut rendered = match options.algorithm {
         Algorithm::PerRay => per_ray::render(scene, &store, options.progress.as_ref())?,
         Algorithm::Grouped => grouped::render(scene, &store, options.progress.as_ref())?,
     };
-    rendered.stats.finish(scene, options.algorithm, &store, started.elapsed().as_secs_f64());
+    let total = started.elapsed().as_secs_f64();
+    rendered.stats.finish(scene, options.algorithm, &store.stats(), store.budget(), total);
     Ok(rendered)
 }

@@ -10,12 +10,12 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::{Image, Pinned, Progress, RenderStats, Rendered, VolumeStore};
+use super::intersection::{sample_positions, segments_of};
+use super::{CastError, Image, Pinned, Progress, RenderError, RenderStats, Rendered, VolumeStore};
 use crate::composite::Rgba;
 use crate::geometry::{split_into_pieces, Piece, Ray, Segment};
 use crate::sampling::ObjectCaster;
 use crate::scene::Scene;
-use crate::RenderError;
 
 /// Rows per parallel work item.
 const BAND_ROWS: usize = 4;
@@ -41,7 +41,7 @@ struct Band {
 
 /// Renders with Algorithm 1.
 pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progress>) -> Result<Rendered, RenderError> {
-    let (w, h) = (scene.image.width, scene.image.height);
+    let (w, h) = (scene.image().width, scene.image().height);
     let mut pixels = vec![[0.0; 3]; w as usize * h as usize];
     let rows_done = AtomicU64::new(0);
     let started = Instant::now();
@@ -53,8 +53,8 @@ pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progr
             for (i, px) in out.iter_mut().enumerate() {
                 let row = (band_index * BAND_ROWS + i / w as usize) as u32;
                 let col = (i % w as usize) as u32;
-                let ray = scene.camera.ray(col, row, w, h);
-                *px = trace(scene, store, &ray, &mut band)?.with_background(scene.image.background);
+                let ray = scene.camera().ray(col, row, w, h);
+                *px = trace(scene, store, &ray, &mut band)?.with_background(scene.image().background);
                 if col + 1 == w {
                     let done = rows_done.fetch_add(1, Ordering::Relaxed) + 1;
                     if let Some(p) = progress {
@@ -92,22 +92,15 @@ pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progr
 /// One ray: segments → pieces → front-to-back casting with early termination.
 fn trace(scene: &Scene, store: &VolumeStore, ray: &Ray, band: &mut Band) -> Result<Rgba, RenderError> {
     let t = Instant::now();
-    band.segments.clear();
-    for (i, object) in scene.objects.iter().enumerate() {
-        if let Some((t_near, t_far)) = object.placement.segment(ray) {
-            if t_far > t_near {
-                band.segments.push(Segment { object: i as u32, t_near, t_far });
-            }
-        }
-    }
+    segments_of(scene, ray, &mut band.segments);
     band.n_segments += band.segments.len() as u64;
     split_into_pieces(&band.segments, &mut band.cuts, &mut band.pieces, &mut band.cover);
     band.n_pieces += band.pieces.len() as u64;
     let t_cast = Instant::now();
     band.intersection_nanos += (t_cast - t).as_nanos() as u64;
 
-    let termination = scene.render.termination;
-    let correction = scene.render.opacity_correction;
+    let termination = scene.render().termination;
+    let correction = scene.render().opacity_correction;
     let mut acc = Rgba::CLEAR;
     for (i, piece) in band.pieces.iter().enumerate() {
         if acc.alpha >= termination {
@@ -116,16 +109,16 @@ fn trace(scene: &Scene, store: &VolumeStore, ray: &Ray, band: &mut Band) -> Resu
         }
         let cover = &band.cover[piece.cover.0 as usize..piece.cover.1 as usize];
         if let [only] = cover {
-            let object = &scene.objects[*only as usize];
-            let volume = get(store, object.dataset, &mut band.loading_nanos)?;
+            let object = &scene.objects()[*only as usize];
+            let volume = get(store, scene, object.dataset(), &mut band.loading_nanos)?;
             let r = bind(object, &volume, correction)?.cast(ray, piece.t0, piece.t1, acc.alpha, termination);
             band.samples += r.samples;
             acc.over(r.rgba);
         } else {
             band.parts.clear();
             for &o in cover {
-                let object = &scene.objects[o as usize];
-                let volume = get(store, object.dataset, &mut band.loading_nanos)?;
+                let object = &scene.objects()[o as usize];
+                let volume = get(store, scene, object.dataset(), &mut band.loading_nanos)?;
                 let r = bind(object, &volume, correction)?.cast(ray, piece.t0, piece.t1, 0.0, f64::INFINITY);
                 band.samples += r.samples;
                 band.parts.push(r.rgba);
@@ -145,15 +138,15 @@ fn bind<'a>(
     correction: bool,
 ) -> Result<ObjectCaster<'a>, RenderError> {
     ObjectCaster::new(object, volume, correction)
-        .map_err(|e| RenderError::Bind { object: object.name.clone(), source: e })
+        .map_err(|source| CastError::Bind { object: object.name().to_string(), source }.into())
 }
 
-/// Dataset `index` from the store, timing the call (loading and waiting for room).
-fn get<'a>(store: &'a VolumeStore, index: usize, nanos: &mut u64) -> Result<Pinned<'a>, RenderError> {
+/// Dataset `index` of `scene` from the store, timing the call (loading and waiting for room).
+fn get(store: &VolumeStore, scene: &Scene, index: usize, nanos: &mut u64) -> Result<Pinned, RenderError> {
     let started = Instant::now();
-    let volume = store.get(index);
+    let volume = store.get(&scene.datasets()[index]);
     *nanos += started.elapsed().as_nanos() as u64;
-    volume
+    Ok(volume?)
 }
 
 /// Sample positions of every object over `pieces`, never cast because the ray is opaque.
@@ -161,8 +154,7 @@ fn skipped_samples(scene: &Scene, ray: &Ray, pieces: &[Piece], cover: &[u32]) ->
     let mut n = 0;
     for piece in pieces {
         for &o in &cover[piece.cover.0 as usize..piece.cover.1 as usize] {
-            let object = &scene.objects[o as usize];
-            n += object.placement.walk(ray, piece.t0, piece.t1, object.sampling_distance).len();
+            n += sample_positions(scene, ray, o as usize, piece.t0, piece.t1);
         }
     }
     n

@@ -2,7 +2,7 @@
 
 use serde::Serialize;
 
-use super::{Algorithm, VolumeStore};
+use super::{Algorithm, StoreStats};
 use crate::scene::Scene;
 
 /// Wall-clock seconds per phase. The grouped algorithm runs its phases one after another,
@@ -62,19 +62,65 @@ pub struct RenderStats {
 }
 
 impl RenderStats {
-    /// Fills the scene-level fields and the totals once rendering is over.
-    pub(crate) fn finish(&mut self, scene: &Scene, algorithm: Algorithm, store: &VolumeStore, total: f64) {
+    /// Fills the scene-level fields and the totals once rendering is over: `store` is what
+    /// the voxel store (or, in a farm, every worker's store together) did.
+    pub fn finish(&mut self, scene: &Scene, algorithm: Algorithm, store: &StoreStats, budget: Option<u64>, total: f64) {
         self.algorithm = algorithm.name().to_string();
-        self.width = scene.image.width;
-        self.height = scene.image.height;
-        self.objects = scene.objects.len();
-        self.datasets = scene.datasets.len();
-        self.dataset_loads = store.loads();
-        self.bytes_loaded = store.bytes_loaded();
-        self.memory_budget = store.budget();
-        self.peak_resident_bytes = store.peak_resident_bytes();
+        self.width = scene.image().width;
+        self.height = scene.image().height;
+        self.objects = scene.objects().len();
+        self.datasets = scene.datasets().len();
+        self.dataset_loads = store.loads;
+        self.bytes_loaded = store.bytes_loaded;
+        self.memory_budget = budget;
+        self.peak_resident_bytes = store.peak_resident_bytes;
         let s = &mut self.seconds;
         s.total = total;
         s.other = (total - s.intersection - s.volume_rendering - s.composition - s.loading).max(0.0);
+    }
+
+    /// Adds the counts and phase times of another part of the same render (a tile, or a
+    /// worker's share): counts add up, peaks take the larger.
+    pub fn merge(&mut self, other: &RenderStats) {
+        self.segments += other.segments;
+        self.pieces += other.pieces;
+        self.samples += other.samples;
+        self.samples_skipped += other.samples_skipped;
+        self.dataset_loads += other.dataset_loads;
+        self.bytes_loaded += other.bytes_loaded;
+        self.peak_resident_bytes = self.peak_resident_bytes.max(other.peak_resident_bytes);
+        let (s, o) = (&mut self.seconds, &other.seconds);
+        s.intersection += o.intersection;
+        s.volume_rendering += o.volume_rendering;
+        s.composition += o.composition;
+        s.loading += o.loading;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn merging_adds_counts_and_keeps_the_larger_peak() {
+        let part = |n: u64| RenderStats {
+            segments: n,
+            pieces: 2 * n,
+            samples: 3 * n,
+            samples_skipped: 4 * n,
+            dataset_loads: 5 * n,
+            bytes_loaded: 6 * n,
+            peak_resident_bytes: 7 * n,
+            seconds: Seconds { intersection: n as f64, volume_rendering: 1.0, ..Seconds::default() },
+            ..RenderStats::default()
+        };
+        let mut a = part(1);
+        a.merge(&part(10));
+        let expected = RenderStats {
+            seconds: Seconds { intersection: 11.0, volume_rendering: 2.0, ..Seconds::default() },
+            peak_resident_bytes: 70,
+            ..part(11)
+        };
+        assert_eq!(a, expected);
     }
 }

@@ -7,7 +7,7 @@
 //! A [`PieceRgba`] is what casting it yields: 16 bytes of premultiplied colour and opacity.
 //! Tasks are independent of each other, so any slice of them whose objects share one
 //! dataset is a batch that can be cast anywhere that dataset is resident
-//! ([`cast_batch`]); results come back in the same order, so a batch needs no ids.
+//! ([`BatchCaster`]); results come back in the same order, so a batch needs no ids.
 //!
 //! # Why f32 results are enough
 //! A piece's colour and opacity lie in [0, 1]; rounding them to f32 changes each by at most
@@ -17,12 +17,14 @@
 //! the precision of the PFM output itself (f32). `tests/tests/algorithms.rs` checks it.
 //!
 //! # Why the front opacity is 16 bits
-//! A task also carries what the scheduler knows of the ray's opacity in front of the piece,
-//! so the cast can stop early inside the piece (SPEC §4.5). It is only ever a *lower bound*
-//! (pieces in front may not be cast yet), and a lower bound may be rounded down freely: the
-//! cast then takes at most a sample more, never fewer. So it is stored as a 16-bit fraction
-//! rounded down, which keeps the task at 24 bytes.
+//! A task also carries an opacity in front of the piece, so the cast can stop early inside
+//! the piece (SPEC §4.5). The scheduler computes it by a rule every schedule agrees on (see
+//! [`super::schedule`]); it is only ever a *lower bound* on the ray's true front, and a lower
+//! bound may be rounded down freely: the cast then takes at most a sample more, never
+//! fewer. So it is stored as a 16-bit fraction rounded down, which keeps the task at 24
+//! bytes.
 
+use super::error::CastError;
 use crate::composite::Rgba;
 use crate::dataset::Volume;
 use crate::sampling::ObjectCaster;
@@ -96,7 +98,7 @@ impl PieceTask {
         }
     }
 
-    /// The `stop_at` argument of [`ObjectCaster::cast`]: the scene's termination, or ∞ for a
+    /// The `stop_at` argument of `ObjectCaster::cast`: the scene's termination, or ∞ for a
     /// shared piece.
     pub fn stop_at(&self, termination: f64) -> f64 {
         if self.is_whole() {
@@ -159,38 +161,265 @@ impl From<PieceRgba> for Rgba {
     }
 }
 
-/// Casts a batch of tasks whose objects all use `volume` (the dataset resident here),
-/// writing one result per task into `out`; returns the samples evaluated. The ray of each
-/// task is recomputed from `scene`'s camera, exactly as Algorithm 1 computes it.
-pub fn cast_batch(scene: &Scene, volume: &Volume, tasks: &[PieceTask], out: &mut [PieceRgba]) -> u64 {
-    assert_eq!(tasks.len(), out.len(), "one result per task");
-    let (w, h) = (scene.image.width, scene.image.height);
-    let (termination, correction) = (scene.render.termination, scene.render.opacity_correction);
-    // Casters resolve channel readers once; a batch usually holds few distinct objects.
-    let mut casters: Vec<(u16, ObjectCaster)> = Vec::new();
-    let mut samples = 0;
-    for (task, result) in tasks.iter().zip(out) {
-        let slot = match casters.iter().position(|(o, _)| *o == task.object) {
-            Some(i) => i,
-            None => {
-                let object = &scene.objects[task.object as usize];
+/// Casts batches of tasks for one dataset while its volume is resident: the worker side of
+/// Algorithm 2's volume-rendering phase, in every mode (local threads or farm workers).
+///
+/// Every object of the dataset is bound to the volume once, here, so whatever a caster
+/// precomputes per object is paid once per dataset turn, not once per batch; `cast` is then
+/// called from many threads at once. Tasks may come from the network, so `cast` checks each
+/// one before using it and refuses a bad batch with a [`CastError`] instead of panicking.
+pub struct BatchCaster<'a> {
+    scene: &'a Scene,
+    dataset: usize,
+    /// Per object of the scene: its caster and the longest piece it can have (world
+    /// units), or `None` for objects of other datasets.
+    objects: Vec<Option<(ObjectCaster<'a>, f64)>>,
+}
+
+impl<'a> BatchCaster<'a> {
+    /// Binds every object of `dataset` to `volume`, that dataset's voxels.
+    pub fn new(scene: &'a Scene, dataset: usize, volume: &'a Volume) -> Result<BatchCaster<'a>, CastError> {
+        if dataset >= scene.datasets().len() {
+            return Err(CastError::DatasetOutOfRange { dataset, datasets: scene.datasets().len() });
+        }
+        let correction = scene.render().opacity_correction;
+        let objects = scene
+            .objects()
+            .iter()
+            .map(|object| {
+                if object.dataset() != dataset {
+                    return Ok(None);
+                }
                 let caster = ObjectCaster::new(object, volume, correction)
-                    .unwrap_or_else(|e| panic!("object `{}`: {e}", object.name));
-                casters.push((task.object, caster));
-                casters.len() - 1
-            }
-        };
-        let ray = scene.camera.ray(task.ray % w, task.ray / w, w, h);
-        let r = casters[slot].1.cast(&ray, task.t0, task.t1, task.front_alpha(), task.stop_at(termination));
-        samples += r.samples;
-        *result = r.rgba.into();
+                    .map_err(|source| CastError::Bind { object: object.name().to_string(), source })?;
+                Ok(Some((caster, longest_piece(object))))
+            })
+            .collect::<Result<_, CastError>>()?;
+        Ok(BatchCaster { scene, dataset, objects })
     }
-    samples
+
+    /// The dataset these casters are bound to.
+    pub fn dataset(&self) -> usize {
+        self.dataset
+    }
+
+    /// Casts `tasks`, writing one result per task into `out`; returns the samples
+    /// evaluated. The ray of each task is recomputed from the scene's camera, exactly as
+    /// Algorithm 1 computes it. Refuses the whole batch, before casting anything, if one
+    /// task is not a piece of an object of this dataset.
+    pub fn cast(&self, tasks: &[PieceTask], out: &mut [PieceRgba]) -> Result<u64, CastError> {
+        if tasks.len() != out.len() {
+            return Err(CastError::LengthMismatch { tasks: tasks.len(), results: out.len() });
+        }
+        for (i, task) in tasks.iter().enumerate() {
+            self.check(i, task)?;
+        }
+        let scene = self.scene;
+        let (w, h) = (scene.image().width, scene.image().height);
+        let termination = scene.render().termination;
+        let mut samples = 0;
+        for (task, result) in tasks.iter().zip(out) {
+            let Some((caster, _)) = &self.objects[task.object as usize] else {
+                unreachable!("checked above: the object belongs to this dataset")
+            };
+            let ray = scene.camera().ray(task.ray % w, task.ray / w, w, h);
+            let r = caster.cast(&ray, task.t0, task.t1, task.front_alpha(), task.stop_at(termination));
+            samples += r.samples;
+            *result = r.rgba.into();
+        }
+        Ok(samples)
+    }
+
+    /// Refuses a task that names another dataset's object, a pixel outside the image, or an
+    /// interval that is not a piece of its object's box (which could otherwise ask for an
+    /// unbounded number of samples).
+    fn check(&self, i: usize, task: &PieceTask) -> Result<(), CastError> {
+        let objects = &self.scene.objects();
+        let object = task.object;
+        let Some(entry) = self.objects.get(object as usize) else {
+            return Err(CastError::ObjectOutOfRange { task: i, object, objects: objects.len() });
+        };
+        let Some((_, longest)) = entry else {
+            let uses = objects[object as usize].dataset();
+            return Err(CastError::WrongDataset { task: i, object, uses, batch: self.dataset });
+        };
+        let pixels = self.scene.image().width as u64 * self.scene.image().height as u64;
+        if task.ray as u64 >= pixels {
+            return Err(CastError::RayOutOfRange { task: i, ray: task.ray, pixels });
+        }
+        let (t0, t1) = (task.t0, task.t1);
+        let reason = if !(t0.is_finite() && t1.is_finite()) {
+            Some("not finite")
+        } else if t0 < 0.0 || t1 < t0 {
+            Some("expected 0 ≤ t0 ≤ t1")
+        } else if t1 - t0 > *longest {
+            Some("longer than the object's box")
+        } else {
+            None
+        };
+        match reason {
+            Some(reason) => Err(CastError::BadPiece { task: i, object, t0, t1, reason }),
+            None => Ok(()),
+        }
+    }
+}
+
+/// The longest piece an object's box can hold: its bounding box's diagonal, with room for
+/// rounding in the intersection that computed the piece.
+fn longest_piece(object: &crate::scene::Object) -> f64 {
+    let c = object.placement().corners();
+    let (lo, hi) = c.iter().fold((c[0], c[0]), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
+    (hi - lo).length() * (1.0 + 1e-9) + 1e-12
+}
+
+/// Little-endian wire form of a slice of tasks: 24 bytes each.
+pub fn encode_tasks(tasks: &[PieceTask]) -> Vec<u8> {
+    tasks.iter().flat_map(|t| t.to_bytes()).collect()
+}
+
+/// Reads tasks written by [`encode_tasks`]; `None` when the length is not a multiple of 24.
+pub fn decode_tasks(bytes: &[u8]) -> Option<Vec<PieceTask>> {
+    let chunks = bytes.chunks_exact(TASK_BYTES);
+    if !chunks.remainder().is_empty() {
+        return None;
+    }
+    Some(chunks.map(|c| PieceTask::from_bytes(c.try_into().expect("chunks_exact"))).collect())
+}
+
+/// Little-endian wire form of a slice of results: 16 bytes each.
+pub fn encode_results(results: &[PieceRgba]) -> Vec<u8> {
+    results.iter().flat_map(|r| r.to_bytes()).collect()
+}
+
+/// Reads results written by [`encode_results`]; `None` when the length is not a multiple
+/// of 16.
+pub fn decode_results(bytes: &[u8]) -> Option<Vec<PieceRgba>> {
+    let chunks = bytes.chunks_exact(RESULT_BYTES);
+    if !chunks.remainder().is_empty() {
+        return None;
+    }
+    Some(chunks.map(|c| PieceRgba::from_bytes(c.try_into().expect("chunks_exact"))).collect())
 }
 
 #[cfg(test)]
 mod tests {
+    use std::collections::BTreeMap;
+
+    use proptest::prelude::*;
+
     use super::*;
+    use crate::dataset::{Channel, ChannelName, Dims};
+
+    /// Two datasets: "v" (3×4×5, voxel channel) with two objects, "rgba" (2×2×1: red,
+    /// green, blue, alpha) with one raw object.
+    fn scene() -> Scene {
+        let text = "[image]\nwidth = 6\nheight = 5\nbackground = [0, 0, 0]\n\
+            [camera]\neye = [0.5, 0.5, 4.0]\ntarget = [0.5, 0.5, 0.0]\nup = [0, 1, 0]\nfov_y = 30.0\n\
+            [[datasets]]\nname = \"v\"\ndims = [3, 4, 5]\n[datasets.channels.voxel]\n\
+            generator = { kind = \"ramp\", axis = \"x\", from = 0.0, to = 1.0 }\n\
+            [[datasets]]\nname = \"rgba\"\ndims = [2, 2, 1]\n\
+            [datasets.channels.red]\ngenerator = { kind = \"constant\", value = 200, type = \"u8\" }\n\
+            [datasets.channels.green]\ngenerator = { kind = \"constant\", value = 100, type = \"u8\" }\n\
+            [datasets.channels.blue]\ngenerator = { kind = \"constant\", value = 50, type = \"u8\" }\n\
+            [datasets.channels.alpha]\ngenerator = { kind = \"constant\", value = 128, type = \"u8\" }\n\
+            [[objects]]\nname = \"a\"\ndataset = \"v\"\ninterpolation = \"cubic\"\n\
+            colour = { type = \"ramp\", points = [[0, 1, 0, 0], [1, 0, 0, 1]] }\n\
+            opacity = { type = \"ramp\", points = [[0, 0.1], [1, 0.9]] }\n\
+            [[objects]]\nname = \"b\"\ndataset = \"rgba\"\ncolour = { type = \"raw\" }\nopacity = { type = \"raw\" }\n\
+            [[objects]]\nname = \"c\"\ndataset = \"v\"\ninterpolation = \"nearest\"\n\
+            colour = { type = \"lut\", bounds = [0.5], colours = [[0, 1, 0], [1, 1, 1]] }\n\
+            opacity = { type = \"constant\", coefficients = [0.3] }\n";
+        Scene::parse(text, "batch.toml").unwrap()
+    }
+
+    /// A volume of `dims` holding the channels whose flags are set (voxel as f32, the
+    /// colour channels as u8), filled with `fill`.
+    fn volume(dims: [u64; 3], voxel: bool, rgba: bool, fill: f32) -> Volume {
+        let dims = Dims::new(dims).unwrap();
+        let n = dims.voxel_count() as usize;
+        let mut channels = BTreeMap::new();
+        if voxel {
+            channels.insert(ChannelName::Voxel, Channel::from_f32(&vec![fill; n], dims).unwrap());
+        }
+        if rgba {
+            for c in [ChannelName::Red, ChannelName::Green, ChannelName::Blue, ChannelName::Alpha] {
+                channels.insert(c, Channel::from_u8(vec![fill as u8; n], dims).unwrap());
+            }
+        }
+        Volume::new(dims, channels)
+    }
+
+    #[test]
+    fn a_batch_of_another_datasets_tasks_is_refused_before_anything_is_cast() {
+        let s = scene();
+        let v = volume([3, 4, 5], true, false, 0.5);
+        let caster = BatchCaster::new(&s, 0, &v).unwrap();
+        let ok = PieceTask::new(3, 0, 3.5, 3.6, false);
+        let mut out = [PieceRgba::default(); 2];
+        assert_eq!(
+            caster.cast(&[ok, PieceTask::new(3, 1, 3.5, 3.6, false)], &mut out),
+            Err(CastError::WrongDataset { task: 1, object: 1, uses: 1, batch: 0 })
+        );
+        assert_eq!(out, [PieceRgba::default(); 2], "nothing cast");
+        let far = PieceTask::new(3, 0, 0.0, 1e300, false);
+        assert!(matches!(caster.cast(&[far], &mut out[..1]), Err(CastError::BadPiece { task: 0, .. })));
+        assert!(matches!(caster.cast(&[ok], &mut out), Err(CastError::LengthMismatch { tasks: 1, results: 2 })));
+        assert!(matches!(
+            caster.cast(&[PieceTask::new(30, 0, 3.5, 3.6, false)], &mut out[..1]),
+            Err(CastError::RayOutOfRange { ray: 30, pixels: 30, .. })
+        ));
+        assert!(matches!(
+            caster.cast(&[PieceTask::new(3, 7, 3.5, 3.6, false)], &mut out[..1]),
+            Err(CastError::ObjectOutOfRange { object: 7, objects: 3, .. })
+        ));
+        assert_eq!(caster.cast(&[ok], &mut out[..1]).map(|n| n > 0), Ok(true));
+        // The wrong volume for a dataset is refused when binding.
+        assert!(matches!(BatchCaster::new(&s, 1, &v), Err(CastError::Bind { .. })));
+        assert!(matches!(BatchCaster::new(&s, 2, &v), Err(CastError::DatasetOutOfRange { dataset: 2, datasets: 2 })));
+    }
+
+    fn any_t() -> impl Strategy<Value = f64> {
+        prop_oneof![
+            Just(f64::NAN),
+            Just(f64::INFINITY),
+            Just(f64::NEG_INFINITY),
+            Just(-1.0),
+            Just(0.0),
+            Just(1e300),
+            0.0..10.0f64,
+        ]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(256))]
+
+        /// Whatever arrives from the network and whatever volume is resident, casting
+        /// refuses or answers with plausible results; it never panics.
+        #[test]
+        fn random_tasks_and_volumes_never_panic(
+            dataset in 0usize..3,
+            dims in (1u64..6, 1u64..6, 1u64..6),
+            voxel in any::<bool>(),
+            rgba in any::<bool>(),
+            fill in prop_oneof![Just(f32::NAN), Just(f32::INFINITY), -1e30f32..1e30],
+            tasks in proptest::collection::vec((0u32..40, 0u16..5, any_t(), any_t(), any::<u16>()), 0..20),
+        ) {
+            let s = scene();
+            let v = volume([dims.0, dims.1, dims.2], voxel, rgba, fill);
+            let Ok(caster) = BatchCaster::new(&s, dataset, &v) else { return Ok(()) };
+            let tasks: Vec<PieceTask> = tasks
+                .into_iter()
+                .map(|(ray, object, t0, t1, front)| PieceTask { t0, t1, ray, object, front })
+                .collect();
+            let mut out = vec![PieceRgba::default(); tasks.len()];
+            if caster.cast(&tasks, &mut out).is_ok() {
+                for r in &out {
+                    prop_assert!((0.0..=1.0).contains(&r.alpha), "{r:?}");
+                    prop_assert!(r.colour.iter().all(|c| c.is_finite()), "{r:?}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn a_task_is_24_bytes_and_a_result_16() {

@@ -47,15 +47,15 @@ impl<'a> Parts<'a> {
 
     /// The general loop.
     pub(super) fn general(&self, skip: Option<Skipper<'a>>) -> Bound<'a> {
-        let constant_colour = match &self.object.colour {
-            ColourMap::Polynomial(_) if !self.object.colour.reads_voxel() => self.object.colour.map(0.0),
+        let constant_colour = match self.object.colour() {
+            ColourMap::Polynomial(_) if !self.object.colour().reads_voxel() => self.object.colour().map(0.0),
             _ => None,
         };
         Box::new(Kernel {
-            interp: DynInterp::new(&self.object.interpolation, self.dims),
+            interp: DynInterp::new(&self.object.interpolation(), self.dims),
             voxels: MaybeVoxel(self.voxel),
-            colour: GeneralColour { map: &self.object.colour, raw: self.raw_rgb, constant: constant_colour },
-            opacity: GeneralOpacity { map: &self.object.opacity, alpha: self.alpha },
+            colour: GeneralColour { map: self.object.colour(), raw: self.raw_rgb, constant: constant_colour },
+            opacity: GeneralOpacity { map: self.object.opacity(), alpha: self.alpha },
             skip,
             correction: self.correction,
             specialised: false,
@@ -67,12 +67,12 @@ impl<'a> Parts<'a> {
         let object = self.object;
         let reads_channels = self.voxel.is_some() || self.raw_rgb.is_some() || self.alpha.is_some();
         if !reads_channels {
-            if let (ColourMap::Polynomial(c), OpacityMap::Polynomial(o)) = (&object.colour, &object.opacity) {
+            if let (ColourMap::Polynomial(c), OpacityMap::Polynomial(o)) = (object.colour(), object.opacity()) {
                 return Ok(self.kernel(NoInterp, NoVoxel, c, o, skip));
             }
             return Err(skip);
         }
-        match (&object.colour, &object.opacity) {
+        match (object.colour(), object.opacity()) {
             (ColourMap::Raw(kind), opacity) if self.voxel.is_none() => self.raw(*kind, opacity, skip),
             (ColourMap::Lut(c), OpacityMap::Lut(o)) => self.with_maps(c.piecewise(), o.piecewise(), true, skip),
             (ColourMap::Lut(c), OpacityMap::Ramp(o)) => self.with_maps(c.piecewise(), o.piecewise(), true, skip),
@@ -94,7 +94,7 @@ impl<'a> Parts<'a> {
         O: OpacityFn + Copy + 'a,
     {
         let Some(voxel) = self.voxel else { return Err(skip) };
-        match self.object.interpolation {
+        match self.object.interpolation() {
             Interpolation::Nearest => self.typed(Nearest::new(self.dims), voxel, colour, opacity, skip),
             Interpolation::Trilinear => self.typed(Linear::new(self.dims, Identity), voxel, colour, opacity, skip),
             _ if all_interpolations => self.with_more_interpolations(voxel, colour, opacity, skip),
@@ -113,7 +113,7 @@ impl<'a> Parts<'a> {
         C: ColourFn + Copy + 'a,
         O: OpacityFn + Copy + 'a,
     {
-        match self.object.interpolation {
+        match self.object.interpolation() {
             Interpolation::Nonlinear { omega } => {
                 self.typed(Linear::new(self.dims, Omega(omega)), voxel, colour, opacity, skip)
             }
@@ -157,7 +157,7 @@ impl<'a> Parts<'a> {
         };
         let colour = RawRgb { kind, channels: [r, g, b] };
         let alpha = self.alpha.and_then(U8Voxels::of);
-        match (self.object.interpolation, opacity, alpha) {
+        match (self.object.interpolation(), opacity, alpha) {
             (Interpolation::Nearest, OpacityMap::Raw, Some(a)) => {
                 Ok(self.kernel(Nearest::new(self.dims), NoVoxel, colour, RawAlpha(a), skip))
             }

@@ -23,7 +23,7 @@ use crate::scene::Object;
 /// worker handed the wrong dataset, or a stale one). The scene validator guarantees that an
 /// object's own dataset has every channel its maps read, so a scene renderer never sees this;
 /// a farm worker fed a bad message does, and answers with an error instead of panicking.
-#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+#[derive(Debug, thiserror::Error, Clone, PartialEq, Eq)]
 pub enum BindError {
     /// A channel the object's maps read is missing from the volume.
     #[error("the volume has no `{channel}` channel, which the object's maps read")]
@@ -96,15 +96,15 @@ impl<'a> ObjectCaster<'a> {
         opacity_correction: bool,
         options: CastOptions,
     ) -> Result<ObjectCaster<'a>, BindError> {
-        let expected = object.placement.dims();
+        let expected = object.placement().dims();
         if volume.dims() != expected {
             return Err(BindError::DimsMismatch { expected, found: volume.dims() });
         }
         let reader = |channel: ChannelName| {
             volume.channel(channel).map(|ch| ch.reader()).ok_or(BindError::MissingChannel { channel })
         };
-        let needs_voxel = object.colour.reads_voxel() || object.opacity.reads_voxel();
-        let raw_rgb = match &object.colour {
+        let needs_voxel = object.colour().reads_voxel() || object.opacity().reads_voxel();
+        let raw_rgb = match object.colour() {
             ColourMap::Raw(kind) => {
                 let [r, g, b] = kind.channels();
                 Some((*kind, [reader(r)?, reader(g)?, reader(b)?]))
@@ -116,7 +116,7 @@ impl<'a> ObjectCaster<'a> {
             dims: volume.dims(),
             voxel: if needs_voxel { Some(reader(ChannelName::Voxel)?) } else { None },
             raw_rgb,
-            alpha: if matches!(object.opacity, OpacityMap::Raw) { Some(reader(ChannelName::Alpha)?) } else { None },
+            alpha: if matches!(object.opacity(), OpacityMap::Raw) { Some(reader(ChannelName::Alpha)?) } else { None },
             correction: opacity_correction,
         };
         let skip = if options.skip_empty_space { skipper(object, volume) } else { None };
@@ -125,7 +125,7 @@ impl<'a> ObjectCaster<'a> {
         } else {
             parts.general(skip)
         };
-        Ok(ObjectCaster { object, transparent: object.opacity.constant() == Some(0.0), kernel })
+        Ok(ObjectCaster { object, transparent: object.opacity().constant() == Some(0.0), kernel })
     }
 
     /// Whether the object's combination has a specialised loop and it was chosen.
@@ -149,7 +149,7 @@ impl<'a> ObjectCaster<'a> {
         if self.transparent || alpha_in >= stop_at {
             return PieceResult::default();
         }
-        let walk = self.object.placement.walk(ray, t0, t1, self.object.sampling_distance);
+        let walk = self.object.placement().walk(ray, t0, t1, self.object.sampling_distance());
         self.kernel.cast(walk, alpha_in, stop_at)
     }
 }
@@ -157,14 +157,14 @@ impl<'a> ObjectCaster<'a> {
 /// The object's empty-space classification over `volume`, if its opacity map reads a
 /// channel with macrocell ranges and is zero somewhere.
 fn skipper<'a>(object: &'a Object, volume: &'a Volume) -> Option<skip::Skipper<'a>> {
-    let channel = match &object.opacity {
+    let channel = match object.opacity() {
         OpacityMap::Raw => ChannelName::Alpha,
         map if map.reads_voxel() => ChannelName::Voxel,
         _ => return None,
     };
     let cells = volume.macrocells(channel)?;
     let integer = volume.channel(channel)?.ty() != VoxelType::F32;
-    skip::Skipper::new(cells, object.opacity.zero_set(), integer)
+    skip::Skipper::new(cells, object.opacity().zero_set(), integer)
 }
 
 /// α = 1 − (1 − O)^ℓ (SPEC §4.3), computed as −expm1(ℓ·ln(1 − O)) so small opacities and

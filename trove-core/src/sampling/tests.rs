@@ -99,15 +99,12 @@ fn object(
     extent: Extent,
     dims: Dims,
 ) -> Object {
-    Object {
-        name: "o".into(),
-        dataset: 0,
-        colour,
-        opacity,
-        interpolation,
-        sampling_distance: 0.0,
-        placement: Placement::new(shape, extent, dims),
-    }
+    Object::for_tests(colour, opacity, interpolation, 0.0, Placement::new(shape, extent, dims))
+}
+
+/// `o` with another interpolation and sampling distance.
+fn respecified(o: &Object, interpolation: Interpolation, sampling_distance: f64) -> Object {
+    Object::for_tests(o.colour().clone(), o.opacity().clone(), interpolation, sampling_distance, o.placement().clone())
 }
 
 /// Opacity 0 below 0.5, rising after: voxels of value 0 are empty space.
@@ -156,7 +153,7 @@ fn casts_agree(object: &Object, volume: &Volume, correction: bool, rays: &[Ray])
     let casters = [bind(true, true), bind(true, false), bind(false, true), bind(false, false)];
     let (mut skipped, mut all) = (0, 0);
     for ray in rays {
-        let Some((t0, t1)) = object.placement.segment(ray) else { continue };
+        let Some((t0, t1)) = object.placement().segment(ray) else { continue };
         if t1 <= t0 {
             continue;
         }
@@ -266,7 +263,7 @@ fn raw_colour_and_alpha_cast_alike_and_skip_transparent_pixels() {
             let o = object(ColourMap::Raw(RawColour::Rgb), opacity, interp, affine(size, at), Extent::FULL, dims);
             let (skipped, all) = casts_agree(&o, &vol, true, &rays(size, at, 40));
             let caster = ObjectCaster::new(&o, &vol, true).unwrap();
-            if matches!(o.opacity, OpacityMap::Raw) {
+            if matches!(o.opacity(), OpacityMap::Raw) {
                 assert!(caster.skips_empty_space() && skipped < all, "{interp:?}: {skipped} of {all}");
             } else {
                 assert!(!caster.skips_empty_space(), "a constant opacity above 0 never skips");
@@ -289,7 +286,7 @@ fn a_map_that_is_non_zero_everywhere_turns_skipping_off() {
     ];
     for opacity in everywhere {
         let o = object(colour_ramp(), opacity, Interpolation::Trilinear, affine(1.0, DVec3::ZERO), Extent::FULL, dims);
-        assert!(!ObjectCaster::new(&o, &vol, true).unwrap().skips_empty_space(), "{:?}", o.opacity);
+        assert!(!ObjectCaster::new(&o, &vol, true).unwrap().skips_empty_space(), "{:?}", o.opacity());
     }
     let zero_below_half =
         object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, affine(1.0, DVec3::ZERO), Extent::FULL, dims);
@@ -311,11 +308,11 @@ fn a_map_that_is_non_zero_everywhere_turns_skipping_off() {
 /// lines through `object`'s box.
 fn jumps_pass_only_empty_samples<I: Interp>(interp: &I, object: &Object, volume: &Volume, rays: &[Ray]) -> (u64, u64) {
     let cells = volume.macrocells(ChannelName::Voxel).unwrap();
-    let skipper = Skipper::new(cells, object.opacity.zero_set(), true).expect("the map is zero somewhere");
+    let skipper = Skipper::new(cells, object.opacity().zero_set(), true).expect("the map is zero somewhere");
     let (mut passed, mut looked) = (0, 0);
     for ray in rays {
-        let Some((t0, t1)) = object.placement.segment(ray) else { continue };
-        let Some(line) = object.placement.walk(ray, t0, t1, object.sampling_distance).line() else { continue };
+        let Some((t0, t1)) = object.placement().segment(ray) else { continue };
+        let Some(line) = object.placement().walk(ray, t0, t1, object.sampling_distance()).line() else { continue };
         let base_cell = |j: u64| cell_of(interp.base(&interp.locate(line.point(j))));
         let empty = |j: u64| skipper.is_empty(interp, Level::Fine, base_cell(j));
         let jumps = Jumps::new(interp, &line);
@@ -380,7 +377,7 @@ fn jumps_pass_only_empty_samples_at_dataset_borders() {
         assert!(skipped < all, "{interp:?}: the empty middle must be skipped");
         // The border layers are seen: some ray is not clear.
         let ray = Ray { origin: DVec3::new(-1.0, 0.5, 0.5), dir: DVec3::X };
-        let (t0, t1) = o.placement.segment(&ray).unwrap();
+        let (t0, t1) = o.placement().segment(&ray).unwrap();
         assert!(ObjectCaster::new(&o, &vol, false).unwrap().cast(&ray, t0, t1, 0.0, 1.0).rgba.alpha > 0.0);
     }
 }
@@ -401,15 +398,15 @@ fn jumps_pass_only_empty_samples_in_extent_sub_boxes() {
     }
     let vol = volume(dims, vec![(ChannelName::Voxel, Channel::from_f32(&v, dims).unwrap())]);
     let extent = Extent { min: DVec3::new(0.25, 0.0, 0.0), max: DVec3::new(0.75, 1.0, 1.0) };
-    let mut o = object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, affine(1.0, DVec3::ZERO), extent, dims);
+    let o = object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, affine(1.0, DVec3::ZERO), extent, dims);
     // Steps of 0.08 voxel, so that the first samples lie between the face (VC 3.5) and VC 4,
     // in the cell [3, 4] whose lower corner is voxel 3.
-    o.sampling_distance = 0.01;
+    let o = respecified(&o, Interpolation::Trilinear, 0.01);
     let (size, at) = (1.0, DVec3::ZERO);
     let (skipped, all) = casts_agree(&o, &vol, true, &rays(size, at, 30));
     assert!(skipped < all);
     let ray = Ray { origin: DVec3::new(-1.0, 0.5, 0.5), dir: DVec3::X };
-    let (t0, t1) = o.placement.segment(&ray).unwrap();
+    let (t0, t1) = o.placement().segment(&ray).unwrap();
     let r = ObjectCaster::new(&o, &vol, true).unwrap().cast(&ray, t0, t1, 0.0, 1.0);
     assert!(r.rgba.alpha > 0.0, "voxel 3, outside the extent, is read by samples at its face");
 }
@@ -427,9 +424,9 @@ fn distorted_boxes_skip_sample_by_sample_and_cast_alike() {
         let shape = Shape::Distorted { hex: Box::new(hex.clone()), straight };
         let o = object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, shape, Extent::FULL, dims);
         let ray = Ray { origin: DVec3::new(0.5, 0.5, -2.0), dir: DVec3::Z };
-        let (t0, t1) = o.placement.segment(&ray).unwrap();
+        let (t0, t1) = o.placement().segment(&ray).unwrap();
         // Exact inversion has no straight line to jump along; the straight mode has one.
-        assert_eq!(o.placement.walk(&ray, t0, t1, 0.0).line().is_some(), straight);
+        assert_eq!(o.placement().walk(&ray, t0, t1, 0.0).line().is_some(), straight);
         let (skipped, all) = casts_agree(&o, &vol, true, &rays(1.3, DVec3::ZERO, 30));
         assert!(skipped < all, "straight = {straight}: {skipped} of {all}");
     }
@@ -454,12 +451,12 @@ proptest! {
         let dims = Dims::new(dims).unwrap();
         let vol = volume(dims, vec![(ChannelName::Voxel, Channel::from_f32(&sparse(dims, seed, rarity), dims).unwrap())]);
         let extent = Extent { min: DVec3::from(lo), max: DVec3::from(lo) + DVec3::from(width) };
-        let mut o = object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, affine(1.0, DVec3::ZERO), extent, dims);
-        o.sampling_distance = step;
+        let o = object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, affine(1.0, DVec3::ZERO), extent, dims);
+        let o = respecified(&o, Interpolation::Trilinear, step);
         let origin = DVec3::from(origin);
         let ray = Ray { origin, dir: (DVec3::from(target) - origin).normalize() };
         jumps_pass_only_empty_samples(&Linear::new(dims, Identity), &o, &vol, &[ray]);
-        o.interpolation = Interpolation::Nearest;
+        let o = respecified(&o, Interpolation::Nearest, step);
         jumps_pass_only_empty_samples(&Nearest::new(dims), &o, &vol, &[ray]);
         casts_agree(&o, &vol, true, &[ray]);
     }
@@ -516,10 +513,10 @@ fn a_line_of_samples_is_the_walk_it_came_from() {
     let o =
         object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, affine(1.0, DVec3::ZERO), Extent::FULL, dims);
     let ray = Ray { origin: DVec3::new(0.3, 0.4, -1.0), dir: DVec3::new(0.1, 0.05, 1.0).normalize() };
-    let (t0, t1) = o.placement.segment(&ray).unwrap();
-    let walk = o.placement.walk(&ray, t0, t1, 0.0);
+    let (t0, t1) = o.placement().segment(&ray).unwrap();
+    let walk = o.placement().walk(&ray, t0, t1, 0.0);
     let line: LineSamples = walk.line().unwrap();
-    let points: Vec<[f64; 3]> = o.placement.walk(&ray, t0, t1, 0.0).map(|(vc, _)| vc.unwrap()).collect();
+    let points: Vec<[f64; 3]> = o.placement().walk(&ray, t0, t1, 0.0).map(|(vc, _)| vc.unwrap()).collect();
     assert_eq!(points.len() as u64, line.len());
     for (k, p) in points.iter().enumerate() {
         assert_eq!(*p, line.point(k as u64));

@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 
 use serde::Deserialize;
 
-use crate::dataset::generator::Generator;
+use crate::dataset::generator::GeneratorTable;
 
 #[derive(Deserialize, Debug)]
 #[serde(deny_unknown_fields)]
@@ -69,7 +69,7 @@ pub(super) struct DatasetFile {
 pub(super) struct ChannelFile {
     pub raw: Option<String>,
     pub nrrd: Option<String>,
-    pub generator: Option<Generator>,
+    pub generator: Option<GeneratorTable>,
     #[serde(rename = "type")]
     pub ty: Option<String>,
     pub endian: Option<String>,

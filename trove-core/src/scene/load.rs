@@ -1,64 +1,66 @@
 //! From TOML text to a validated [`Scene`]: every rule of SPEC §1–2 and §4.5 is checked
-//! here, once, and each failure names the file, the key path and what was expected.
+//! here, once, and each failure is a [`SceneErrorKind`](super::SceneErrorKind) at the key
+//! path it is about. This is the edge where key paths are attached: lower layers (datasets,
+//! geometry, generators) return their own error types, which become the error's source.
 
 use std::collections::{BTreeMap, HashMap};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use glam::{DMat3, DMat4, DVec3, DVec4};
 
+use super::error::SceneErrorKind as Kind;
 use super::file::{ChannelFile, DatasetFile, ObjectFile, SceneFile, TransformFile};
 use super::mappings::{self, KeyError};
 use super::{
     ImageSettings, Object, RenderSettings, Scene, MAX_IMAGE_SIDE, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE,
     MAX_SAMPLES_PER_RENDER,
 };
-use crate::dataset::raw::StoredType;
+use crate::dataset::generator::{Generator, GeneratorError};
+use crate::dataset::raw::{self, StoredType};
 use crate::dataset::{
-    image_file, nifti_file, nrrd, raw, ChannelName, ChannelSource, DatasetInfo, Dims, Endian, VoxelType,
+    Catalog, ChannelName, ChannelSource, DatasetError, DatasetInfo, Dims, Encoding, Endian, FileInfo, FileKind,
+    VolumeFormat, VoxelType,
 };
 use crate::geometry::hexahedron::Hexahedron;
-use crate::geometry::{Camera, Extent, Placement, Shape};
+use crate::geometry::{Camera, CameraField, Extent, Placement, Shape};
 use crate::SceneError;
 
-/// Parses and validates a whole scene.
-pub(super) fn scene(text: &str, path: &Path) -> Result<Scene, SceneError> {
-    let fail = |(key, message): KeyError| SceneError::new(path, key, message);
+/// A refusal at `key`.
+fn err<T>(key: impl Into<String>, kind: Kind) -> Result<T, KeyError> {
+    Err(KeyError::new(key, kind))
+}
+
+/// Parses and validates a whole scene, describing its dataset keys through `catalog`.
+pub(super) fn scene(text: &str, path: &Path, catalog: &dyn Catalog) -> Result<Scene, SceneError> {
+    let fail = |e: KeyError| SceneError { file: path.to_path_buf(), key: Some(e.key), kind: e.kind };
     let file = deserialize(text, path)?;
-    let folder = path.parent().map(Path::to_path_buf).unwrap_or_default();
 
     let image = image_settings(&file).map_err(fail)?;
-    let c = &file.camera;
-    let camera = Camera::new(DVec3::from(c.eye), DVec3::from(c.target), DVec3::from(c.up), c.fov_y)
-        .map_err(|(k, m)| fail((k.to_string(), m)))?;
+    let camera = camera(&file).map_err(fail)?;
     let render = render_settings(&file).map_err(fail)?;
     let straight = match file.render.distorted_sampling.as_str() {
         "exact" => false,
         "straight" => true,
         other => {
-            return Err(fail((
-                "render.distorted_sampling".into(),
-                format!("expected \"exact\" or \"straight\", got \"{other}\""),
-            )))
+            let kind = Kind::DistortedSampling { got: other.to_string() };
+            return Err(fail(KeyError::new("render.distorted_sampling", kind)));
         }
     };
 
-    if file.datasets.len() > MAX_OBJECTS {
-        return Err(fail(("datasets".into(), format!("at most {MAX_OBJECTS} datasets, got {}", file.datasets.len()))));
-    }
-    if file.objects.len() > MAX_OBJECTS {
-        return Err(fail(("objects".into(), format!("at most {MAX_OBJECTS} objects, got {}", file.objects.len()))));
+    for (what, got) in [("datasets", file.datasets.len()), ("objects", file.objects.len())] {
+        if got > MAX_OBJECTS {
+            return Err(fail(KeyError::new(what, Kind::TooMany { what, max: MAX_OBJECTS, got })));
+        }
     }
     let mut datasets = Vec::with_capacity(file.datasets.len());
     let mut by_name = HashMap::new();
     for (i, d) in file.datasets.iter().enumerate() {
         let key = format!("datasets[{i}]");
         if let Some(j) = by_name.insert(d.name.clone(), i) {
-            return Err(fail((
-                format!("{key}.name"),
-                format!("duplicate dataset name \"{}\" (also datasets[{j}])", d.name),
-            )));
+            let kind = Kind::DuplicateName { what: "dataset", name: d.name.clone(), first: format!("datasets[{j}]") };
+            return Err(fail(KeyError::new(format!("{key}.name"), kind)));
         }
-        datasets.push(dataset(d, &key, &folder).map_err(fail)?);
+        datasets.push(dataset(d, &key, catalog).map_err(fail)?);
     }
 
     let mut objects = Vec::with_capacity(file.objects.len());
@@ -66,22 +68,32 @@ pub(super) fn scene(text: &str, path: &Path) -> Result<Scene, SceneError> {
     for (i, o) in file.objects.iter().enumerate() {
         let key = format!("objects[{i}]");
         if let Some(j) = object_names.insert(o.name.clone(), i) {
-            return Err(fail((
-                format!("{key}.name"),
-                format!("duplicate object name \"{}\" (also objects[{j}])", o.name),
-            )));
+            let kind = Kind::DuplicateName { what: "object", name: o.name.clone(), first: format!("objects[{j}]") };
+            return Err(fail(KeyError::new(format!("{key}.name"), kind)));
         }
         let Some(&ds) = by_name.get(&o.dataset) else {
-            let known: Vec<_> = file.datasets.iter().map(|d| d.name.as_str()).collect();
-            return Err(fail((
-                format!("{key}.dataset"),
-                format!("no dataset named \"{}\"; the scene defines {:?}", o.dataset, known),
-            )));
+            let known = file.datasets.iter().map(|d| d.name.clone()).collect();
+            let kind = Kind::UnknownDataset { name: o.dataset.clone(), known };
+            return Err(fail(KeyError::new(format!("{key}.dataset"), kind)));
         };
         objects.push(object(o, &key, ds, &datasets[ds], straight).map_err(fail)?);
     }
     render_budget(&image, &objects, &datasets).map_err(fail)?;
     Ok(Scene { path: path.to_path_buf(), image, camera, render, datasets, objects })
+}
+
+/// `[camera]`; the camera's error says which field it is about, which gives the key.
+fn camera(f: &SceneFile) -> Result<Camera, KeyError> {
+    let c = &f.camera;
+    Camera::new(DVec3::from(c.eye), DVec3::from(c.target), DVec3::from(c.up), c.fov_y).map_err(|e| {
+        let key = match e.field() {
+            CameraField::Eye => "camera.eye",
+            CameraField::Target => "camera.target",
+            CameraField::Up => "camera.up",
+            CameraField::FovY => "camera.fov_y",
+        };
+        KeyError::new(key, Kind::Camera(e))
+    })
 }
 
 /// The diagonal of the axis-aligned bounding box of an object's corners (world units).
@@ -95,7 +107,11 @@ fn world_diagonal(placement: &Placement) -> f64 {
 /// pixel's ray through every object's bounding-box diagonal, at the object's step (its
 /// world sampling distance, or one voxel: the VC diagonal of its extent). A clear refusal
 /// beats a render that cannot finish; termination 1.0 cannot shorten it either.
-fn render_budget(image: &ImageSettings, objects: &[Object], datasets: &[DatasetInfo]) -> Result<(), KeyError> {
+pub(super) fn render_budget(
+    image: &ImageSettings,
+    objects: &[Object],
+    datasets: &[DatasetInfo],
+) -> Result<(), KeyError> {
     let per_ray: Vec<f64> = objects
         .iter()
         .map(|o| {
@@ -103,7 +119,7 @@ fn render_budget(image: &ImageSettings, objects: &[Object], datasets: &[DatasetI
                 world_diagonal(&o.placement) / o.sampling_distance
             } else {
                 let e = o.placement.extent();
-                let d = datasets[o.dataset].dims;
+                let d = datasets[o.dataset].dims();
                 let n = DVec3::new(d.axis(0) as f64, d.axis(1) as f64, d.axis(2) as f64);
                 ((e.max - e.min) * n).length()
             }
@@ -116,69 +132,65 @@ fn render_budget(image: &ImageSettings, objects: &[Object], datasets: &[DatasetI
     }
     let (worst, most) =
         per_ray.iter().enumerate().fold((0, 0.0), |(i, m), (j, &v)| if v > m { (j, v) } else { (i, m) });
-    Err((
+    err(
         format!("objects[{worst}].sampling_distance"),
-        format!(
-            "the render could take up to {total:.3e} samples ({}×{} pixels, up to {most:.3e} per ray in this object); \
-             at most {MAX_SAMPLES_PER_RENDER:.3e} are allowed: use a larger sampling distance or a smaller image",
-            image.width, image.height
-        ),
-    ))
+        Kind::RenderTooCostly { total, width: image.width, height: image.height, per_ray: most },
+    )
 }
 
 /// TOML → plain structs, with serde's errors turned into key paths and plain words.
 fn deserialize(text: &str, path: &Path) -> Result<SceneFile, SceneError> {
-    let de = toml::Deserializer::parse(text).map_err(|e| {
-        let at = e.span().map(|s| line_column(text, s.start)).unwrap_or_default();
-        SceneError::new(path, "(syntax)", format!("not valid TOML{at}: {}", e.message().trim()))
+    let at_key = |e: KeyError| SceneError { file: path.to_path_buf(), key: Some(e.key), kind: e.kind };
+    let de = toml::Deserializer::parse(text).map_err(|e| SceneError {
+        file: path.to_path_buf(),
+        key: None,
+        kind: Kind::Syntax {
+            position: e.span().map(|s| line_column(text, s.start)),
+            message: e.message().trim().to_string(),
+        },
     })?;
     // serde fills a struct from an array too (`image = [8, 6, [0, 0, 0]]`), which would let
     // positional values through where the SPEC wants named keys: refuse that first.
     if let Ok(value) = text.parse::<toml::Table>() {
-        tables_where_expected(&value).map_err(|(key, message)| SceneError::new(path, key, message))?;
+        tables_where_expected(&value).map_err(at_key)?;
     }
     serde_path_to_error::deserialize(de).map_err(|e| {
         let mut key = e.path().to_string();
         if key == "." {
             key.clear();
         }
-        let (field, message) = describe(e.inner().message().trim());
-        // A missing field (and a generator's key check) is reported at its table; name the
-        // field itself. An unknown field's path already ends with it.
+        let (field, kind) = in_words(e.inner().message().trim());
+        // A missing field is reported at its table; name the field itself. An unknown
+        // field's path already ends with it.
         if let Some(field) = field {
             key = if key.is_empty() { field } else { format!("{key}.{field}") };
         }
-        if key.is_empty() {
-            key = "(top level)".into();
-        }
-        SceneError::new(path, key, message)
+        SceneError { file: path.to_path_buf(), key: (!key.is_empty()).then_some(key), kind }
     })
 }
 
 /// Checks that every key the format defines as a table (or an array of tables) is one.
 fn tables_where_expected(top: &toml::Table) -> Result<(), KeyError> {
+    fn not_a_table(got: String) -> Kind {
+        Kind::WrongType { expected: "a table of named keys".into(), got }
+    }
     fn table(v: &toml::Value, key: &str) -> Result<(), KeyError> {
         match v {
             toml::Value::Table(_) => Ok(()),
-            other => {
-                Err((key.to_string(), format!("expected a table of named keys, got {} `{other}`", other.type_str())))
-            }
+            other => err(key, not_a_table(format!("{} `{other}`", other.type_str()))),
         }
     }
     fn array_of_tables<'a>(v: &'a toml::Value, key: &str) -> Result<Vec<&'a toml::Table>, KeyError> {
         let Some(items) = v.as_array() else {
-            return Err((
-                key.to_string(),
-                format!("expected an array of tables ([[{key}]]), got {} `{v}`", v.type_str()),
-            ));
+            let got = format!("{} `{v}`", v.type_str());
+            return err(key, Kind::NotAnArrayOfTables { table: key.to_string(), got });
         };
         items
             .iter()
             .enumerate()
             .map(|(i, item)| {
-                item.as_table().ok_or_else(|| {
-                    (format!("{key}[{i}]"), format!("expected a table of named keys, got {}", item.type_str()))
-                })
+                item.as_table()
+                    .ok_or_else(|| KeyError::new(format!("{key}[{i}]"), not_a_table(item.type_str().to_string())))
             })
             .collect()
     }
@@ -213,12 +225,12 @@ fn tables_where_expected(top: &toml::Table) -> Result<(), KeyError> {
     Ok(())
 }
 
-/// ` at line L, column C` of byte `offset` in `text`, both counted from 1.
-fn line_column(text: &str, offset: usize) -> String {
+/// Line and column of byte `offset` in `text`, both counted from 1.
+fn line_column(text: &str, offset: usize) -> (usize, usize) {
     let before = text.get(..offset).unwrap_or(text);
     let line = before.matches('\n').count() + 1;
     let column = before.rsplit('\n').next().unwrap_or_default().chars().count() + 1;
-    format!(" at line {line}, column {column}")
+    (line, column)
 }
 
 /// The text between the first pair of backticks after `prefix` at the start of `s`.
@@ -227,40 +239,33 @@ fn quoted_after<'a>(s: &'a str, prefix: &str) -> Option<&'a str> {
 }
 
 /// serde's message in the scene's words: the sub-key it is about (for errors reported at
-/// the enclosing table), and what was expected.
-fn describe(inner: &str) -> (Option<String>, String) {
+/// the enclosing table), and what was expected. serde hands its errors over as text (its
+/// `Error::custom` carries no structure), so this is the one place that reads a message.
+fn in_words(inner: &str) -> (Option<String>, Kind) {
     if let Some(field) = quoted_after(inner, "missing field `") {
-        return (Some(field.to_string()), format!("missing; `{field}` is required here"));
+        return (Some(field.to_string()), Kind::MissingKey { field: field.to_string() });
     }
     if let Some(field) = quoted_after(inner, "unknown field `") {
         let rest = inner.split_once("`, ").map_or("", |(_, r)| r);
-        let expected = match rest.strip_prefix("expected ") {
-            Some(e) => format!("expected {e}"),
-            None => "expected no keys here".to_string(),
-        };
-        return (None, format!("unknown key `{field}`; {expected}"));
-    }
-    // The generator's own key checks (dataset::generator): name the key they are about.
-    if let Some(field) = quoted_after(inner, "key `") {
-        return (Some(field.to_string()), inner.to_string());
-    }
-    if let Some((_, field)) = inner.split_once(" needs key `") {
-        return (Some(field.trim_end_matches('`').to_string()), inner.to_string());
+        let expected = rest.strip_prefix("expected ").map(str::to_string);
+        return (None, Kind::UnknownKey { field: field.to_string(), expected });
     }
     // "invalid type: string \"8\", expected i64" → "expected a whole number, got string \"8\"".
     for prefix in ["invalid type: ", "invalid value: "] {
         if let Some((got, expected)) = inner.strip_prefix(prefix).and_then(|r| r.split_once(", expected ")) {
-            return (None, format!("expected {}, got {got}", plain_type(expected)));
+            return (None, Kind::WrongType { expected: plain_type(expected), got: got.to_string() });
         }
     }
     if let Some((n, expected)) = inner.strip_prefix("invalid length ").and_then(|r| r.split_once(", expected ")) {
         // A table given as an array reaches here as "struct ImageFile with 3 elements".
         if expected.starts_with("struct ") {
-            return (None, format!("expected a table, got an array of {n} entries"));
+            return (None, Kind::WrongType { expected: "a table".into(), got: format!("an array of {n} entries") });
         }
-        return (None, format!("expected {expected}, got {n} entries"));
+        if let Ok(got) = n.parse() {
+            return (None, Kind::WrongLength { expected: expected.to_string(), got });
+        }
     }
-    (None, inner.to_string())
+    (None, Kind::Deserialize(inner.to_string()))
 }
 
 /// Rust's primitive type names in words.
@@ -284,18 +289,20 @@ fn plain_type(expected: &str) -> String {
     }
 }
 
+/// An image side (`image.width`, `image.height`) within 1..=[`MAX_IMAGE_SIDE`].
+pub(super) fn image_side(v: i64, key: &str) -> Result<u32, KeyError> {
+    if v < 1 || v > MAX_IMAGE_SIDE as i64 {
+        return err(key, Kind::ImageSide { got: v });
+    }
+    Ok(v as u32)
+}
+
 fn image_settings(f: &SceneFile) -> Result<ImageSettings, KeyError> {
-    let side = |v: i64, key: &str| -> Result<u32, KeyError> {
-        if v < 1 || v > MAX_IMAGE_SIDE as i64 {
-            return Err((key.into(), format!("expected a pixel count from 1 to {MAX_IMAGE_SIDE}, got {v}")));
-        }
-        Ok(v as u32)
-    };
-    let width = side(f.image.width, "image.width")?;
-    let height = side(f.image.height, "image.height")?;
+    let width = image_side(f.image.width, "image.width")?;
+    let height = image_side(f.image.height, "image.height")?;
     let background = f.image.background;
     if background.iter().any(|c| !(0.0..=1.0).contains(c)) {
-        return Err(("image.background".into(), format!("expected linear RGB in [0, 1], got {background:?}")));
+        return err("image.background", Kind::Background { got: background });
     }
     Ok(ImageSettings { width, height, background })
 }
@@ -303,36 +310,29 @@ fn image_settings(f: &SceneFile) -> Result<ImageSettings, KeyError> {
 fn render_settings(f: &SceneFile) -> Result<RenderSettings, KeyError> {
     let t = f.render.termination;
     if !(t > 0.0 && t <= 1.0) {
-        return Err(("render.termination".into(), format!("expected an opacity in (0, 1], got {t}")));
+        return err("render.termination", Kind::Termination { got: t });
     }
     Ok(RenderSettings { termination: t, opacity_correction: f.render.opacity_correction })
 }
 
-fn resolve(folder: &Path, rel: &str) -> PathBuf {
-    folder.join(rel)
-}
-
 fn dims_of(d: [i64; 3], key: &str) -> Result<Dims, KeyError> {
     if d.iter().any(|&n| n < 1) {
-        return Err((key.into(), format!("expected three voxel counts ≥ 1, got {d:?}")));
+        return err(key, Kind::DimsBelowOne { got: d });
     }
-    Dims::new(d.map(|n| n as u64)).map_err(|m| (key.to_string(), m))
+    Dims::new(d.map(|n| n as u64)).map_err(|e| KeyError::new(key, Kind::Dims(e)))
 }
 
-fn check_channel_type(name: ChannelName, ty: VoxelType, key: &str) -> Result<(), KeyError> {
-    if name.allowed_types().contains(&ty) {
+fn check_channel_type(channel: ChannelName, got: VoxelType, key: &str) -> Result<(), KeyError> {
+    if channel.allowed_types().contains(&got) {
         return Ok(());
     }
-    let allowed: Vec<_> = name.allowed_types().iter().map(|t| t.name()).collect();
-    Err((key.into(), format!("channel `{name}` must be {}, but its data is {ty}", allowed.join(" or "))))
+    err(key, Kind::ChannelType { channel, got })
 }
 
 /// Records dims found in a file, or refuses them when they differ from dims already fixed.
 fn agree(dims: &mut Option<Dims>, found: Dims, key: &str) -> Result<Dims, KeyError> {
     match *dims {
-        Some(want) if want != found => {
-            Err((key.to_string(), format!("holds dims {found}, but the dataset's dims are {want}")))
-        }
+        Some(declared) if declared != found => err(key, Kind::DimsDisagree { found, declared }),
         _ => {
             *dims = Some(found);
             Ok(found)
@@ -340,67 +340,98 @@ fn agree(dims: &mut Option<Dims>, found: Dims, key: &str) -> Result<Dims, KeyErr
     }
 }
 
-fn dataset(d: &DatasetFile, key: &str, folder: &Path) -> Result<DatasetInfo, KeyError> {
+/// A dataset file's error, at the key that names the file.
+fn dataset_error(key: &str) -> impl Fn(DatasetError) -> KeyError + '_ {
+    move |e| KeyError::new(key, Kind::Dataset(e))
+}
+
+/// What `catalog` says `file` (written at `key`) holds.
+fn describe(catalog: &dyn Catalog, file: &str, kind: FileKind, key: &str) -> Result<FileInfo, KeyError> {
+    catalog.describe(file, kind).map_err(dataset_error(key))
+}
+
+/// A catalog's answer of another kind than asked for.
+fn wrong_kind(file: &str, expected: FileKind, found: &FileInfo, key: &str) -> KeyError {
+    let e = DatasetError::WrongKind { key: file.to_string(), expected, found: found.kind() };
+    KeyError::new(key, Kind::Dataset(e))
+}
+
+/// A volume file (`file`, or a channel's `nrrd` when `only` says so) in a format TROVE reads.
+fn volume(
+    catalog: &dyn Catalog,
+    file: &str,
+    key: &str,
+    only: Option<(VolumeFormat, &'static str)>,
+) -> Result<(Dims, VoxelType, ChannelSource), KeyError> {
+    let format = VolumeFormat::of_key(file);
+    let expected = match only {
+        Some((want, expected)) if format != Some(want) => Some(expected),
+        None if format.is_none() => Some(".nrrd, .nhdr, .nii or .nii.gz"),
+        _ => None,
+    };
+    if let Some(expected) = expected {
+        return err(key, Kind::VolumeExtension { file: file.to_string(), expected });
+    }
+    match describe(catalog, file, FileKind::Volume, key)? {
+        FileInfo::Volume { dims, ty, source } => Ok((dims, ty, source)),
+        other => Err(wrong_kind(file, FileKind::Volume, &other, key)),
+    }
+}
+
+fn dataset(d: &DatasetFile, key: &str, catalog: &dyn Catalog) -> Result<DatasetInfo, KeyError> {
     let mut channels: BTreeMap<ChannelName, (VoxelType, ChannelSource)> = BTreeMap::new();
     let declared = d.dims.map(|v| dims_of(v, &format!("{key}.dims"))).transpose()?;
     let mut dims = declared;
     match (&d.file, &d.image) {
-        (Some(_), Some(_)) => return Err((format!("{key}.image"), "give either `file` or `image`, not both".into())),
+        (Some(_), Some(_)) => return err(format!("{key}.image"), Kind::FileAndImage),
         (Some(f), None) => {
             let k = format!("{key}.file");
-            let path = resolve(folder, f);
-            let lower = f.to_ascii_lowercase();
-            let opened = if lower.ends_with(".nrrd") || lower.ends_with(".nhdr") {
-                nrrd::open(&path)
-            } else if lower.ends_with(".nii") || lower.ends_with(".nii.gz") {
-                nifti_file::open(&path)
-            } else {
-                return Err((k, format!("\"{f}\": expected a .nrrd, .nhdr, .nii or .nii.gz file")));
-            }
-            .map_err(|e| (k.clone(), e.to_string()))?;
-            agree(&mut dims, opened.dims, &k)?;
-            check_channel_type(ChannelName::Voxel, opened.ty, &k)?;
-            channels.insert(ChannelName::Voxel, (opened.ty, opened.source));
+            let (found, ty, source) = volume(catalog, f, &k, None)?;
+            agree(&mut dims, found, &k)?;
+            check_channel_type(ChannelName::Voxel, ty, &k)?;
+            channels.insert(ChannelName::Voxel, (ty, source));
         }
         (None, Some(img)) => {
             let k = format!("{key}.image");
-            let (found, chans) = image_file::open(&resolve(folder, img)).map_err(|e| (k.clone(), e.to_string()))?;
+            let (found, given) = match describe(catalog, img, FileKind::Image, &k)? {
+                FileInfo::Image { dims, channels } => (dims, channels),
+                other => return Err(wrong_kind(img, FileKind::Image, &other, &k)),
+            };
             agree(&mut dims, found, &k)?;
-            for (name, ty, source) in chans {
-                channels.insert(name, (ty, source));
+            for (name, source) in given {
+                channels.insert(name, (VoxelType::U8, source));
             }
         }
         (None, None) => {
             if d.channels.is_empty() {
-                return Err((key.into(), "a dataset needs `file`, `image`, or `dims` with `channels`".into()));
+                return err(key, Kind::NoSource);
             }
             if declared.is_none() {
-                return Err((format!("{key}.dims"), "missing; explicit channels need the dataset's dims".into()));
+                return err(format!("{key}.dims"), Kind::MissingDims);
             }
         }
     }
     for (cname, c) in &d.channels {
         let ck = format!("{key}.channels.{cname}");
         let Some(name) = ChannelName::parse(cname) else {
-            let all: Vec<_> = ChannelName::ALL.iter().map(|c| c.name()).collect();
-            return Err((ck, format!("unknown channel; expected one of {}", all.join(", "))));
+            return err(ck, Kind::UnknownChannel);
         };
         if channels.contains_key(&name) {
-            return Err((ck, format!("channel `{name}` is already given by the dataset's file or image")));
+            return err(ck, Kind::ChannelGivenTwice { channel: name });
         }
         let Some(dims) = dims else {
-            return Err((format!("{key}.dims"), "missing; explicit channels need the dataset's dims".into()));
+            return err(format!("{key}.dims"), Kind::MissingDims);
         };
-        let (ty, source) = channel(c, &ck, name, dims, folder)?;
+        let (ty, source) = channel(c, &ck, name, dims, catalog)?;
         channels.insert(name, (ty, source));
     }
     let dims = dims.expect("every branch above fixes dims or returns");
-    for (ty, _) in channels.values() {
+    for &(ty, _) in channels.values() {
         if ty.byte_len(dims.voxel_count()).is_none() {
-            return Err((format!("{key}.dims"), format!("dims {dims} of {ty} overflow the addressable size")));
+            return err(format!("{key}.dims"), Kind::DimsOverflow { dims, ty });
         }
     }
-    Ok(DatasetInfo { name: d.name.clone(), dims, channels })
+    Ok(DatasetInfo::new(d.name.clone(), dims, channels))
 }
 
 /// One explicit channel `name`; a type the channel does not allow is refused at the key that
@@ -410,15 +441,15 @@ fn channel(
     key: &str,
     name: ChannelName,
     dims: Dims,
-    folder: &Path,
+    catalog: &dyn Catalog,
 ) -> Result<(VoxelType, ChannelSource), KeyError> {
     let given = [c.raw.is_some(), c.nrrd.is_some(), c.generator.is_some()].iter().filter(|&&b| b).count();
     if given != 1 {
-        return Err((key.into(), "expected exactly one of `raw`, `nrrd` or `generator`".into()));
+        return err(key, Kind::ChannelSources);
     }
     let only_raw = |field: &str, present: bool| -> Result<(), KeyError> {
         if present && c.raw.is_none() {
-            return Err((format!("{key}.{field}"), "only a `raw` channel takes this key".into()));
+            return err(format!("{key}.{field}"), Kind::RawOnlyKey);
         }
         Ok(())
     };
@@ -428,37 +459,44 @@ fn channel(
     if let Some(r) = &c.raw {
         let tk = format!("{key}.type");
         let Some(t) = &c.ty else {
-            return Err((tk, "missing; a raw channel needs its type: bit, u8, u16, u32 or f32".into()));
+            return err(tk, Kind::MissingRawType);
         };
-        let ty = VoxelType::parse(t)
-            .ok_or_else(|| (tk.clone(), format!("expected bit, u8, u16, u32 or f32, got \"{t}\"")))?;
+        let ty = VoxelType::parse(t).ok_or_else(|| KeyError::new(&tk, Kind::UnknownVoxelType { got: t.clone() }))?;
         check_channel_type(name, ty, &tk)?;
         let endian = match c.endian.as_deref() {
             None => Endian::Little,
             Some(e) => Endian::parse(e)
-                .ok_or_else(|| (format!("{key}.endian"), format!("expected \"little\" or \"big\", got \"{e}\"")))?,
+                .ok_or_else(|| KeyError::new(format!("{key}.endian"), Kind::UnknownEndian { got: e.to_string() }))?,
         };
+        // A raw file has no header: its length, from the catalog, must be exactly what the
+        // scene's dims, type and offset call for.
         let rk = format!("{key}.raw");
-        let source = raw::open(&resolve(folder, r), c.offset.unwrap_or(0), StoredType::from(ty), endian, dims)
-            .map_err(|e| (rk, e.to_string()))?;
-        return Ok((ty, source));
+        let (bytes, file) = match describe(catalog, r, FileKind::Raw, &rk)? {
+            FileInfo::Raw { bytes, file } => (bytes, file),
+            other => return Err(wrong_kind(r, FileKind::Raw, &other, &rk)),
+        };
+        let (offset, stored) = (c.offset.unwrap_or(0), StoredType::from(ty));
+        raw::check_len(file.path(), bytes, offset, stored, dims).map_err(dataset_error(&rk))?;
+        return Ok((ty, ChannelSource::File { file, offset, encoding: Encoding::Raw, stored, endian }));
     }
     if let Some(n) = &c.nrrd {
         let nk = format!("{key}.nrrd");
-        let opened = nrrd::open(&resolve(folder, n)).map_err(|e| (nk.clone(), e.to_string()))?;
-        agree(&mut Some(dims), opened.dims, &nk)?;
-        check_channel_type(name, opened.ty, &nk)?;
-        return Ok((opened.ty, opened.source));
+        let (found, ty, source) = volume(catalog, n, &nk, Some((VolumeFormat::Nrrd, ".nrrd or .nhdr")))?;
+        agree(&mut Some(dims), found, &nk)?;
+        check_channel_type(name, ty, &nk)?;
+        return Ok((ty, source));
     }
-    let g = c.generator.as_ref().expect("exactly one source is present");
+    let table = c.generator.clone().expect("exactly one source is present");
     let gk = format!("{key}.generator");
-    // The generator's messages start with the key they are about: "`radius` = 0: ...".
-    g.check(dims).map_err(|m| match quoted_after(&m, "`") {
-        Some(field) => (format!("{gk}.{field}"), m),
-        None => (gk.clone(), m),
-    })?;
+    // The generator's errors name the key they are about.
+    let at_its_key = |e: GeneratorError| {
+        let k = e.key().map_or_else(|| gk.clone(), |field| format!("{gk}.{field}"));
+        KeyError::new(k, Kind::Generator(e))
+    };
+    let g = Generator::try_from(table).map_err(at_its_key)?;
+    g.check(dims).map_err(at_its_key)?;
     check_channel_type(name, g.voxel_type(), &gk)?;
-    Ok((g.voxel_type(), ChannelSource::Generated(g.clone())))
+    Ok((g.voxel_type(), ChannelSource::Generated(g)))
 }
 
 fn object(o: &ObjectFile, key: &str, ds: usize, info: &DatasetInfo, straight: bool) -> Result<Object, KeyError> {
@@ -467,13 +505,7 @@ fn object(o: &ObjectFile, key: &str, ds: usize, info: &DatasetInfo, straight: bo
     let opacity = mappings::opacity(&o.opacity, &format!("{key}.opacity"), has)?;
     for (reads, k) in [(colour.reads_voxel(), "colour"), (opacity.reads_voxel(), "opacity")] {
         if reads && !info.has(ChannelName::Voxel) {
-            return Err((
-                format!("{key}.{k}"),
-                format!(
-                    "this map reads the `voxel` channel, which dataset \"{}\" does not have; use raw or constant",
-                    info.name
-                ),
-            ));
+            return err(format!("{key}.{k}"), Kind::MapNeedsVoxel { dataset: info.name().to_string() });
         }
     }
     let interpolation = match &o.interpolation {
@@ -482,26 +514,22 @@ fn object(o: &ObjectFile, key: &str, ds: usize, info: &DatasetInfo, straight: bo
     };
     let sampling_distance = o.sampling_distance.unwrap_or(0.0);
     if !(sampling_distance.is_finite() && sampling_distance >= 0.0) {
-        return Err((
-            format!("{key}.sampling_distance"),
-            format!("expected a finite world distance ≥ 0 (0 = one voxel), got {sampling_distance:?}"),
-        ));
+        return err(format!("{key}.sampling_distance"), Kind::SamplingDistance { got: sampling_distance });
     }
     let extent = extent(o, key)?;
     let shape = shape(o.transform.as_ref(), &format!("{key}.transform"), straight)?;
-    let placement = Placement::new(shape, extent, info.dims);
-    placement.check_inversion_precision().map_err(|m| (format!("{key}.transform.corners"), m))?;
+    let placement = Placement::new(shape, extent, info.dims());
+    placement
+        .check_inversion_precision()
+        .map_err(|e| KeyError::new(format!("{key}.transform.corners"), Kind::Inversion(e)))?;
     // Refuse sampling so fine that one ray would take millions of samples per object.
     let diagonal = world_diagonal(&placement);
     if sampling_distance > 0.0 && diagonal / sampling_distance > MAX_SAMPLES_PER_PIECE {
-        return Err((
+        let samples = diagonal / sampling_distance;
+        return err(
             format!("{key}.sampling_distance"),
-            format!(
-                "{sampling_distance:?} would take up to {:.3e} samples per ray through a box {diagonal:.3e} across; \
-                 at most {MAX_SAMPLES_PER_PIECE:.3e} are allowed",
-                diagonal / sampling_distance
-            ),
-        ));
+            Kind::TooManySamplesPerRay { distance: sampling_distance, diagonal, samples },
+        );
     }
     Ok(Object { name: o.name.clone(), dataset: ds, colour, opacity, interpolation, sampling_distance, placement })
 }
@@ -510,16 +538,9 @@ fn extent(o: &ObjectFile, key: &str) -> Result<Extent, KeyError> {
     let Some(e) = &o.extent else { return Ok(Extent::FULL) };
     let min = DVec3::from(e.min.unwrap_or([0.0; 3]));
     let max = DVec3::from(e.max.unwrap_or([1.0; 3]));
-    for a in 0..3 {
-        if !(min[a] >= 0.0 && min[a] < max[a] && max[a] <= 1.0) {
-            return Err((
-                format!("{key}.extent"),
-                format!(
-                    "expected 0 ≤ min < max ≤ 1 on every axis, got min {:?}, max {:?} (axis {a})",
-                    min.to_array(),
-                    max.to_array()
-                ),
-            ));
+    for axis in 0..3 {
+        if !(min[axis] >= 0.0 && min[axis] < max[axis] && max[axis] <= 1.0) {
+            return err(format!("{key}.extent"), Kind::Extent { min: min.to_array(), max: max.to_array(), axis });
         }
     }
     Ok(Extent { min, max })
@@ -534,25 +555,25 @@ fn shape(t: Option<&TransformFile>, key: &str, straight: bool) -> Result<Shape, 
         (None, Some(c)) => {
             let k = format!("{key}.corners");
             if c.len() != 8 || c.iter().any(|p| p.len() != 3) {
-                return Err((k, "expected eight [x, y, z] corners, index x + 2y + 4z".into()));
+                return err(k, Kind::CornerCount);
             }
             let corners: [DVec3; 8] = std::array::from_fn(|i| DVec3::new(c[i][0], c[i][1], c[i][2]));
-            let hex = Hexahedron::new(corners).map_err(|m| (k.clone(), m))?;
+            let hex = Hexahedron::new(corners).map_err(|e| KeyError::new(&k, Kind::Hexahedron(e)))?;
             match hex.as_affine() {
                 Some(m) => affine_from(m, &k),
                 None => Ok(Shape::Distorted { hex: Box::new(hex), straight }),
             }
         }
-        _ => Err((key.into(), "expected exactly one of `matrix` or `corners`".into())),
+        _ => err(key, Kind::TransformSources),
     }
 }
 
 fn affine(rows: &[Vec<f64>], key: &str) -> Result<Shape, KeyError> {
     if rows.len() != 4 || rows.iter().any(|r| r.len() != 4) {
-        return Err((key.into(), "expected a 4×4 matrix, as four rows of four numbers".into()));
+        return err(key, Kind::MatrixShape);
     }
     if rows[3] != [0.0, 0.0, 0.0, 1.0] {
-        return Err((key.into(), format!("expected an affine matrix (last row 0 0 0 1), got last row {:?}", rows[3])));
+        return err(key, Kind::NotAffine { last_row: rows[3].clone() });
     }
     let col = |j: usize| DVec4::new(rows[0][j], rows[1][j], rows[2][j], rows[3][j]);
     affine_from(DMat4::from_cols(col(0), col(1), col(2), col(3)), key)
@@ -560,15 +581,12 @@ fn affine(rows: &[Vec<f64>], key: &str) -> Result<Shape, KeyError> {
 
 fn affine_from(m: DMat4, key: &str) -> Result<Shape, KeyError> {
     if !m.is_finite() {
-        return Err((key.into(), "expected finite numbers".into()));
+        return err(key, Kind::MatrixNotFinite);
     }
     let lin = DMat3::from_mat4(m);
     let scale = lin.x_axis.length() * lin.y_axis.length() * lin.z_axis.length();
     if scale == 0.0 || lin.determinant().abs() <= 1e-12 * scale {
-        return Err((
-            key.into(),
-            "expected a non-singular matrix; this one is singular (the box has no volume)".into(),
-        ));
+        return err(key, Kind::SingularMatrix);
     }
     Ok(Shape::Affine { world_from_box: m, box_from_world: m.inverse() })
 }

@@ -3,6 +3,7 @@
 
 use toml::Value;
 
+use super::error::SceneErrorKind as Kind;
 use crate::interp::Interpolation;
 use crate::mapping::{ColourMap, Lut, OpacityMap, Polynomial, Ramp, RawColour};
 
@@ -11,40 +12,56 @@ pub const MAX_POLYNOMIAL_TERMS: usize = 32;
 /// Largest number of LUT domains or ramp points.
 pub const MAX_TABLE_ENTRIES: usize = 65_536;
 
-/// An error at a key path, completed with the file name by the caller.
-pub(super) type KeyError = (String, String);
+/// A refusal at a key path, completed with the file name by the caller (`load::scene`).
+#[derive(Debug)]
+pub(super) struct KeyError {
+    /// TOML path of the offending key.
+    pub key: String,
+    /// What was wrong.
+    pub kind: Kind,
+}
 
-fn err<T>(key: &str, msg: impl Into<String>) -> Result<T, KeyError> {
-    Err((key.to_string(), msg.into()))
+impl KeyError {
+    pub(super) fn new(key: impl Into<String>, kind: Kind) -> KeyError {
+        KeyError { key: key.into(), kind }
+    }
+}
+
+fn err<T>(key: &str, kind: Kind) -> Result<T, KeyError> {
+    Err(KeyError::new(key, kind))
+}
+
+/// `what` was expected at `key`, and `v` was found (its TOML type).
+fn wrong_type<T>(key: &str, expected: impl Into<String>, v: &Value) -> Result<T, KeyError> {
+    err(key, Kind::WrongType { expected: expected.into(), got: v.type_str().to_string() })
 }
 
 /// A table's keys: `type` plus exactly the `allowed` ones.
-fn table<'a>(v: &'a Value, key: &str, allowed: &[&str]) -> Result<&'a toml::Table, KeyError> {
+fn table<'a>(v: &'a Value, key: &str, allowed: &'static [&'static str]) -> Result<&'a toml::Table, KeyError> {
     let Some(t) = v.as_table() else {
-        return err(key, format!("expected a table such as {{ type = \"lut\", ... }}, got {}", v.type_str()));
+        return err(key, Kind::NotAMap { got: v.type_str() });
     };
     for k in t.keys() {
         if k != "type" && !allowed.contains(&k.as_str()) {
-            let expected = if allowed.is_empty() { "no other keys".to_string() } else { allowed.join(", ") };
-            return err(&format!("{key}.{k}"), format!("unknown key for this type; expected {expected}"));
+            return err(&format!("{key}.{k}"), Kind::UnknownMapKey { allowed });
         }
     }
     for k in allowed {
         if !t.contains_key(*k) {
-            return err(&format!("{key}.{k}"), "missing; this type requires it");
+            return err(&format!("{key}.{k}"), Kind::MissingMapKey);
         }
     }
     Ok(t)
 }
 
-fn type_of<'a>(v: &'a Value, key: &str, expected: &str) -> Result<&'a str, KeyError> {
+fn type_of<'a>(v: &'a Value, key: &str, expected: &'static str) -> Result<&'a str, KeyError> {
     if !v.is_table() {
-        return err(key, format!("expected a table such as {{ type = \"lut\", ... }}, got {}", v.type_str()));
+        return err(key, Kind::NotAMap { got: v.type_str() });
     }
     match v.get("type") {
         Some(Value::String(s)) => Ok(s),
-        Some(other) => err(&format!("{key}.type"), format!("expected a string ({expected}), got {}", other.type_str())),
-        None => err(&format!("{key}.type"), format!("missing; expected one of {expected}")),
+        Some(other) => wrong_type(&format!("{key}.type"), format!("a string ({expected})"), other),
+        None => err(&format!("{key}.type"), Kind::MissingMapType { expected }),
     }
 }
 
@@ -52,54 +69,51 @@ fn number(v: &Value, key: &str) -> Result<f64, KeyError> {
     let x = match v {
         Value::Float(f) => *f,
         Value::Integer(i) => *i as f64,
-        other => return err(key, format!("expected a number, got {}", other.type_str())),
+        other => return wrong_type(key, "a number", other),
     };
     if !x.is_finite() {
-        return err(key, format!("expected a finite number, got {x}"));
+        return err(key, Kind::NotFinite { got: x });
     }
     Ok(x)
 }
 
 fn numbers(v: &Value, key: &str) -> Result<Vec<f64>, KeyError> {
     let Some(a) = v.as_array() else {
-        return err(key, format!("expected an array of numbers, got {}", v.type_str()));
+        return wrong_type(key, "an array of numbers", v);
     };
     a.iter().enumerate().map(|(i, x)| number(x, &format!("{key}[{i}]"))).collect()
 }
 
+/// Exactly `N` numbers at `key`; `layout` says what they mean, for the message.
+fn exactly<const N: usize>(v: &Value, key: &str, layout: Option<&'static str>) -> Result<[f64; N], KeyError> {
+    let xs = numbers(v, key)?;
+    let got = xs.len();
+    xs.try_into().or_else(|_| err(key, Kind::NumberCount { expected: N, layout, got }))
+}
+
 fn tuples<const N: usize>(v: &Value, key: &str) -> Result<Vec<[f64; N]>, KeyError> {
     let Some(a) = v.as_array() else {
-        return err(key, format!("expected an array of {N}-number arrays, got {}", v.type_str()));
+        return wrong_type(key, format!("an array of {N}-number arrays"), v);
     };
-    a.iter()
-        .enumerate()
-        .map(|(i, x)| {
-            let k = format!("{key}[{i}]");
-            let xs = numbers(x, &k)?;
-            xs.try_into().or_else(|xs: Vec<f64>| err(&k, format!("expected {N} numbers, got {}", xs.len())))
-        })
-        .collect()
+    a.iter().enumerate().map(|(i, x)| exactly::<N>(x, &format!("{key}[{i}]"), None)).collect()
 }
 
 fn bounds(t: &toml::Table, key: &str, entries: usize, entries_key: &str) -> Result<Vec<f64>, KeyError> {
     let key_b = format!("{key}.bounds");
     let b = numbers(&t["bounds"], &key_b)?;
     if b.len() >= MAX_TABLE_ENTRIES {
-        return err(&key_b, format!("expected fewer than {MAX_TABLE_ENTRIES} bounds"));
+        return err(&key_b, Kind::TooManyBounds { got: b.len() });
     }
     if let Some(i) = (1..b.len()).find(|&i| b[i] <= b[i - 1]) {
-        return err(&key_b, format!("bounds must be strictly increasing, but [{}] = {} follows {}", i, b[i], b[i - 1]));
+        return err(&key_b, Kind::BoundsNotIncreasing { index: i, value: b[i], previous: b[i - 1] });
     }
     if entries != b.len() + 1 {
-        return err(
-            &format!("{key}.{entries_key}"),
-            format!("expected {} entries (one more than the {} bounds), got {entries}", b.len() + 1, b.len()),
-        );
+        return err(&format!("{key}.{entries_key}"), Kind::LutEntries { bounds: b.len(), got: entries });
     }
     Ok(b)
 }
 
-fn coefficients(t: &toml::Table, key: &str, name: &str, ty: &str) -> Result<Polynomial, KeyError> {
+fn coefficients(t: &toml::Table, key: &str, name: &str, ty: &'static str) -> Result<Polynomial, KeyError> {
     let k = format!("{key}.{name}");
     let c = numbers(&t[name], &k)?;
     let want = match ty {
@@ -110,13 +124,8 @@ fn coefficients(t: &toml::Table, key: &str, name: &str, ty: &str) -> Result<Poly
         _ => None,
     };
     match want {
-        Some(n) if c.len() != n => {
-            let s = if n == 1 { "" } else { "s" };
-            err(&k, format!("a {ty} map takes exactly {n} coefficient{s}, got {}", c.len()))
-        }
-        None if c.is_empty() || c.len() > MAX_POLYNOMIAL_TERMS => {
-            err(&k, format!("expected 1 to {MAX_POLYNOMIAL_TERMS} coefficients (ascending powers), got {}", c.len()))
-        }
+        Some(n) if c.len() != n => err(&k, Kind::CoefficientCount { ty, expected: n, got: c.len() }),
+        None if c.is_empty() || c.len() > MAX_POLYNOMIAL_TERMS => err(&k, Kind::PolynomialTerms { got: c.len() }),
         _ => Ok(Polynomial(c)),
     }
 }
@@ -124,22 +133,22 @@ fn coefficients(t: &toml::Table, key: &str, name: &str, ty: &str) -> Result<Poly
 fn ramp_points<const N: usize>(t: &toml::Table, key: &str) -> Result<Vec<(f64, [f64; N])>, KeyError> {
     let k = format!("{key}.points");
     let Some(a) = t["points"].as_array() else {
-        return err(&k, format!("expected an array of [value, ...] points, got {}", t["points"].type_str()));
+        return wrong_type(&k, "an array of [value, ...] points", &t["points"]);
     };
     if a.is_empty() || a.len() > MAX_TABLE_ENTRIES {
-        return err(&k, format!("expected 1 to {MAX_TABLE_ENTRIES} points"));
+        return err(&k, Kind::RampPointCount { got: a.len() });
     }
     let mut pts = Vec::with_capacity(a.len());
     for (i, p) in a.iter().enumerate() {
         let ki = format!("{k}[{i}]");
         let xs = numbers(p, &ki)?;
         if xs.len() != N + 1 {
-            let shape = if N == 1 { "[value, opacity]" } else { "[value, r, g, b]" };
-            return err(&ki, format!("expected {} numbers {shape}, got {}", N + 1, xs.len()));
+            let layout = if N == 1 { "[value, opacity]" } else { "[value, r, g, b]" };
+            return err(&ki, Kind::NumberCount { expected: N + 1, layout: Some(layout), got: xs.len() });
         }
-        if let Some(&(prev, _)) = pts.last() {
-            if xs[0] < prev {
-                return err(&ki, format!("points must be ordered by value, but {} follows {prev}", xs[0]));
+        if let Some(&(previous, _)) = pts.last() {
+            if xs[0] < previous {
+                return err(&ki, Kind::RampNotOrdered { value: xs[0], previous });
             }
         }
         pts.push((xs[0], std::array::from_fn(|c| xs[c + 1])));
@@ -148,6 +157,11 @@ fn ramp_points<const N: usize>(t: &toml::Table, key: &str) -> Result<Vec<(f64, [
 }
 
 const POLY_TYPES: [&str; 5] = ["polynomial", "constant", "linear", "quadratic", "cubic"];
+
+/// The polynomial type named `t`, as a `'static` string for messages.
+fn poly_type(t: &str) -> Option<&'static str> {
+    POLY_TYPES.into_iter().find(|p| *p == t)
+}
 const COLOUR_TYPES: &str = "raw, lut, polynomial, constant, linear, quadratic, cubic, ramp";
 
 /// A colour map; `raw` picks its channels from what the dataset `has`.
@@ -163,7 +177,7 @@ pub(super) fn colour(v: &Value, key: &str, has: impl Fn(&str) -> bool) -> Result
             } else if has("bit") {
                 Ok(ColourMap::Raw(RawColour::Bit))
             } else {
-                err(key, "a raw colour map needs the dataset to have red, green and blue channels, or grey, or bit")
+                err(key, Kind::RawColourChannels)
             }
         }
         "lut" => {
@@ -176,16 +190,20 @@ pub(super) fn colour(v: &Value, key: &str, has: impl Fn(&str) -> bool) -> Result
             let t = table(v, key, &["points"])?;
             Ok(ColourMap::Ramp(Ramp::new(ramp_points::<3>(t, key)?)))
         }
-        t if POLY_TYPES.contains(&t) => {
+        other => {
+            let Some(t) = poly_type(other) else {
+                let got = other.to_string();
+                return err(
+                    &format!("{key}.type"),
+                    Kind::UnknownMapType { map: "colour", got, expected: COLOUR_TYPES },
+                );
+            };
             let tab = table(v, key, &["red", "green", "blue"])?;
             Ok(ColourMap::Polynomial([
                 coefficients(tab, key, "red", t)?,
                 coefficients(tab, key, "green", t)?,
                 coefficients(tab, key, "blue", t)?,
             ]))
-        }
-        other => {
-            err(&format!("{key}.type"), format!("unknown colour map type \"{other}\"; expected one of {COLOUR_TYPES}"))
         }
     }
 }
@@ -197,7 +215,7 @@ pub(super) fn opacity(v: &Value, key: &str, has: impl Fn(&str) -> bool) -> Resul
         "raw" => {
             table(v, key, &[])?;
             if !has("alpha") {
-                return err(key, "a raw opacity map needs the dataset to have an alpha channel");
+                return err(key, Kind::RawOpacityAlpha);
             }
             Ok(OpacityMap::Raw)
         }
@@ -211,23 +229,30 @@ pub(super) fn opacity(v: &Value, key: &str, has: impl Fn(&str) -> bool) -> Resul
             let t = table(v, key, &["points"])?;
             Ok(OpacityMap::Ramp(Ramp::new(ramp_points::<1>(t, key)?)))
         }
-        t if POLY_TYPES.contains(&t) => {
+        other => {
+            let Some(t) = poly_type(other) else {
+                let got = other.to_string();
+                return err(
+                    &format!("{key}.type"),
+                    Kind::UnknownMapType { map: "opacity", got, expected: COLOUR_TYPES },
+                );
+            };
             let tab = table(v, key, &["coefficients"])?;
             Ok(OpacityMap::Polynomial(coefficients(tab, key, "coefficients", t)?))
-        }
-        other => {
-            err(&format!("{key}.type"), format!("unknown opacity map type \"{other}\"; expected one of {COLOUR_TYPES}"))
         }
     }
 }
 
+/// The interpolations a scene may name, for messages.
+pub(super) const INTERPOLATIONS: &str =
+    "\"nearest\", \"trilinear\", \"cubic\" or { type = \"nonlinear\", omega = [w0, w1, w2] }";
+
 /// `"nearest"`, `"trilinear"`, `"cubic"`, or `{ type = "nonlinear", omega = [w0, w1, w2] }`.
 pub(super) fn interpolation(v: &Value, key: &str) -> Result<Interpolation, KeyError> {
-    const EXPECTED: &str = "\"nearest\", \"trilinear\", \"cubic\" or { type = \"nonlinear\", omega = [w0, w1, w2] }";
     let name = match v {
         Value::String(s) => s.as_str(),
-        Value::Table(_) => type_of(v, key, EXPECTED)?,
-        other => return err(key, format!("expected {EXPECTED}, got {}", other.type_str())),
+        Value::Table(_) => type_of(v, key, INTERPOLATIONS)?,
+        other => return wrong_type(key, INTERPOLATIONS, other),
     };
     let simple = |i| {
         if v.is_table() {
@@ -241,16 +266,10 @@ pub(super) fn interpolation(v: &Value, key: &str) -> Result<Interpolation, KeyEr
         "cubic" => simple(Interpolation::Cubic),
         "nonlinear" if v.is_table() => {
             let t = table(v, key, &["omega"])?;
-            let k = format!("{key}.omega");
-            let w = numbers(&t["omega"], &k)?;
-            let omega: [f64; 3] = w
-                .try_into()
-                .or_else(|w: Vec<f64>| err(&k, format!("expected 3 numbers [w0, w1, w2], got {}", w.len())))?;
+            let omega = exactly::<3>(&t["omega"], &format!("{key}.omega"), Some("[w0, w1, w2]"))?;
             Ok(Interpolation::Nonlinear { omega })
         }
-        "nonlinear" => {
-            err(key, "nonlinear interpolation needs its coefficients: { type = \"nonlinear\", omega = [w0, w1, w2] }")
-        }
-        other => err(key, format!("unknown interpolation \"{other}\"; expected {EXPECTED}")),
+        "nonlinear" => err(key, Kind::NonlinearNeedsOmega),
+        other => err(key, Kind::UnknownInterpolation { got: other.to_string() }),
     }
 }

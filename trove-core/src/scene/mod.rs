@@ -5,6 +5,7 @@
 //! then checks everything a user can get wrong and builds the model below, in which every
 //! invariant holds: a [`Scene`] is never half-valid, so renderers do not re-check.
 
+mod error;
 mod file;
 mod load;
 mod mappings;
@@ -13,11 +14,12 @@ mod tests;
 
 use std::path::{Path, PathBuf};
 
-use crate::dataset::DatasetInfo;
+use crate::dataset::{Catalog, DatasetInfo, FsCatalog};
 use crate::geometry::{Camera, Placement};
 use crate::interp::Interpolation;
 use crate::mapping::{ColourMap, OpacityMap};
-use crate::SceneError;
+
+pub use error::{SceneError, SceneErrorKind};
 
 /// Largest image side accepted, in pixels.
 pub const MAX_IMAGE_SIDE: u32 = 16_384;
@@ -53,56 +55,156 @@ pub struct RenderSettings {
     pub opacity_correction: bool,
 }
 
-/// One volumetric object ⟨V, 𝒞, 𝒪, ℐ, 𝒯⟩ (paper §2.1).
+/// One volumetric object ⟨V, 𝒞, 𝒪, ℐ, 𝒯⟩ (paper §2.1), valid for its scene's dataset: its
+/// maps read channels the dataset has, and its placement was checked (not folding,
+/// invertible to the SPEC's precision, a bounded number of samples per ray). Built only by
+/// the scene loader, hence the private fields.
 #[derive(Clone, Debug)]
 pub struct Object {
-    /// Unique name.
-    pub name: String,
-    /// Index into [`Scene::datasets`].
-    pub dataset: usize,
-    /// Colour mapping.
-    pub colour: ColourMap,
-    /// Opacity mapping.
-    pub opacity: OpacityMap,
-    /// Interpolation function.
-    pub interpolation: Interpolation,
-    /// World distance between samples; 0 means one voxel (paper §3.2.2).
-    pub sampling_distance: f64,
-    /// Box, extent and the world → VC map.
-    pub placement: Placement,
+    name: String,
+    dataset: usize,
+    colour: ColourMap,
+    opacity: OpacityMap,
+    interpolation: Interpolation,
+    sampling_distance: f64,
+    placement: Placement,
 }
 
-/// A validated scene.
+/// Objects built without a scene, for unit tests of the sampler, which construct the maps and
+/// placements a scene file would (the loader alone builds objects outside tests).
+#[cfg(test)]
+impl Object {
+    pub(crate) fn for_tests(
+        colour: ColourMap,
+        opacity: OpacityMap,
+        interpolation: Interpolation,
+        sampling_distance: f64,
+        placement: Placement,
+    ) -> Object {
+        Object { name: "o".into(), dataset: 0, colour, opacity, interpolation, sampling_distance, placement }
+    }
+}
+
+impl Object {
+    /// Unique name in the scene.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Index into [`Scene::datasets`].
+    pub fn dataset(&self) -> usize {
+        self.dataset
+    }
+
+    /// Colour mapping.
+    pub fn colour(&self) -> &ColourMap {
+        &self.colour
+    }
+
+    /// Opacity mapping.
+    pub fn opacity(&self) -> &OpacityMap {
+        &self.opacity
+    }
+
+    /// Interpolation function.
+    pub fn interpolation(&self) -> Interpolation {
+        self.interpolation
+    }
+
+    /// World distance between samples; 0 means one voxel (paper §3.2.2).
+    pub fn sampling_distance(&self) -> f64 {
+        self.sampling_distance
+    }
+
+    /// Box, extent and the world → VC map.
+    pub fn placement(&self) -> &Placement {
+        &self.placement
+    }
+}
+
+/// A validated scene: every rule of SPEC §1–4.5 holds (checked once, in `load.rs` and
+/// `mappings.rs`), so renderers do not re-check. The fields are private so that it stays
+/// so; the few changes a caller may make ([`Scene::with_image_size`],
+/// [`Scene::set_straight_distorted_sampling`]) keep it valid.
 #[derive(Clone, Debug)]
 pub struct Scene {
-    /// The scene file (for messages and relative paths).
-    pub path: PathBuf,
-    /// Output raster.
-    pub image: ImageSettings,
-    /// The camera.
-    pub camera: Camera,
-    /// Rendering settings.
-    pub render: RenderSettings,
-    /// The voxel level: each dataset once.
-    pub datasets: Vec<DatasetInfo>,
-    /// The object level.
-    pub objects: Vec<Object>,
+    path: PathBuf,
+    image: ImageSettings,
+    camera: Camera,
+    render: RenderSettings,
+    datasets: Vec<DatasetInfo>,
+    objects: Vec<Object>,
 }
 
 impl Scene {
     /// Reads and validates a scene file, opening every dataset's headers so that size
-    /// mismatches are reported before anything renders.
+    /// mismatches are reported before anything renders. Dataset keys are paths relative to
+    /// the scene's folder ([`FsCatalog::trusting`]).
     pub fn load(path: impl AsRef<Path>) -> Result<Scene, SceneError> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| SceneError::new(path, "(file)", format!("cannot read the scene file: {e}")))?;
+        let text = std::fs::read_to_string(path).map_err(|e| SceneError {
+            file: path.to_path_buf(),
+            key: None,
+            kind: SceneErrorKind::Read(e),
+        })?;
         Scene::parse(&text, path)
     }
 
     /// Validates scene text as if read from `path` (relative dataset paths resolve against
-    /// its folder).
+    /// its folder, [`FsCatalog::trusting`]).
     pub fn parse(text: &str, path: impl AsRef<Path>) -> Result<Scene, SceneError> {
-        load::scene(text, path.as_ref())
+        let path = path.as_ref();
+        let folder = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        Scene::parse_with(text, path, &FsCatalog::trusting(folder))
+    }
+
+    /// Validates scene text, describing its dataset keys through `catalog` (a sandboxed
+    /// data root, or a farm coordinator's registry); `path` names the scene in messages.
+    pub fn parse_with(text: &str, path: impl AsRef<Path>, catalog: &dyn Catalog) -> Result<Scene, SceneError> {
+        load::scene(text, path.as_ref(), catalog)
+    }
+
+    /// The scene file (for messages; relative dataset keys were resolved against its folder).
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Output raster.
+    pub fn image(&self) -> &ImageSettings {
+        &self.image
+    }
+
+    /// The camera.
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+
+    /// Rendering settings.
+    pub fn render(&self) -> &RenderSettings {
+        &self.render
+    }
+
+    /// The voxel level: each dataset once.
+    pub fn datasets(&self) -> &[DatasetInfo] {
+        &self.datasets
+    }
+
+    /// The object level.
+    pub fn objects(&self) -> &[Object] {
+        &self.objects
+    }
+
+    /// The same scene rendered at `width` × `height` pixels (tests and benchmarks shrink
+    /// scenes this way). The image limits and the render's sample budget are checked again,
+    /// with the keys they concern (`image.width`, `objects[i].sampling_distance`).
+    pub fn with_image_size(mut self, width: u32, height: u32) -> Result<Scene, SceneError> {
+        let fail = |e: mappings::KeyError| SceneError { file: self.path.clone(), key: Some(e.key), kind: e.kind };
+        let width = load::image_side(width.into(), "image.width").map_err(fail)?;
+        let height = load::image_side(height.into(), "image.height").map_err(fail)?;
+        let image = ImageSettings { width, height, ..self.image };
+        load::render_budget(&image, &self.objects, &self.datasets).map_err(fail)?;
+        self.image = image;
+        Ok(self)
     }
 
     /// Switches every distorted box between exact inversion and the paper's straight-line

@@ -22,8 +22,9 @@ use anyhow::{Context, Result};
 use trove_core::render::workunit::{RESULT_BYTES, TASK_BYTES};
 use trove_core::render::{Algorithm, RenderOptions, Rendered};
 use trove_core::scene::Scene;
+use trove_tests::Header;
 
-/// `trove bench table1` options.
+/// `trove-bench table1` options.
 #[derive(clap::Args)]
 pub struct Args {
     /// Image width and height in pixels (the paper: 512).
@@ -330,10 +331,7 @@ fn object_toml(name: &str, dataset: u32, look: usize, s: f64, c: [f64; 3], angle
 }
 
 fn header(size: u32, eye: [f64; 3], target: [f64; 3], fov: f64) -> String {
-    format!(
-        "[image]\nwidth = {size}\nheight = {size}\nbackground = [0.05, 0.05, 0.08]\n\n\
-         [camera]\neye = {eye:?}\ntarget = {target:?}\nup = [0.0, 1.0, 0.0]\nfov_y = {fov:?}\n\n"
-    )
+    Header::new(size, eye, target, fov).background([0.05, 0.05, 0.08]).to_string()
 }
 
 /// The Fig. 1-like scene: a floor and 14 heads in three staggered rows, so that most rays

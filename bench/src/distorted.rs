@@ -9,8 +9,9 @@
 use anyhow::{Context, Result};
 use trove_core::render::{Algorithm, Image, RenderOptions, Rendered};
 use trove_core::scene::Scene;
+use trove_tests::Header;
 
-/// `trove bench distorted` options.
+/// `trove-bench distorted` options.
 #[derive(clap::Args)]
 pub struct Args {
     /// Image width and height in pixels.
@@ -22,17 +23,9 @@ pub struct Args {
 }
 
 fn scene_text(size: u32) -> String {
+    let header = Header::new(size, [0.0, 0.6, 4.2], [0.0, 0.0, 0.0], 40.0);
     format!(
-        r#"
-[image]
-width = {size}
-height = {size}
-background = [0.0, 0.0, 0.0]
-[camera]
-eye = [0.0, 0.6, 4.2]
-target = [0.0, 0.0, 0.0]
-up = [0, 1, 0]
-fov_y = 40.0
+        r#"{header}
 [[datasets]]
 name = "ml"
 dims = [64, 64, 64]

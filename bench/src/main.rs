@@ -1,0 +1,83 @@
+//! `trove-bench`: the paper's experiments and TROVE's own measurements, runnable, printed
+//! beside the paper's figures. They live apart from the `trove` binary so that the command
+//! line and the farm never carry what only a benchmark needs (plots, dataset writers).
+//!
+//! Each experiment is one variant of [`Command`] and one module; adding one is a variant, a
+//! `mod` line and a match arm.
+
+mod accuracy;
+mod distorted;
+mod farm_sim;
+mod table1;
+
+use std::process::ExitCode;
+
+use anyhow::Result;
+use clap::Parser;
+use trove_core::render::{self, RenderOptions, Rendered};
+use trove_core::scene::Scene;
+
+#[derive(Parser)]
+#[command(name = "trove-bench", version, about = "Runs TROVE's benchmarks and prints their tables")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+/// The experiments.
+#[derive(clap::Subcommand)]
+enum Command {
+    /// Table 1 (paper §3.3): 15 objects from 15 datasets and from 1, both algorithms,
+    /// under a memory budget of a quarter of the 15 datasets.
+    Table1(table1::Args),
+    /// Distorted boxes: exact inversion (SPEC default) against the paper's straight-line
+    /// approximation, in time and in image error.
+    Distorted(distorted::Args),
+    /// What accuracy costs in time: sampling distance × interpolation × opacity correction
+    /// on reference scenes with closed-form ray integrals; writes a CSV and a plot.
+    Accuracy(accuracy::AccuracyArgs),
+    /// The farm beyond one machine: a discrete-event simulation of a coordinator and 8 to
+    /// 256 workers, fed by costs measured here; predicts speedup, efficiency and where the
+    /// coordinator becomes the bottleneck.
+    FarmSim(farm_sim::Args),
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    let result = match Cli::parse().command {
+        Command::Table1(args) => table1::run(args),
+        Command::Distorted(args) => distorted::run(args),
+        Command::Accuracy(args) => accuracy::run(args),
+        Command::FarmSim(args) => farm_sim::run(args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Renders `repeat` times (at least once) and keeps the run with the median total time: the
+/// machines are shared and noisy, so one fast run proves little. `each` sees every run as it
+/// finishes (for progress lines).
+fn median_render(
+    scene: &Scene,
+    options: &RenderOptions,
+    repeat: u32,
+    mut each: impl FnMut(&Rendered),
+) -> Result<Rendered> {
+    let mut runs = Vec::new();
+    for _ in 0..repeat.max(1) {
+        let r = render::render(scene, options)?;
+        each(&r);
+        runs.push(r);
+    }
+    runs.sort_by(|a, b| a.stats.seconds.total.total_cmp(&b.stats.seconds.total));
+    let middle = runs.len() / 2;
+    Ok(runs.swap_remove(middle))
+}

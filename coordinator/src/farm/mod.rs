@@ -1,0 +1,66 @@
+//! The farm's coordinator: it takes jobs from clients, validates each scene against the
+//! headers its workers registered (it never reads a voxel), runs the intersection phase,
+//! hands batches of piece tasks to the workers that hold each dataset, gathers their results
+//! and composites the image with the same `trove-core` scheduler as local mode.
+//!
+//! * [`registry`]: the workers, their files and heartbeats.
+//! * [`jobs`]: the job table, statuses, cancellation and results.
+//! * [`driver`]: one job from submission to image, band by band.
+//! * [`api`]: the gRPC services (`Coordinator` for clients, `Membership` for workers).
+//! * [`run`]: the server as a library function over a bound listener and a shutdown signal,
+//!   so tests start a whole farm in one process on `127.0.0.1:0`.
+
+pub mod api;
+pub mod driver;
+pub mod jobs;
+pub mod registry;
+pub mod stats;
+
+use std::future::Future;
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::net::TcpListener;
+use tokio_stream::wrappers::TcpListenerStream;
+use trove_proto::v1::coordinator_server::CoordinatorServer;
+use trove_proto::v1::membership_server::MembershipServer;
+
+pub use driver::DriverConfig;
+
+/// How a coordinator runs.
+#[derive(Clone, Debug)]
+pub struct FarmConfig {
+    /// How often workers send heartbeats; one that misses five counts as lost.
+    pub heartbeat: Duration,
+    /// How jobs treat workers.
+    pub driver: DriverConfig,
+}
+
+impl Default for FarmConfig {
+    fn default() -> Self {
+        FarmConfig { heartbeat: Duration::from_secs(1), driver: DriverConfig::default() }
+    }
+}
+
+/// Serves the job API and worker membership on `listener` until `shutdown` resolves.
+pub async fn run(
+    listener: TcpListener,
+    shutdown: impl Future<Output = ()>,
+    config: FarmConfig,
+) -> Result<(), tonic::transport::Error> {
+    let farm = Arc::new(api::Farm {
+        registry: Arc::new(registry::Registry::new(config.heartbeat)),
+        jobs: Arc::new(jobs::Jobs::default()),
+        driver: config.driver,
+    });
+    let limit = trove_proto::MAX_MESSAGE_BYTES;
+    tonic::transport::Server::builder()
+        .add_service(
+            CoordinatorServer::new(api::CoordinatorService(farm.clone()))
+                .max_decoding_message_size(limit)
+                .max_encoding_message_size(limit),
+        )
+        .add_service(MembershipServer::new(api::MembershipService(farm)).max_decoding_message_size(limit))
+        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
+        .await
+}

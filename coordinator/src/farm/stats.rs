@@ -1,0 +1,68 @@
+//! The statistics a farm job writes: SPEC §5's keys (the same as local mode's) plus what the
+//! farm adds — batches, bytes on the wire each way, and each worker's share.
+
+use serde::Serialize;
+use trove_core::render::RenderStats;
+use trove_proto::v1 as pb;
+
+/// One worker's share of a job.
+#[derive(Clone, Debug, Serialize, PartialEq, Eq)]
+pub struct WorkerStats {
+    /// The worker's id.
+    pub worker_id: String,
+    /// Batches it answered.
+    pub batches: u64,
+    /// Piece tasks in them.
+    pub tasks: u64,
+    /// Samples it cast.
+    pub samples: u64,
+}
+
+impl WorkerStats {
+    /// A worker that has done nothing yet.
+    pub fn new(id: &str) -> WorkerStats {
+        WorkerStats { worker_id: id.to_string(), batches: 0, tasks: 0, samples: 0 }
+    }
+
+    /// For `JobStatus`.
+    pub fn to_proto(&self) -> pb::WorkerCount {
+        pb::WorkerCount {
+            worker_id: self.worker_id.clone(),
+            batches: self.batches,
+            tasks: self.tasks,
+            samples: self.samples,
+        }
+    }
+}
+
+/// A farm job's statistics (`--stats` JSON).
+#[derive(Clone, Debug, Serialize)]
+pub struct FarmStats {
+    /// SPEC §5's keys, as local mode writes them.
+    #[serde(flatten)]
+    pub render: RenderStats,
+    /// `"farm"` (local mode writes no `mode`).
+    pub mode: &'static str,
+    /// Batches answered.
+    pub batches: u64,
+    /// Payload bytes of every message to the workers (scenes once per stream, then tasks).
+    pub wire_bytes_to_workers: u64,
+    /// Payload bytes of every answer from the workers.
+    pub wire_bytes_from_workers: u64,
+    /// Each worker's share.
+    pub workers: Vec<WorkerStats>,
+}
+
+impl FarmStats {
+    /// Wraps a finished render's statistics with the farm's.
+    pub fn new(render: RenderStats, batches: u64, to: u64, from: u64, workers: Vec<WorkerStats>) -> FarmStats {
+        FarmStats { render, mode: "farm", batches, wire_bytes_to_workers: to, wire_bytes_from_workers: from, workers }
+    }
+
+    /// Pretty JSON with a final newline, as local mode writes its statistics.
+    pub fn to_json(&self) -> Vec<u8> {
+        let mut json = serde_json::to_vec_pretty(self).unwrap_or_default();
+        json.push(b'\n');
+        json
+    }
+}

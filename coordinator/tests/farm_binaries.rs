@@ -1,0 +1,128 @@
+//! The farm as an operator starts it: the real `trove coordinator` and two `trove-worker`
+//! processes on loopback, each printing its bound address first, and a render through them
+//! with the real `trove render --coordinator`, compared byte for byte with local mode.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use trove_tests::scratch;
+
+fn trove() -> &'static Path {
+    Path::new(env!("CARGO_BIN_EXE_trove"))
+}
+
+/// `trove-worker`, built beside `trove` by the same `cargo test --workspace`.
+fn trove_worker() -> PathBuf {
+    let path = trove().with_file_name(format!("trove-worker{}", std::env::consts::EXE_SUFFIX));
+    assert!(path.exists(), "{} is missing: run the workspace's tests (cargo test --workspace)", path.display());
+    path
+}
+
+/// A child process killed when dropped.
+struct Server(Child);
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Starts `program args` and reads the bound address from its first line of stdout.
+fn start(program: &Path, args: &[&str]) -> (Server, String) {
+    let mut child = Command::new(program)
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .unwrap_or_else(|e| panic!("start {}: {e}", program.display()));
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().expect("piped")).read_line(&mut line).expect("read the bound address");
+    let address = line.trim().to_string();
+    assert!(address.starts_with("127.0.0.1:"), "first line was {address:?}");
+    (Server(child), address)
+}
+
+const SCENE: &str = r#"
+[image]
+width = 40
+height = 30
+background = [0.1, 0.15, 0.2]
+[camera]
+eye = [0.5, 0.6, 3.2]
+target = [0.5, 0.5, 0.5]
+up = [0, 1, 0]
+fov_y = 35.0
+[[datasets]]
+name = "slab"
+dims = [4, 4, 2]
+[datasets.channels.voxel]
+raw = "slab.raw"
+type = "u8"
+[[datasets]]
+name = "ball"
+dims = [20, 20, 20]
+[datasets.channels.voxel]
+generator = { kind = "sphere", radius = 0.5, profile = "radial", value = 1.0, type = "f32" }
+[[objects]]
+name = "slab"
+dataset = "slab"
+colour = { type = "ramp", points = [[0, 0.2, 0.3, 0.9], [255, 1, 1, 1]] }
+opacity = { type = "ramp", points = [[0, 0.05], [255, 0.5]] }
+transform = { matrix = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0.1, 0.9], [0, 0, 0, 1]] }
+[[objects]]
+name = "ball"
+dataset = "ball"
+colour = { type = "ramp", points = [[0.0, 0.9, 0.3, 0.1], [1.0, 0.2, 0.5, 1.0]] }
+opacity = { type = "ramp", points = [[0.0, 0.0], [1.0, 0.4]] }
+"#;
+
+#[test]
+fn a_coordinator_and_two_worker_processes_render_what_local_mode_renders() {
+    let dir = scratch("farm-binaries");
+    let voxels: Vec<u8> = (0..32u8).map(|i| i * 8).collect();
+    for w in ["w0", "w1"] {
+        std::fs::create_dir_all(dir.join(w)).unwrap();
+    }
+    std::fs::write(dir.join("w0/slab.raw"), &voxels).unwrap();
+    std::fs::write(dir.join("slab.raw"), &voxels).unwrap();
+    std::fs::write(dir.join("scene.toml"), SCENE).unwrap();
+
+    let (_coordinator, address) = start(trove(), &["coordinator", "--listen", "127.0.0.1:0", "--heartbeat-ms", "100"]);
+    let url = format!("http://{address}");
+    let mut workers = Vec::new();
+    for w in ["w0", "w1"] {
+        let root = dir.join(w);
+        let args = ["--coordinator", &url, "--listen", "127.0.0.1:0", "--data-root", root.to_str().unwrap()];
+        workers.push(start(&trove_worker(), &args).0);
+    }
+
+    let local = dir.join("local.png");
+    let out =
+        Command::new(trove()).args(["render", "scene.toml", "-o", "local.png"]).current_dir(&dir).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+
+    // Workers register within a few heartbeats; a render before that is refused as "not
+    // held", so retry briefly.
+    let farm = dir.join("farm.png");
+    let started = Instant::now();
+    loop {
+        let out = Command::new(trove())
+            .args(["render", "scene.toml", "-o", "farm.png", "--stats", "farm.json", "--coordinator", &url])
+            .current_dir(&dir)
+            .output()
+            .unwrap();
+        if out.status.success() {
+            break;
+        }
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(started.elapsed() < Duration::from_secs(20), "farm render failed: {stderr}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert_eq!(std::fs::read(&farm).unwrap(), std::fs::read(&local).unwrap(), "farm and local PNGs differ");
+    let stats: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join("farm.json")).unwrap()).unwrap();
+    assert!(stats["wire_bytes_to_workers"].as_u64().unwrap() > 0);
+    assert_eq!(stats["width"], 40);
+}

@@ -1,0 +1,251 @@
+//! Translation between `trove-core` types and the wire: file headers as workers register
+//! them, and every error as a typed [`pb::Failure`] (in a gRPC status's details when a call
+//! is refused), so a reason is never flattened to a string on its way across a process.
+
+use std::error::Error;
+
+use prost::Message;
+use tonic::{Code, Status};
+use trove_core::dataset::raw::StoredType;
+use trove_core::dataset::{
+    ChannelName, ChannelSource, DataFile, DatasetError, Dims, Encoding, Endian, FileInfo, FileKind, VoxelType,
+};
+use trove_core::render::{CastError, StoreError};
+use trove_core::scene::{SceneError, SceneErrorKind};
+
+use crate::v1 as pb;
+
+/// Request metadata that carries a job's id to the workers, so one job can be followed
+/// across the coordinator's and the workers' logs.
+pub const JOB_HEADER: &str = "x-trove-job";
+
+/// A failure for a person and a program: `reason` and `retryable` for the program, the
+/// message for the person.
+pub fn failure(reason: pb::Reason, retryable: bool, message: String) -> pb::Failure {
+    pb::Failure { reason: reason as i32, retryable, message, ..Default::default() }
+}
+
+/// `e` and its causes, one after the other, as one paragraph.
+pub fn chain(e: &dyn Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        let more = s.to_string();
+        if !text.contains(&more) {
+            text.push_str(": ");
+            text.push_str(&more);
+        }
+        source = s.source();
+    }
+    text
+}
+
+/// The gRPC status that refuses a call with `f`: a code a generic client understands, and
+/// `f` itself in the details for one that knows the protocol.
+pub fn failure_status(f: pb::Failure) -> Status {
+    let code = match f.reason() {
+        pb::Reason::SceneInvalid | pb::Reason::BadBatch => Code::InvalidArgument,
+        pb::Reason::DatasetNotHeld | pb::Reason::DatasetInvalid => Code::FailedPrecondition,
+        pb::Reason::Cancelled => Code::Cancelled,
+        pb::Reason::WorkerLost => Code::Unavailable,
+        pb::Reason::LimitExceeded => Code::ResourceExhausted,
+        pb::Reason::NotFound => Code::NotFound,
+        pb::Reason::Internal | pb::Reason::Unspecified => Code::Internal,
+    };
+    Status::with_details(code, f.message.clone(), f.encode_to_vec().into())
+}
+
+/// The typed failure a status carries, if it carries one.
+pub fn status_failure(status: &Status) -> Option<pb::Failure> {
+    if status.details().is_empty() {
+        return None;
+    }
+    pb::Failure::decode(status.details()).ok()
+}
+
+/// Whether a dataset error means "not here" (another holder may have it) rather than "the
+/// file is bad".
+fn not_here(e: &DatasetError) -> bool {
+    matches!(
+        e,
+        DatasetError::NotHeld { .. }
+            | DatasetError::Remote { .. }
+            | DatasetError::InvalidKey { .. }
+            | DatasetError::OutsideRoot { .. }
+            | DatasetError::DataFileOutsideRoot { .. }
+    )
+}
+
+/// A scene that cannot be rendered: its file and key, and whether a dataset is at fault.
+pub fn scene_failure(e: &SceneError) -> pb::Failure {
+    let (reason, retryable) = match &e.kind {
+        SceneErrorKind::Dataset(d) if not_here(d) => (pb::Reason::DatasetNotHeld, true),
+        SceneErrorKind::Dataset(d) => (pb::Reason::DatasetInvalid, d.is_retryable()),
+        _ => (pb::Reason::SceneInvalid, false),
+    };
+    let mut f = failure(reason, retryable, chain(e));
+    f.file = e.file.display().to_string();
+    f.key = e.key.clone().unwrap_or_default();
+    f
+}
+
+/// A dataset the store could not provide.
+pub fn store_failure(e: &StoreError) -> pb::Failure {
+    let (reason, retryable, name) = match e {
+        StoreError::BudgetTooSmall { name, .. } => (pb::Reason::LimitExceeded, false, name),
+        StoreError::Load { name, source } if not_here(source) => (pb::Reason::DatasetNotHeld, true, name),
+        StoreError::Load { name, source } => (pb::Reason::DatasetInvalid, source.is_retryable(), name),
+    };
+    let mut f = failure(reason, retryable, chain(e));
+    f.dataset = name.clone();
+    f
+}
+
+/// A batch that cannot be cast.
+pub fn cast_failure(e: &CastError) -> pb::Failure {
+    let reason = match e {
+        CastError::Bind { .. } => pb::Reason::DatasetInvalid,
+        _ => pb::Reason::BadBatch,
+    };
+    failure(reason, false, chain(e))
+}
+
+fn voxel_type(ty: VoxelType) -> pb::VoxelType {
+    match ty {
+        VoxelType::Bit => pb::VoxelType::Bit,
+        VoxelType::U8 => pb::VoxelType::U8,
+        VoxelType::U16 => pb::VoxelType::U16,
+        VoxelType::U32 => pb::VoxelType::U32,
+        VoxelType::F32 => pb::VoxelType::F32,
+    }
+}
+
+fn from_voxel_type(ty: pb::VoxelType) -> Option<VoxelType> {
+    Some(match ty {
+        pb::VoxelType::Bit => VoxelType::Bit,
+        pb::VoxelType::U8 => VoxelType::U8,
+        pb::VoxelType::U16 => VoxelType::U16,
+        pb::VoxelType::U32 => VoxelType::U32,
+        pb::VoxelType::F32 => VoxelType::F32,
+        pb::VoxelType::Unspecified => return None,
+    })
+}
+
+fn dims(d: Dims) -> pb::Dims {
+    let [x, y, z] = d.as_array();
+    pb::Dims { x, y, z }
+}
+
+/// A registration entry for `key` from what a catalog found there. The byte size is
+/// the file's length for raw files and 0 otherwise (callers set it from the raw answer).
+pub fn dataset_file(key: &str, info: &FileInfo) -> pb::DatasetFile {
+    let (bytes, header) = match info {
+        FileInfo::Raw { bytes, .. } => (*bytes, None),
+        FileInfo::Volume { dims: d, ty, .. } => (
+            0,
+            Some(pb::dataset_file::Header::Volume(pb::VolumeHeader {
+                dims: Some(dims(*d)),
+                r#type: voxel_type(*ty) as i32,
+            })),
+        ),
+        FileInfo::Image { dims: d, channels } => (
+            0,
+            Some(pb::dataset_file::Header::Image(pb::ImageHeader {
+                dims: Some(dims(*d)),
+                channels: channels.iter().map(|(c, _)| c.name().to_string()).collect(),
+            })),
+        ),
+    };
+    pb::DatasetFile { key: key.to_string(), bytes, header }
+}
+
+/// A header from the wire that does not describe a volume or image TROVE can use.
+fn bad_header(key: &str, what: &str) -> DatasetError {
+    DatasetError::format(key, format!("the worker that holds it registered {what}"))
+}
+
+fn header_dims(key: &str, d: Option<&pb::Dims>) -> Result<Dims, DatasetError> {
+    let d = d.ok_or_else(|| bad_header(key, "no dims"))?;
+    Dims::new([d.x as u64, d.y as u64, d.z as u64]).map_err(|_| bad_header(key, "impossible dims"))
+}
+
+/// What `file`, registered by a worker, is as `kind` — the coordinator's (and a worker's, for
+/// files it does not hold) view of a file it cannot read: every source is
+/// [`DataFile::Remote`].
+pub fn describe_remote(file: &pb::DatasetFile, kind: FileKind) -> Result<FileInfo, DatasetError> {
+    let key = file.key.as_str();
+    let remote = || DataFile::Remote(key.to_string());
+    match (kind, &file.header) {
+        (FileKind::Raw, _) => Ok(FileInfo::Raw { bytes: file.bytes, file: remote() }),
+        (FileKind::Volume, Some(pb::dataset_file::Header::Volume(v))) => {
+            let dims = header_dims(key, v.dims.as_ref())?;
+            let ty = from_voxel_type(v.r#type()).ok_or_else(|| bad_header(key, "no voxel type"))?;
+            let source = ChannelSource::File {
+                file: remote(),
+                offset: 0,
+                encoding: Encoding::Raw,
+                stored: StoredType::from(ty),
+                endian: Endian::Little,
+            };
+            Ok(FileInfo::Volume { dims, ty, source })
+        }
+        (FileKind::Image, Some(pb::dataset_file::Header::Image(i))) => {
+            let dims = header_dims(key, i.dims.as_ref())?;
+            let channels = i
+                .channels
+                .iter()
+                .map(|name| {
+                    let channel = ChannelName::parse(name).ok_or_else(|| bad_header(key, "an unknown channel"))?;
+                    Ok((channel, ChannelSource::Image { file: remote(), channel }))
+                })
+                .collect::<Result<_, DatasetError>>()?;
+            Ok(FileInfo::Image { dims, channels })
+        }
+        (FileKind::Volume, _) => Err(DatasetError::format(key, "its worker found no NRRD or NIfTI header in it")),
+        (FileKind::Image, _) => Err(DatasetError::format(key, "its worker found no PNG or JPEG header in it")),
+    }
+}
+
+/// Two workers registered different files under one key: no scene may use it until they
+/// agree.
+pub fn workers_disagree(key: &str) -> DatasetError {
+    DatasetError::format(key, "workers registered different files under this key")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_failure_survives_a_status_round_trip() {
+        let mut f = failure(pb::Reason::SceneInvalid, false, "scenes/x.toml: camera.fov_y: expected degrees".into());
+        f.file = "scenes/x.toml".into();
+        f.key = "camera.fov_y".into();
+        let status = failure_status(f.clone());
+        assert_eq!(status.code(), Code::InvalidArgument);
+        assert_eq!(status_failure(&status), Some(f));
+        assert_eq!(status_failure(&Status::internal("plain")), None);
+    }
+
+    #[test]
+    fn registered_headers_describe_remote_files() {
+        let dims = Dims::new([4, 5, 6]).unwrap();
+        let source = ChannelSource::File {
+            file: DataFile::Remote("a.nhdr".into()),
+            offset: 0,
+            encoding: Encoding::Raw,
+            stored: StoredType::from(VoxelType::U16),
+            endian: Endian::Little,
+        };
+        let mut f = dataset_file("a.nhdr", &FileInfo::Volume { dims, ty: VoxelType::U16, source });
+        f.bytes = 240;
+        match describe_remote(&f, FileKind::Volume).unwrap() {
+            FileInfo::Volume { dims: d, ty, source: ChannelSource::File { file, .. } } => {
+                assert_eq!((d, ty, file), (dims, VoxelType::U16, DataFile::Remote("a.nhdr".into())));
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(matches!(describe_remote(&f, FileKind::Raw), Ok(FileInfo::Raw { bytes: 240, .. })));
+        assert!(describe_remote(&f, FileKind::Image).is_err());
+    }
+}

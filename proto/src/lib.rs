@@ -1,0 +1,27 @@
+//! The TROVE render farm's wire protocol, package `trove.v1` (`trove.proto` beside this
+//! crate), and the edge where it meets `trove-core`: only this crate, the coordinator and
+//! the worker see protobuf types, and they translate here ([`convert`]), so `trove-core`
+//! never does. [`edge`] holds what both farm binaries need at their own edge (byte counts
+//! on the command line, logging, shutdown on a signal).
+
+pub mod convert;
+pub mod edge;
+
+pub use edge::{init_logging, parse_bytes, shutdown_signal};
+
+/// Generated messages and services.
+#[allow(missing_docs, clippy::all)]
+pub mod v1 {
+    tonic::include_proto!("trove.v1");
+}
+
+/// Largest message either side accepts. Batches are far smaller (a batch of the largest
+/// size, [`MAX_BATCH_TASKS`] tasks, is 384 KiB of tasks and 256 KiB of results); scenes and
+/// registrations of large data roots are what could grow.
+pub const MAX_MESSAGE_BYTES: usize = 16 << 20;
+
+/// Most tasks in one batch: keeps every cast message well under the gRPC message limit.
+pub const MAX_BATCH_TASKS: usize = 16_384;
+
+/// Bytes of result image data per `ResultChunk`.
+pub const RESULT_CHUNK_BYTES: usize = 1 << 20;

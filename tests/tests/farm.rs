@@ -1,0 +1,216 @@
+//! The render farm in one process (SPEC §5): a coordinator and workers on `127.0.0.1:0`,
+//! the shared datasets split among the workers (one held by two), driven through the
+//! client that `trove render --coordinator` uses. Every example scene renders through the
+//! farm to the very PNG local mode writes; bad jobs fail with typed reasons and leave the
+//! coordinator serving.
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use trove_core::render::{render, RenderOptions};
+use trove_core::scene::Scene;
+use trove_proto::v1 as pb;
+use trove_tests::farm::{data_root, TestFarm};
+use trove_tests::{example_scenes, keyed_scene_text, scratch, shared_data};
+
+/// The files the example scenes read, split over three workers; the CT head (used by four
+/// scenes) is held by two of them.
+fn three_roots(dir: &Path, data: &Path) -> Vec<PathBuf> {
+    let ct = ["cthead_256x256x113_uint16_le.nhdr", "cthead_256x256x113_uint16_le.raw"];
+    vec![
+        data_root(&dir.join("w0"), data, &[ct[0], ct[1], "photo_astronaut.png"]),
+        data_root(
+            &dir.join("w1"),
+            data,
+            &[ct[0], ct[1], "engine_256x256x128_uint8.nhdr", "engine_256x256x128_uint8.raw.gz", "photo_chelsea.png"],
+        ),
+        data_root(&dir.join("w2"), data, &["photo_coffee.png"]),
+    ]
+}
+
+/// A generated-data scene small enough to render in a moment.
+fn generated_scene(size: u32) -> String {
+    format!(
+        "[image]\nwidth = {size}\nheight = {size}\nbackground = [0.1, 0.1, 0.2]\n\
+         [camera]\neye = [0.5, 0.6, 3.0]\ntarget = [0.5, 0.5, 0.5]\nup = [0, 1, 0]\nfov_y = 35.0\n\
+         [[datasets]]\nname = \"ball\"\ndims = [24, 24, 24]\n[datasets.channels.voxel]\n\
+         generator = {{ kind = \"sphere\", radius = 0.5, profile = \"radial\", value = 1.0, type = \"f32\" }}\n\
+         [[objects]]\nname = \"ball\"\ndataset = \"ball\"\n\
+         colour = {{ type = \"ramp\", points = [[0.0, 0.9, 0.3, 0.1], [1.0, 0.2, 0.5, 1.0]] }}\n\
+         opacity = {{ type = \"ramp\", points = [[0.0, 0.0], [1.0, 0.3]] }}\n"
+    )
+}
+
+fn local_png(text: &str, as_if: &Path) -> Vec<u8> {
+    let scene = Scene::parse(text, as_if).unwrap_or_else(|e| panic!("{e}"));
+    render(&scene, &RenderOptions::default()).unwrap().image.encode_png().unwrap()
+}
+
+#[test]
+fn every_example_scene_renders_through_the_farm_as_in_local_mode() {
+    let Some(data) = shared_data() else { return };
+    let dir = scratch("farm-scenes");
+    let farm = TestFarm::start(&three_roots(&dir, &data));
+    for (path, _) in example_scenes(48) {
+        let text = keyed_scene_text(&path, &data, 48);
+        let expected = local_png(&text, &data.join("scene.toml"));
+        let name = path.file_name().unwrap().to_string_lossy().to_string();
+        let files = farm.render(&text, &name, false).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert!(files.png == expected, "{name}: the farm's PNG differs from local mode's");
+        let stats: serde_json::Value = serde_json::from_slice(&files.stats_json).unwrap();
+        for key in ["algorithm", "samples", "pieces", "wire_bytes_to_workers", "wire_bytes_from_workers", "workers"] {
+            assert!(stats.get(key).is_some(), "{name}: stats lack `{key}`");
+        }
+    }
+}
+
+#[test]
+fn the_farm_writes_the_same_pfm_as_local_mode() {
+    let dir = scratch("farm-pfm");
+    let farm = TestFarm::start(&[data_root(&dir.join("w0"), &dir, &[])]);
+    let text = generated_scene(20);
+    let files = farm.render(&text, "pfm.toml", true).unwrap();
+    let scene = Scene::parse(&text, dir.join("pfm.toml")).unwrap();
+    let image = render(&scene, &RenderOptions::default()).unwrap().image;
+    let expected = trove_core::render::encode_pfm(image.width(), image.height(), &image.to_rgb32f());
+    assert!(files.pfm.as_deref() == Some(&expected[..]), "PFM differs");
+    assert_eq!(files.png, image.encode_png().unwrap());
+}
+
+#[test]
+fn a_job_naming_a_dataset_no_worker_holds_fails_at_once_naming_it() {
+    let dir = scratch("farm-missing");
+    let farm = TestFarm::start(&[data_root(&dir.join("w0"), &dir, &[])]);
+    let text = generated_scene(8).replace(
+        "[[datasets]]\nname = \"ball\"",
+        "[[datasets]]\nname = \"ct\"\nfile = \"nowhere/cthead.nhdr\"\n[[datasets]]\nname = \"ball\"",
+    );
+    let started = Instant::now();
+    let err = farm.render(&text, "missing.toml", false).unwrap_err();
+    assert!(started.elapsed() < Duration::from_secs(5), "took {:?}", started.elapsed());
+    let f = err.failure().unwrap_or_else(|| panic!("untyped error: {err}"));
+    assert_eq!(f.reason(), pb::Reason::DatasetNotHeld, "{f:?}");
+    assert_eq!(f.key, "datasets[0].file");
+    assert!(f.message.contains("nowhere/cthead.nhdr"), "{}", f.message);
+}
+
+#[test]
+fn a_malformed_scene_is_refused_naming_file_and_key_and_the_coordinator_keeps_serving() {
+    let dir = scratch("farm-malformed");
+    let farm = TestFarm::start(&[data_root(&dir.join("w0"), &dir, &[])]);
+    let bad = generated_scene(8).replace("fov_y = 35.0", "fov_y = 235.0");
+    let err = farm.render(&bad, "scenes/bad.toml", false).unwrap_err();
+    let f = err.failure().unwrap_or_else(|| panic!("untyped error: {err}"));
+    assert_eq!(
+        (f.reason(), f.file.as_str(), f.key.as_str()),
+        (pb::Reason::SceneInvalid, "scenes/bad.toml", "camera.fov_y")
+    );
+    let status = farm.block_on(async {
+        let mut client = farm.client().await;
+        client.submit(bad.clone(), "bad.toml".into(), Default::default()).await
+    });
+    assert!(status.is_err());
+    // The coordinator still serves good jobs.
+    let good = generated_scene(8);
+    assert_eq!(farm.render(&good, "good.toml", false).unwrap().png, local_png(&good, &dir.join("good.toml")));
+}
+
+#[test]
+fn two_jobs_submitted_together_both_finish_correctly() {
+    let dir = scratch("farm-two");
+    let farm = TestFarm::start(&[data_root(&dir.join("w0"), &dir, &[]), data_root(&dir.join("w1"), &dir, &[])]);
+    let (a, b) = (generated_scene(24), generated_scene(17).replace("0.3]]", "0.8]]"));
+    let (ra, rb) = farm.block_on(async {
+        let (mut ca, mut cb) = (farm.client().await, farm.client().await);
+        tokio::join!(
+            ca.render(a.clone(), "a.toml".into(), Default::default(), |_| {}),
+            cb.render(b.clone(), "b.toml".into(), Default::default(), |_| {})
+        )
+    });
+    assert_eq!(ra.unwrap().png, local_png(&a, &dir.join("a.toml")));
+    assert_eq!(rb.unwrap().png, local_png(&b, &dir.join("b.toml")));
+}
+
+#[test]
+fn a_cancelled_job_stops_casting_within_a_batch() {
+    let dir = scratch("farm-cancel");
+    let farm = TestFarm::start(&[data_root(&dir.join("w0"), &dir, &[])]);
+    // Many small batches of expensive pieces: cubic interpolation at a fine step.
+    let text = generated_scene(160).replace(
+        "[[objects]]\nname = \"ball\"",
+        "[[objects]]\nname = \"ball\"\ninterpolation = \"cubic\"\nsampling_distance = 0.002",
+    );
+    let (state, done_at_cancel, done_after) = farm.block_on(async {
+        let mut client = farm.client().await;
+        let options = pb::JobOptions { batch_tasks: 64, ..Default::default() };
+        let id = client.submit(text.clone(), "slow.toml".into(), options).await.unwrap();
+        // Wait until casting has started, then cancel.
+        let mut watcher = client.clone();
+        let id2 = id.clone();
+        let started = tokio::spawn(async move {
+            let mut seen = 0;
+            let _ = watcher
+                .watch(&id2, |s| {
+                    if s.pieces_done > 0 && seen == 0 {
+                        seen = s.pieces_done;
+                    }
+                })
+                .await;
+        });
+        let t0 = Instant::now();
+        loop {
+            let workers = client.workers().await.unwrap();
+            if workers.iter().any(|w| w.batches_done > 0) || t0.elapsed() > Duration::from_secs(30) {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        let done_at_cancel: u64 = client.workers().await.unwrap().iter().map(|w| w.batches_done).sum();
+        client.cancel(&id).await.unwrap();
+        let last = client.watch(&id, |_| {}).await.unwrap();
+        let _ = started.await;
+        // Give the workers a moment to drop what was queued, then count again.
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let a: u64 = client.workers().await.unwrap().iter().map(|w| w.batches_done + w.batches_in_flight).sum();
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        let b: u64 = client.workers().await.unwrap().iter().map(|w| w.batches_done + w.batches_in_flight).sum();
+        assert_eq!(a, b, "batches still being answered after the cancel settled");
+        (last.state(), done_at_cancel, b)
+    });
+    assert_eq!(state, pb::JobState::Cancelled);
+    // At most the batches in flight at the cancel (a few per worker) were answered after it.
+    assert!(done_after <= done_at_cancel + 16, "{done_at_cancel} → {done_after}");
+}
+
+#[test]
+fn a_worker_refuses_keys_that_leave_its_root() {
+    let dir = scratch("farm-sandbox");
+    let root = dir.join("root");
+    std::fs::create_dir_all(&root).unwrap();
+    let outside = dir.join("secret.raw");
+    std::fs::write(&outside, [7u8; 8]).unwrap();
+    std::fs::write(root.join("inside.raw"), [1u8; 8]).unwrap();
+    #[cfg(unix)]
+    std::os::unix::fs::symlink(&outside, root.join("link.raw")).unwrap();
+    let farm = TestFarm::start(std::slice::from_ref(&root));
+    let scene = |key: &str| {
+        generated_scene(4).replace(
+            "[[objects]]",
+            &format!(
+                "[[datasets]]\nname = \"r\"\ndims = [2, 2, 2]\n[datasets.channels.voxel]\nraw = \"{key}\"\ntype = \"u8\"\n[[objects]]"
+            ),
+        )
+    };
+    let outside_key = outside.display().to_string();
+    let mut keys = vec!["../secret.raw", "./../secret.raw", outside_key.as_str()];
+    if cfg!(unix) {
+        keys.push("link.raw");
+    }
+    for key in keys {
+        let err = farm.render(&scene(key), "s.toml", false).unwrap_err();
+        let f = err.failure().unwrap_or_else(|| panic!("{key}: untyped error {err}"));
+        assert_eq!(f.reason(), pb::Reason::DatasetNotHeld, "{key}: {f:?}");
+    }
+    // The file inside the root is held and casts.
+    assert!(farm.render(&scene("inside.raw"), "s.toml", false).is_ok());
+}

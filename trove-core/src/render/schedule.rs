@@ -1,0 +1,490 @@
+//! The volume-rendering phase of Algorithm 2 as a scheduler: it knows which piece tasks are
+//! ready, hands them out in batches of one dataset, takes results back in any order, and
+//! composites the image once every task is cast or culled. It does no IO and knows no
+//! threads or sockets, so one copy serves every driver: the local renderer casts its batches
+//! on rayon threads while one dataset at a time is resident ([`super::grouped`]); the farm's
+//! coordinator sends them to the workers that hold each dataset, several datasets at once.
+//!
+//! # Waves
+//! A dataset's tasks are split into *waves* by their rank along their ray: wave k holds,
+//! for every ray, the tasks of the k-th piece of that ray that the dataset covers. A wave is
+//! handed out only once the dataset's previous wave is wholly recorded; waves of different
+//! datasets are independent, so any number of datasets can be in flight at once.
+//!
+//! # Early termination that does not depend on timing
+//! Two things use what is known of the ray in front of a piece, and they obey different
+//! rules, because the image must be the same bytes whatever order results arrive in:
+//!
+//! * **Culling** a whole task uses every result that has arrived: leaving the missing ones
+//!   out gives a *lower bound* on the opacity in front (opacity only grows). A task whose
+//!   bound has reached the termination threshold (plus [`CULL_MARGIN`], which absorbs the
+//!   rounding of the bound) is dropped. Whether a task is culled depends on timing, but the
+//!   image does not: composition stops at the first piece in front of which the ray is
+//!   opaque, which lies in front of every task that could ever be culled.
+//! * **Stopping early inside a piece** changes the piece's result, so its front must be the
+//!   same in every schedule. It is the composite of the pieces in front that belong wholly
+//!   to the same dataset: they lie in the dataset's earlier waves, which are always recorded
+//!   before this wave is handed out. It is a lower bound on the true front, so a cast that
+//!   stops on it stops no earlier than Algorithm 1 would (SPEC §4.4 allows the difference).
+//!
+//! Both the local renderer and the farm therefore produce identical images; what timing
+//! changes is only how many samples are saved. In a scene of one dataset the rule loses
+//! nothing; with several, a piece behind another dataset's translucent piece casts until its
+//! own opacity reaches termination instead of the ray's (BENCHMARKS.md measures the cost).
+//!
+//! # Datasets in front-to-back order
+//! [`Scheduler::datasets`] lists the datasets in an order that follows the rays front to
+//! back where the scene allows it (a greedy order of the graph "dataset A is met just before
+//! dataset B on n rays", Eades–Lin–Smyth, exact when that graph has no cycle). A driver
+//! that visits datasets in that order (the local renderer does) culls the most.
+
+use std::collections::HashMap;
+
+use super::error::ScheduleError;
+use super::intersection::Intersections;
+use super::workunit::{PieceRgba, PieceTask};
+use crate::composite::Rgba;
+use crate::scene::Scene;
+
+/// How far above the termination threshold a lower bound on the opacity in front must be
+/// before a task is culled. The bound is computed with the same arithmetic as composition,
+/// but with pieces left out, and floating-point compositing is monotone only to within a few
+/// ulps per piece: the margin keeps "culled" a proof that composition stops in front.
+pub const CULL_MARGIN: f64 = 1e-9;
+
+/// A batch of tasks of one dataset, ready to cast. Results must come back in task order,
+/// through [`Scheduler::record`] with the batch's id.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Batch {
+    /// Unique within its scheduler; a batch handed out again after [`Scheduler::abandon`]
+    /// gets a new one, so a late answer to the old one is recognised and refused.
+    pub id: u64,
+    /// The dataset index in the scene; every task's object uses it.
+    pub dataset: usize,
+    /// The tasks, each with its front opacity set.
+    pub tasks: Vec<PieceTask>,
+}
+
+/// Where a task stands.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Status {
+    /// Not handed out, or handed out and not answered yet.
+    Pending,
+    /// Cast; its result is in `results`.
+    Done,
+    /// Dropped: the ray was known to be opaque in front of it.
+    Culled,
+}
+
+/// What the scheduler decides for a task when it hands it out.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Decision {
+    /// Cast it, stopping inside the piece on this front opacity.
+    Cast(f64),
+    /// The ray is opaque in front of it.
+    Cull,
+}
+
+/// One dataset's progress through its waves.
+#[derive(Debug, Default)]
+struct Lane {
+    /// Task indices, wave by wave.
+    waves: Vec<Vec<u32>>,
+    /// The wave being handed out.
+    wave: usize,
+    /// How much of that wave has been handed out.
+    cursor: usize,
+    /// Task lists of abandoned batches of that wave, to hand out again first.
+    retry: Vec<Vec<u32>>,
+    /// Batches of the current wave handed out and not yet recorded.
+    outstanding: usize,
+}
+
+struct InFlight {
+    dataset: usize,
+    tasks: Vec<u32>,
+}
+
+/// How far a scheduler has got, in tasks.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Progress {
+    /// Every task of the region.
+    pub total: u64,
+    /// Tasks recorded.
+    pub cast: u64,
+    /// Tasks culled.
+    pub culled: u64,
+}
+
+/// The volume-rendering phase of one region of the image (the whole image, or a tile of
+/// rows): see the module documentation.
+pub struct Scheduler {
+    inter: Intersections,
+    dataset_of_object: Vec<u32>,
+    termination: f64,
+    batch_tasks: usize,
+    status: Vec<Status>,
+    results: Vec<PieceRgba>,
+    order: Vec<usize>,
+    lanes: Vec<Lane>,
+    in_flight: HashMap<u64, InFlight>,
+    next_id: u64,
+    progress: Progress,
+}
+
+impl Scheduler {
+    /// A scheduler for the tasks of `inter` (a region of `scene`'s image), handing out
+    /// batches of at most `batch_tasks` tasks.
+    pub fn new(scene: &Scene, inter: Intersections, batch_tasks: usize) -> Result<Scheduler, ScheduleError> {
+        let n = inter.tasks.len();
+        if u32::try_from(n).is_err() {
+            return Err(ScheduleError::TooManyTasks { tasks: n as u64 });
+        }
+        let dataset_of_object: Vec<u32> = scene.objects().iter().map(|o| o.dataset() as u32).collect();
+        let (order, waves) = plan(&inter, &dataset_of_object, scene.datasets().len());
+        let mut lanes: Vec<Lane> = (0..scene.datasets().len()).map(|_| Lane::default()).collect();
+        for (&d, w) in order.iter().zip(waves) {
+            lanes[d].waves = w;
+        }
+        Ok(Scheduler {
+            status: vec![Status::Pending; n],
+            results: vec![PieceRgba::default(); n],
+            progress: Progress { total: n as u64, ..Progress::default() },
+            inter,
+            dataset_of_object,
+            termination: scene.render().termination,
+            batch_tasks: batch_tasks.max(1),
+            order,
+            lanes,
+            in_flight: HashMap::new(),
+            next_id: 0,
+        })
+    }
+
+    /// The region's rays, pieces and tasks.
+    pub fn intersections(&self) -> &Intersections {
+        &self.inter
+    }
+
+    /// The datasets that have tasks, front to back as far as the scene allows.
+    pub fn datasets(&self) -> &[usize] {
+        &self.order
+    }
+
+    /// Tasks cast, culled, and in all.
+    pub fn progress(&self) -> Progress {
+        self.progress
+    }
+
+    /// Whether every task is recorded or culled.
+    pub fn is_complete(&self) -> bool {
+        self.progress.cast + self.progress.culled == self.progress.total
+    }
+
+    /// Whether dataset `d` has nothing left to hand out or wait for.
+    pub fn is_dataset_done(&self, d: usize) -> bool {
+        self.lanes.get(d).is_none_or(|l| {
+            l.wave >= l.waves.len()
+                || (l.wave + 1 == l.waves.len()
+                    && l.cursor >= l.waves[l.wave].len()
+                    && l.outstanding == 0
+                    && l.retry.is_empty())
+        })
+    }
+
+    /// The next batch of dataset `d`, or `None` when none is ready: either the dataset is
+    /// done, or its current wave is wholly handed out and batches of it are still
+    /// unanswered (the next wave needs their results). Tasks whose ray is known to be opaque
+    /// in front are culled here and never handed out.
+    pub fn next_batch(&mut self, d: usize) -> Option<Batch> {
+        loop {
+            let lane = self.lanes.get_mut(d)?;
+            if lane.wave >= lane.waves.len() {
+                return None;
+            }
+            let candidates: Vec<u32> = if let Some(retry) = lane.retry.pop() {
+                retry
+            } else if lane.cursor < lane.waves[lane.wave].len() {
+                let wave = &lane.waves[lane.wave];
+                let end = (lane.cursor + self.batch_tasks).min(wave.len());
+                let chunk = wave[lane.cursor..end].to_vec();
+                lane.cursor = end;
+                chunk
+            } else if lane.outstanding > 0 {
+                return None;
+            } else {
+                lane.wave += 1;
+                lane.cursor = 0;
+                continue;
+            };
+            let mut cast = Vec::with_capacity(candidates.len());
+            let mut tasks = Vec::with_capacity(candidates.len());
+            for t in candidates {
+                match self.decide(t as usize) {
+                    Decision::Cull => {
+                        self.status[t as usize] = Status::Culled;
+                        self.progress.culled += 1;
+                    }
+                    Decision::Cast(front) => {
+                        let mut task = self.inter.tasks[t as usize];
+                        task.set_front_alpha(front);
+                        tasks.push(task);
+                        cast.push(t);
+                    }
+                }
+            }
+            if cast.is_empty() {
+                continue;
+            }
+            let id = self.next_id;
+            self.next_id += 1;
+            self.lanes[d].outstanding += 1;
+            self.in_flight.insert(id, InFlight { dataset: d, tasks: cast });
+            return Some(Batch { id, dataset: d, tasks });
+        }
+    }
+
+    /// Stores the results of batch `id`, in the batch's task order. Refuses an unknown (or
+    /// already recorded, or abandoned) batch, a wrong count, and results that are not
+    /// premultiplied colours and opacities in [0, 1].
+    pub fn record(&mut self, id: u64, results: &[PieceRgba]) -> Result<(), ScheduleError> {
+        let Some(batch) = self.in_flight.get(&id) else {
+            return Err(ScheduleError::UnknownBatch { id });
+        };
+        if batch.tasks.len() != results.len() {
+            return Err(ScheduleError::ResultCount { id, expected: batch.tasks.len(), got: results.len() });
+        }
+        if let Some(i) = results.iter().position(|r| !plausible(r)) {
+            return Err(ScheduleError::BadResult { id, index: i });
+        }
+        let batch = self.in_flight.remove(&id).expect("looked up above");
+        for (&t, r) in batch.tasks.iter().zip(results) {
+            self.status[t as usize] = Status::Done;
+            self.results[t as usize] = *r;
+        }
+        self.progress.cast += batch.tasks.len() as u64;
+        self.lanes[batch.dataset].outstanding -= 1;
+        Ok(())
+    }
+
+    /// Gives batch `id` up (its worker was lost or refused it): its tasks will be handed out
+    /// again, in a batch with a new id, and any late answer to this one is refused.
+    pub fn abandon(&mut self, id: u64) -> Result<(), ScheduleError> {
+        let batch = self.in_flight.remove(&id).ok_or(ScheduleError::UnknownBatch { id })?;
+        let lane = &mut self.lanes[batch.dataset];
+        lane.outstanding -= 1;
+        lane.retry.push(batch.tasks);
+        Ok(())
+    }
+
+    /// Region ray `r`'s colour and opacity: its pieces front to back (co-located objects
+    /// combined first, SPEC §4.4) until it is opaque. Call once [`Scheduler::is_complete`].
+    pub fn composite_ray(&self, r: usize) -> Rgba {
+        debug_assert!(self.is_complete(), "composite before every task is cast");
+        let (acc, _) = self.front_to_back(self.inter.pieces_of(r), self.termination, |p| self.piece_rgba(p));
+        acc
+    }
+
+    /// The tasks that were culled (for statistics: their sample positions were never cast).
+    pub fn culled(&self) -> impl Iterator<Item = &PieceTask> {
+        self.inter.tasks.iter().zip(&self.status).filter(|(_, s)| **s == Status::Culled).map(|(t, _)| t)
+    }
+
+    /// The ray's pieces `pieces` laid front to back until the accumulated opacity reaches
+    /// `stop_at` (SPEC §4.4 with the scene's termination); `rgba(p)` is piece `p`'s
+    /// contribution, `None` when the piece was culled (the ray is opaque in front of it).
+    /// Returns the accumulation and whether it stopped before the last piece. The one
+    /// front-to-back loop of the scheduler: composition, culling bounds and deterministic
+    /// fronts all use it.
+    fn front_to_back(
+        &self,
+        pieces: std::ops::Range<usize>,
+        stop_at: f64,
+        mut rgba: impl FnMut(usize) -> Option<Rgba>,
+    ) -> (Rgba, bool) {
+        let mut acc = Rgba::CLEAR;
+        for p in pieces {
+            if acc.alpha >= stop_at {
+                return (acc, true);
+            }
+            match rgba(p) {
+                Some(c) => acc.over(c),
+                None => return (acc, true),
+            }
+        }
+        (acc, false)
+    }
+
+    /// Piece `p`'s contribution from what is recorded: its one task's result, or the
+    /// co-located combination of its tasks' results (SPEC §4.4), tasks not yet cast left out
+    /// (a lower bound on its opacity). `None` when a task of the piece was culled.
+    fn piece_rgba(&self, p: usize) -> Option<Rgba> {
+        let tasks = self.inter.tasks_of(p);
+        if tasks.len() == 1 {
+            return match self.status[tasks.start] {
+                Status::Done => Some(self.results[tasks.start].into()),
+                Status::Pending => Some(Rgba::CLEAR),
+                Status::Culled => None,
+            };
+        }
+        if tasks.clone().any(|t| self.status[t] == Status::Culled) {
+            return None;
+        }
+        Some(Rgba::colocated(tasks.filter(|&t| self.status[t] == Status::Done).map(|t| self.results[t].into())))
+    }
+
+    /// Whether every task of piece `p` belongs to dataset `d`.
+    fn piece_is_of(&self, p: usize, d: u32) -> bool {
+        self.inter.tasks_of(p).all(|t| self.dataset_of_object[self.inter.tasks[t].object as usize] == d)
+    }
+
+    /// Cull task `t`, or cast it with the deterministic front (module documentation).
+    fn decide(&self, t: usize) -> Decision {
+        let task = &self.inter.tasks[t];
+        let d = self.dataset_of_object[task.object as usize];
+        let r = self.inter.local_ray(task.ray);
+        let own = self.inter.piece_of(t);
+        let in_front = self.inter.pieces_of(r).start..own;
+        let cull_at = self.termination + CULL_MARGIN;
+        let (bound, stopped) = self.front_to_back(in_front.clone(), cull_at, |p| self.piece_rgba(p));
+        if stopped || bound.alpha >= cull_at {
+            return Decision::Cull;
+        }
+        if task.is_whole() {
+            return Decision::Cast(0.0);
+        }
+        // Pieces wholly of this dataset are in its earlier waves: all recorded, none culled
+        // (a culled one would have stopped the bound above).
+        let (front, _) = self.front_to_back(in_front, self.termination, |p| {
+            Some(if self.piece_is_of(p, d) { self.piece_rgba(p)? } else { Rgba::CLEAR })
+        });
+        Decision::Cast(front.alpha)
+    }
+}
+
+/// A result a cast can produce: finite, opacity in [0, 1], colour premultiplied by it (each
+/// component at most the opacity, up to f32 rounding).
+fn plausible(r: &PieceRgba) -> bool {
+    let a = r.alpha;
+    (0.0..=1.0).contains(&a) && r.colour.iter().all(|&c| (0.0..=a * (1.0 + 1e-5) + 1e-7).contains(&c))
+}
+
+/// Orders datasets front to back as far as the scene allows, and splits each dataset's
+/// tasks into waves by their rank along their ray. Returns the order (datasets with tasks
+/// only) and, per dataset in that order, its waves.
+fn plan(inter: &Intersections, dataset_of_object: &[u32], datasets: usize) -> (Vec<usize>, Vec<Vec<Vec<u32>>>) {
+    let dataset_of = |t: usize| dataset_of_object[inter.tasks[t].object as usize] as usize;
+    let order = dataset_order(inter, &dataset_of, datasets);
+    let mut position = vec![usize::MAX; datasets];
+    for (i, &d) in order.iter().enumerate() {
+        position[d] = i;
+    }
+    let mut waves: Vec<Vec<Vec<u32>>> = vec![Vec::new(); order.len()];
+    // Per ray: (dataset, pieces of it so far, last piece) — a handful of datasets per ray.
+    let mut seen: Vec<(usize, usize, usize)> = Vec::new();
+    for r in 0..inter.rays() {
+        seen.clear();
+        for p in inter.pieces_of(r) {
+            for t in inter.tasks_of(p) {
+                let d = dataset_of(t);
+                let rank = match seen.iter_mut().find(|s| s.0 == d) {
+                    Some(s) if s.2 == p => s.1 - 1,
+                    Some(s) => {
+                        s.1 += 1;
+                        s.2 = p;
+                        s.1 - 1
+                    }
+                    None => {
+                        seen.push((d, 1, p));
+                        0
+                    }
+                };
+                let lane = &mut waves[position[d]];
+                if lane.len() <= rank {
+                    lane.resize_with(rank + 1, Vec::new);
+                }
+                lane[rank].push(t as u32);
+            }
+        }
+    }
+    (order, waves)
+}
+
+/// The datasets some task uses, front to back as far as the scene allows.
+///
+/// Each ray votes "A before B" for each pair of datasets it meets one right after the
+/// other (first appearances along the ray), and [`greedy_order`] orders that graph: when it
+/// has no cycle every ray meets datasets in their turn order. Ties go to the smaller mean
+/// depth of the dataset's pieces.
+fn dataset_order(inter: &Intersections, dataset_of: &impl Fn(usize) -> usize, n: usize) -> Vec<usize> {
+    let mut votes: HashMap<(usize, usize), u64> = HashMap::new();
+    let (mut depth_sum, mut count) = (vec![0.0; n], vec![0u64; n]);
+    let mut seq: Vec<usize> = Vec::new();
+    for r in 0..inter.rays() {
+        seq.clear();
+        for p in inter.pieces_of(r) {
+            for t in inter.tasks_of(p) {
+                let d = dataset_of(t);
+                depth_sum[d] += inter.tasks[t].t0;
+                count[d] += 1;
+                if !seq.contains(&d) {
+                    seq.push(d);
+                }
+            }
+        }
+        for pair in seq.windows(2) {
+            *votes.entry((pair[0], pair[1])).or_insert(0) += 1;
+        }
+    }
+    let used: Vec<usize> = (0..n).filter(|&d| count[d] > 0).collect();
+    let mean_depth: Vec<f64> =
+        (0..n).map(|d| if count[d] > 0 { depth_sum[d] / count[d] as f64 } else { 0.0 }).collect();
+    greedy_order(&used, &votes, &mean_depth)
+}
+
+/// The Eades–Lin–Smyth greedy ordering of `nodes` under weighted edges `votes[(a, b)]`
+/// ("a before b"): sinks go last, sources first, otherwise the node with the largest
+/// out-minus-in weight goes next. Exact (a topological order) on an acyclic graph. Ties go
+/// to the smaller `depth`, then the lower index.
+fn greedy_order(nodes: &[usize], votes: &HashMap<(usize, usize), u64>, depth: &[f64]) -> Vec<usize> {
+    let n = depth.len();
+    let mut out_edges: Vec<Vec<(usize, u64)>> = vec![Vec::new(); n];
+    let mut in_edges: Vec<Vec<(usize, u64)>> = vec![Vec::new(); n];
+    for (&(a, b), &v) in votes {
+        if a != b && v > 0 {
+            out_edges[a].push((b, v));
+            in_edges[b].push((a, v));
+        }
+    }
+    let mut remaining = vec![false; n];
+    nodes.iter().for_each(|&d| remaining[d] = true);
+    let weight = |edges: &[(usize, u64)], remaining: &[bool]| -> u64 {
+        edges.iter().filter(|(o, _)| remaining[*o]).map(|(_, v)| v).sum()
+    };
+    let nearer = |a: &usize, b: &usize| depth[*a].total_cmp(&depth[*b]).then(a.cmp(b));
+    let (mut front, mut back) = (Vec::new(), Vec::new());
+    for _ in 0..nodes.len() {
+        let alive: Vec<usize> = nodes.iter().copied().filter(|&d| remaining[d]).collect();
+        let sinks = alive.iter().filter(|&&d| weight(&out_edges[d], &remaining) == 0);
+        // The farthest sink goes to the very back.
+        let pick = if let Some(&sink) = sinks.max_by(|a, b| nearer(a, b)) {
+            back.push(sink);
+            sink
+        } else {
+            let sources = alive.iter().filter(|&&d| weight(&in_edges[d], &remaining) == 0);
+            let net = |d: usize| weight(&out_edges[d], &remaining) as i128 - weight(&in_edges[d], &remaining) as i128;
+            let best = sources
+                .min_by(|a, b| nearer(a, b))
+                .or_else(|| alive.iter().min_by(|a, b| net(**b).cmp(&net(**a)).then_with(|| nearer(a, b))));
+            let Some(&best) = best else { break };
+            front.push(best);
+            best
+        };
+        remaining[pick] = false;
+    }
+    front.extend(back.into_iter().rev());
+    front
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,238 @@
+use super::*;
+use crate::render::intersection::intersect;
+
+/// A 4×4 scene: datasets "near" and "far" (index 0 and 1), one object per entry of
+/// `objects` (dataset name, z of its slab), each a constant half-opaque white.
+fn scene(objects: &[(&str, f64)]) -> Scene {
+    scene_with(objects, 0.999)
+}
+
+fn scene_with(objects: &[(&str, f64)], termination: f64) -> Scene {
+    let mut text = format!(
+        "[image]\nwidth = 4\nheight = 4\nbackground = [0, 0, 0]\n\
+         [camera]\neye = [0.5, 0.5, 5.0]\ntarget = [0.5, 0.5, 0.0]\nup = [0, 1, 0]\nfov_y = 5.0\n\
+         [render]\ntermination = {termination}\n",
+    );
+    for d in ["near", "far"] {
+        text += &format!(
+            "[[datasets]]\nname = \"{d}\"\ndims = [2, 2, 2]\n[datasets.channels.voxel]\n\
+             generator = {{ kind = \"constant\", value = 1.0 }}\n"
+        );
+    }
+    for (i, (d, z)) in objects.iter().enumerate() {
+        text += &format!(
+            "[[objects]]\nname = \"o{i}\"\ndataset = \"{d}\"\n\
+             colour = {{ type = \"constant\", red = [1], green = [1], blue = [1] }}\n\
+             opacity = {{ type = \"constant\", coefficients = [0.5] }}\n\
+             transform = {{ matrix = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0.5, {z}], [0, 0, 0, 1]] }}\n"
+        );
+    }
+    Scene::parse(&text, "plan.toml").unwrap()
+}
+
+/// One ray of three pieces: [task 0, object 0], [tasks 1 and 2, objects 1 and 2, shared],
+/// [task 3, object 3]. Objects 0, 1, 3 use dataset "near" (0); object 2 uses "far" (1).
+fn one_ray(termination: f64) -> (Scene, Intersections) {
+    let scene = scene_with(&[("near", 0.0), ("near", 0.0), ("far", 0.0), ("near", 0.0)], termination);
+    let task = |object, t0, t1, shared| PieceTask::new(0, object, t0, t1, shared);
+    let inter = Intersections {
+        first_ray: 0,
+        tasks: vec![
+            task(0, 1.0, 2.0, false),
+            task(1, 2.0, 3.0, true),
+            task(2, 2.0, 3.0, true),
+            task(3, 3.0, 4.0, false),
+        ],
+        piece_start: vec![0, 1, 3, 4],
+        ray_start: vec![0, 3],
+        segments: 4,
+    };
+    (scene, inter)
+}
+
+fn rgba(alpha: f32) -> PieceRgba {
+    PieceRgba { colour: [alpha; 3], alpha }
+}
+
+/// Hands out every ready batch of `d` and returns them.
+fn drain(s: &mut Scheduler, d: usize) -> Vec<Batch> {
+    std::iter::from_fn(|| s.next_batch(d)).collect()
+}
+
+#[test]
+fn a_wave_waits_for_the_previous_wave_of_its_dataset_but_not_for_other_datasets() {
+    let (scene, inter) = one_ray(0.999);
+    let mut s = Scheduler::new(&scene, inter, 16).unwrap();
+    // "near" has three waves (pieces 0, 1, 2 of the ray), "far" one.
+    let near = drain(&mut s, 0);
+    assert_eq!(near.len(), 1);
+    assert_eq!(near[0].tasks.len(), 1, "wave 0 of near: task 0 only");
+    assert!(s.next_batch(0).is_none(), "wave 1 waits for wave 0");
+    let far = drain(&mut s, 1);
+    assert_eq!((far.len(), far[0].tasks[0].object), (1, 2), "far is independent of near");
+    s.record(near[0].id, &[rgba(0.5)]).unwrap();
+    let wave1 = drain(&mut s, 0);
+    assert_eq!(wave1[0].tasks[0].object, 1);
+    assert!(wave1[0].tasks[0].is_whole(), "a shared piece is cast whole");
+    s.record(wave1[0].id, &[rgba(0.5)]).unwrap();
+    s.record(far[0].id, &[rgba(0.5)]).unwrap();
+    let wave2 = drain(&mut s, 0);
+    s.record(wave2[0].id, &[rgba(0.5)]).unwrap();
+    assert!(s.is_complete() && s.is_dataset_done(0) && s.is_dataset_done(1));
+    // Composition: 0.5, then the co-located pair 1 − 0.5² = 0.75, then 0.5.
+    let mut expected = Rgba::CLEAR;
+    expected.over(Rgba { colour: [0.5; 3], alpha: 0.5 });
+    expected.over(Rgba::colocated([Rgba { colour: [0.5; 3], alpha: 0.5 }; 2]));
+    expected.over(Rgba { colour: [0.5; 3], alpha: 0.5 });
+    assert_eq!(s.composite_ray(0), expected);
+}
+
+#[test]
+fn in_piece_fronts_count_only_the_same_datasets_pieces_so_timing_cannot_change_them() {
+    // Two orders of arrival: "far" answered before or after near's last wave is handed out.
+    let fronts = |far_first: bool| {
+        let (scene, inter) = one_ray(0.999);
+        let mut s = Scheduler::new(&scene, inter, 16).unwrap();
+        let far = drain(&mut s, 1);
+        if far_first {
+            s.record(far[0].id, &[rgba(0.9)]).unwrap();
+        }
+        let w0 = drain(&mut s, 0);
+        s.record(w0[0].id, &[rgba(0.5)]).unwrap();
+        let w1 = drain(&mut s, 0);
+        s.record(w1[0].id, &[rgba(0.5)]).unwrap();
+        let w2 = drain(&mut s, 0);
+        w2[0].tasks[0].front_alpha()
+    };
+    let (a, b) = (fronts(true), fronts(false));
+    assert_eq!(a, b, "the front of task 3 must not depend on when far's result came in");
+    // Only piece 0 (wholly near) counts: piece 1 is shared with far.
+    assert!((a - 0.5).abs() < 2e-5, "{a}");
+}
+
+#[test]
+fn tasks_behind_a_known_opaque_front_are_culled_whichever_dataset_made_it_opaque() {
+    let (scene, inter) = one_ray(0.8);
+    let mut s = Scheduler::new(&scene, inter, 16).unwrap();
+    let w0 = drain(&mut s, 0);
+    let far = drain(&mut s, 1);
+    s.record(w0[0].id, &[rgba(0.0)]).unwrap();
+    let w1 = drain(&mut s, 0);
+    s.record(w1[0].id, &[rgba(0.7)]).unwrap();
+    s.record(far[0].id, &[rgba(0.7)]).unwrap();
+    // Piece 1 alone makes 1 − 0.3² = 0.91 ≥ 0.8: task 3 is culled, no batch is handed out.
+    assert!(s.next_batch(0).is_none());
+    assert!(s.is_complete());
+    assert_eq!(s.progress(), Progress { total: 4, cast: 3, culled: 1 });
+    assert_eq!(s.culled().count(), 1);
+    let piece_1 = 1.0 - (1.0 - 0.7_f32 as f64).powi(2);
+    assert_eq!(s.composite_ray(0).alpha, piece_1, "piece 2 never composited");
+}
+
+#[test]
+fn a_bound_that_only_just_reaches_termination_does_not_cull() {
+    // Culling needs termination + CULL_MARGIN, so rounding in the bound cannot cull a task
+    // that composition would reach.
+    let (scene, inter) = one_ray(0.5);
+    let mut s = Scheduler::new(&scene, inter, 16).unwrap();
+    let w0 = drain(&mut s, 0);
+    s.record(w0[0].id, &[rgba(0.5)]).unwrap();
+    let w1 = drain(&mut s, 0);
+    assert_eq!(w1.len(), 1, "0.5 = termination is not above it by the margin");
+}
+
+#[test]
+fn abandoned_batches_are_handed_out_again_under_a_new_id_and_late_answers_are_refused() {
+    let (scene, inter) = one_ray(0.999);
+    let mut s = Scheduler::new(&scene, inter, 16).unwrap();
+    let first = drain(&mut s, 0);
+    s.abandon(first[0].id).unwrap();
+    let again = drain(&mut s, 0);
+    assert_eq!(again.len(), 1);
+    assert_ne!(again[0].id, first[0].id);
+    assert_eq!(again[0].tasks, first[0].tasks);
+    assert_eq!(s.record(first[0].id, &[rgba(0.5)]), Err(ScheduleError::UnknownBatch { id: first[0].id }));
+    s.record(again[0].id, &[rgba(0.5)]).unwrap();
+    assert_eq!(s.record(again[0].id, &[rgba(0.5)]), Err(ScheduleError::UnknownBatch { id: again[0].id }));
+}
+
+#[test]
+fn results_of_the_wrong_count_or_impossible_values_are_refused() {
+    let (scene, inter) = one_ray(0.999);
+    let mut s = Scheduler::new(&scene, inter, 16).unwrap();
+    let b = drain(&mut s, 0).remove(0);
+    assert_eq!(s.record(b.id, &[]), Err(ScheduleError::ResultCount { id: b.id, expected: 1, got: 0 }));
+    for bad in [
+        PieceRgba { colour: [0.0; 3], alpha: f32::NAN },
+        PieceRgba { colour: [0.0; 3], alpha: 1.5 },
+        PieceRgba { colour: [0.9, 0.0, 0.0], alpha: 0.1 },
+        PieceRgba { colour: [-0.1, 0.0, 0.0], alpha: 0.1 },
+    ] {
+        assert_eq!(s.record(b.id, &[bad]), Err(ScheduleError::BadResult { id: b.id, index: 0 }));
+    }
+    s.record(b.id, &[rgba(0.25)]).unwrap();
+}
+
+#[test]
+fn batches_hold_at_most_the_batch_size() {
+    let s = scene(&[("near", 0.0)]);
+    let inter = intersect(&s, 0..4);
+    assert_eq!(inter.tasks.len(), 16);
+    let mut sched = Scheduler::new(&s, inter, 5).unwrap();
+    let sizes: Vec<usize> = drain(&mut sched, 0).iter().map(|b| b.tasks.len()).collect();
+    assert_eq!(sizes, vec![5, 5, 5, 1]);
+}
+
+#[test]
+fn greedy_order_is_topological_on_an_acyclic_graph() {
+    // A → B on one ray, B → C on a hundred: a net-score order would put B first.
+    let votes = HashMap::from([((0, 1), 1), ((1, 2), 100)]);
+    assert_eq!(greedy_order(&[0, 1, 2], &votes, &[5.0, 1.0, 3.0]), vec![0, 1, 2]);
+    // Unconnected datasets: nearest first.
+    assert_eq!(greedy_order(&[0, 1, 2], &HashMap::new(), &[5.0, 1.0, 3.0]), vec![1, 2, 0]);
+    // Nodes not listed are left out.
+    assert_eq!(greedy_order(&[2, 0], &votes, &[0.0; 3]), vec![0, 2]);
+}
+
+#[test]
+fn greedy_order_breaks_a_cycle_at_its_lightest_edge() {
+    // 0 → 1 (10), 1 → 2 (10), 2 → 0 (1): dropping 2 → 0 gives 0, 1, 2.
+    let votes = HashMap::from([((0, 1), 10), ((1, 2), 10), ((2, 0), 1)]);
+    assert_eq!(greedy_order(&[0, 1, 2], &votes, &[0.0; 3]), vec![0, 1, 2]);
+    assert_eq!(greedy_order(&[2, 1, 0], &votes, &[3.0, 2.0, 1.0]), vec![0, 1, 2]);
+}
+
+#[test]
+fn datasets_go_front_to_back_and_waves_follow_each_ray() {
+    // Along every ray: far-dataset object at z ∈ [1, 1.5], near at [0, 0.5] behind it,
+    // and near again at [-1, -0.5]: the dataset declared first is met second.
+    let s = scene(&[("near", 0.0), ("far", 1.0), ("near", -1.0)]);
+    let inter = intersect(&s, 0..4);
+    assert_eq!(inter.rays(), 16);
+    let dataset_of: Vec<u32> = s.objects().iter().map(|o| o.dataset() as u32).collect();
+    let (order, waves) = plan(&inter, &dataset_of, 2);
+    assert_eq!(order, vec![1, 0], "the dataset met first goes first");
+    // Dataset 1 has one piece per ray: one wave. Dataset 0 has two: two waves, the
+    // nearer piece of every ray in the first.
+    assert_eq!(waves[0].len(), 1);
+    assert_eq!(waves[1].len(), 2);
+    for (k, wave) in waves[1].iter().enumerate() {
+        assert_eq!(wave.len(), 16);
+        for &t in wave {
+            let task = inter.tasks[t as usize];
+            assert_eq!(task.object, [0, 2][k], "wave {k}");
+            assert_eq!(inter.piece_of(t as usize), inter.ray_start[task.ray as usize] + k + 1);
+        }
+    }
+}
+
+#[test]
+fn a_band_of_rows_carries_whole_image_pixel_indices() {
+    let s = scene(&[("near", 0.0)]);
+    let band = intersect(&s, 1..3);
+    assert_eq!((band.first_ray, band.rays()), (4, 8));
+    assert!(band.tasks.iter().all(|t| (4..12).contains(&t.ray)));
+    assert_eq!(band.local_ray(band.tasks[0].ray), 0);
+    let whole = intersect(&s, 0..4);
+    assert_eq!(&whole.tasks[4..12], &band.tasks[..]);
+}

@@ -1,0 +1,260 @@
+//! The `Worker.Cast` stream: one per job and dataset. The scene arrives once, with the
+//! headers of every file it names, and is validated here as it was on the coordinator (the
+//! worker opens the files it holds itself, through its sandbox); then batches of piece tasks
+//! arrive and each is answered with its results, cast by `trove-core`'s `BatchCaster` on
+//! rayon threads.
+//!
+//! Each stream has a thread of its own that owns the job's scene and pins the dataset while
+//! it has batches queued, releasing the pin when its queue runs dry: under a memory budget
+//! other streams can then load their datasets, so streams never wait on each other forever.
+//! When the coordinator closes the stream (the job is done or cancelled), queued batches are
+//! dropped and the batch being cast stops at its next chunk.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+use rayon::prelude::*;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Request, Response, Status, Streaming};
+use trove_core::dataset::{Catalog, DatasetError, FileInfo, FileKind};
+use trove_core::render::workunit::{decode_tasks, encode_results};
+use trove_core::render::{BatchCaster, PieceRgba, VolumeStore};
+use trove_core::scene::Scene;
+use trove_proto::convert::{self, JOB_HEADER};
+use trove_proto::v1 as pb;
+
+use crate::files::DataFiles;
+
+/// Tasks per rayon work item within a batch, and the granularity of cancellation.
+const CHUNK_TASKS: usize = 256;
+
+/// The `Worker` service.
+pub struct CastService {
+    files: Arc<DataFiles>,
+    store: VolumeStore,
+    busy: Arc<AtomicU64>,
+}
+
+impl CastService {
+    /// Serves casts of the datasets in `files`, keeping voxels in `store`; `busy` counts the
+    /// batches being cast (reported with heartbeats).
+    pub fn new(files: Arc<DataFiles>, store: VolumeStore, busy: Arc<AtomicU64>) -> CastService {
+        CastService { files, store, busy }
+    }
+}
+
+/// A scene's files as this worker sees them: its own, opened through the sandbox, and the
+/// others as the coordinator described them (their voxels are elsewhere).
+struct JobCatalog<'a> {
+    files: &'a DataFiles,
+    others: HashMap<String, &'a pb::DatasetFile>,
+}
+
+impl Catalog for JobCatalog<'_> {
+    fn describe(&self, key: &str, kind: FileKind) -> Result<FileInfo, DatasetError> {
+        if self.files.holds(key) {
+            return self.files.catalog().describe(key, kind);
+        }
+        match self.others.get(key) {
+            Some(file) => convert::describe_remote(file, kind),
+            None => Err(DatasetError::not_held(key)),
+        }
+    }
+}
+
+/// Validates the job's scene and checks that this worker can cast `open.dataset`;
+/// a refusal is a `Status` carrying the typed failure.
+fn open_job(files: &DataFiles, open: &pb::CastOpen) -> Result<(Arc<Scene>, usize), Status> {
+    let others = open.headers.iter().map(|f| (f.key.clone(), f)).collect();
+    let catalog = JobCatalog { files, others };
+    let scene = Scene::parse_with(&open.scene_toml, std::path::Path::new(&open.scene_name), &catalog)
+        .map_err(|e| convert::failure_status(convert::scene_failure(&e)))?;
+    let d = open.dataset as usize;
+    let Some(info) = scene.datasets().get(d) else {
+        return Err(convert::failure_status(convert::failure(
+            pb::Reason::BadBatch,
+            false,
+            format!("dataset {d} does not exist: the scene has {}", scene.datasets().len()),
+        )));
+    };
+    if !info.is_local() {
+        let mut f = convert::failure(
+            pb::Reason::DatasetNotHeld,
+            true,
+            format!("this worker does not hold every file of dataset `{}`", info.name()),
+        );
+        f.dataset = info.name().to_string();
+        return Err(convert::failure_status(f));
+    }
+    Ok((Arc::new(scene), d))
+}
+
+#[tonic::async_trait]
+impl pb::worker_server::Worker for CastService {
+    type CastStream = ReceiverStream<Result<pb::CastResponse, Status>>;
+
+    async fn cast(&self, request: Request<Streaming<pb::CastRequest>>) -> Result<Response<Self::CastStream>, Status> {
+        let job = request.metadata().get(JOB_HEADER).and_then(|v| v.to_str().ok()).unwrap_or("-").to_string();
+        let mut inbound = request.into_inner();
+        let open = match inbound.message().await? {
+            Some(pb::CastRequest { kind: Some(pb::cast_request::Kind::Open(open)) }) => open,
+            _ => return Err(Status::invalid_argument("a cast stream starts with an `open` message")),
+        };
+        let span = tracing::info_span!("cast", job = %job, dataset = open.dataset);
+        let files = self.files.clone();
+        let opened = tokio::task::spawn_blocking(move || open_job(&files, &open))
+            .await
+            .map_err(|e| Status::internal(format!("opening the job failed: {e}")))?;
+        let (scene, dataset) = opened?;
+        span.in_scope(|| tracing::info!(name = scene.datasets()[dataset].name(), "stream open"));
+
+        let (out_tx, out_rx) = mpsc::channel(16);
+        let (batch_tx, batch_rx) = mpsc::channel::<pb::CastBatch>(256);
+        let cancelled = Arc::new(AtomicBool::new(false));
+        let feeder_cancel = cancelled.clone();
+        let feeder_out = out_tx.clone();
+        tokio::spawn(async move {
+            loop {
+                match inbound.message().await {
+                    Ok(Some(pb::CastRequest { kind: Some(pb::cast_request::Kind::Batch(b)) })) => {
+                        if batch_tx.send(b).await.is_err() {
+                            break;
+                        }
+                    }
+                    Ok(Some(_)) => {
+                        let f = convert::failure(pb::Reason::BadBatch, false, "expected a batch after `open`".into());
+                        let _ = feeder_out
+                            .send(Ok(pb::CastResponse { kind: Some(pb::cast_response::Kind::Failure(f)) }))
+                            .await;
+                        break;
+                    }
+                    Ok(None) | Err(_) => break,
+                }
+            }
+            // The coordinator closed its side: the job is over or cancelled.
+            feeder_cancel.store(true, Ordering::SeqCst);
+        });
+        let store = self.store.clone();
+        let busy = self.busy.clone();
+        std::thread::Builder::new()
+            .name(format!("cast-{dataset}"))
+            .spawn(move || {
+                let _entered = span.enter();
+                Caster { scene, dataset, store, busy, cancelled, out: out_tx }.run(batch_rx);
+                tracing::debug!("stream closed");
+            })
+            .map_err(|e| Status::resource_exhausted(format!("cannot start a casting thread: {e}")))?;
+        Ok(Response::new(ReceiverStream::new(out_rx)))
+    }
+}
+
+/// The thread behind one stream.
+struct Caster {
+    scene: Arc<Scene>,
+    dataset: usize,
+    store: VolumeStore,
+    busy: Arc<AtomicU64>,
+    cancelled: Arc<AtomicBool>,
+    out: mpsc::Sender<Result<pb::CastResponse, Status>>,
+}
+
+impl Caster {
+    fn run(self, mut batches: mpsc::Receiver<pb::CastBatch>) {
+        let info = &self.scene.datasets()[self.dataset];
+        while let Some(first) = batches.blocking_recv() {
+            if self.cancelled.load(Ordering::SeqCst) {
+                return;
+            }
+            let started = Instant::now();
+            let pinned = match self.store.get(info) {
+                Ok(p) => p,
+                Err(e) => {
+                    let mut f = convert::store_failure(&e);
+                    f.batch_id = first.batch_id;
+                    if !self.send(pb::cast_response::Kind::Failure(f)) {
+                        return;
+                    }
+                    continue;
+                }
+            };
+            let loaded = if pinned.was_loaded() { info.resident_bytes() } else { 0 };
+            let loading_nanos = started.elapsed().as_nanos() as u64;
+            let caster = match BatchCaster::new(&self.scene, self.dataset, &pinned) {
+                Ok(c) => c,
+                Err(e) => {
+                    let mut f = convert::cast_failure(&e);
+                    f.batch_id = first.batch_id;
+                    let _ = self.send(pb::cast_response::Kind::Failure(f));
+                    return;
+                }
+            };
+            let mut next = Some((first, loaded, loading_nanos));
+            while let Some((batch, bytes_loaded, loading_nanos)) = next.take() {
+                if self.cancelled.load(Ordering::SeqCst) {
+                    return;
+                }
+                let Some(kind) = self.cast(&caster, &batch, bytes_loaded, loading_nanos) else { return };
+                if !self.send(kind) {
+                    return;
+                }
+                next = batches.try_recv().ok().map(|b| (b, 0, 0));
+            }
+            // The queue ran dry: release the pin so others may load under a budget.
+        }
+    }
+
+    /// One batch's answer, or `None` when the stream was cancelled while casting it.
+    fn cast(
+        &self,
+        caster: &BatchCaster,
+        batch: &pb::CastBatch,
+        bytes_loaded: u64,
+        loading_nanos: u64,
+    ) -> Option<pb::cast_response::Kind> {
+        let Some(tasks) = decode_tasks(&batch.tasks) else {
+            let mut f = convert::failure(
+                pb::Reason::BadBatch,
+                false,
+                format!("{} bytes of tasks is not a whole number of 24-byte tasks", batch.tasks.len()),
+            );
+            f.batch_id = batch.batch_id;
+            return Some(pb::cast_response::Kind::Failure(f));
+        };
+        self.busy.fetch_add(1, Ordering::Relaxed);
+        let started = Instant::now();
+        let mut out = vec![PieceRgba::default(); tasks.len()];
+        let cast = tasks
+            .par_chunks(CHUNK_TASKS)
+            .zip(out.par_chunks_mut(CHUNK_TASKS))
+            .map(|(t, o)| if self.cancelled.load(Ordering::Relaxed) { Ok(0) } else { caster.cast(t, o) })
+            .try_reduce(|| 0, |a, b| Ok(a + b));
+        self.busy.fetch_sub(1, Ordering::Relaxed);
+        if self.cancelled.load(Ordering::SeqCst) {
+            return None;
+        }
+        Some(match cast {
+            Ok(samples) => pb::cast_response::Kind::Result(pb::BatchResult {
+                batch_id: batch.batch_id,
+                attempt: batch.attempt,
+                results: encode_results(&out),
+                samples,
+                bytes_loaded,
+                loading_nanos,
+                casting_nanos: started.elapsed().as_nanos() as u64,
+            }),
+            Err(e) => {
+                let mut f = convert::cast_failure(&e);
+                f.batch_id = batch.batch_id;
+                pb::cast_response::Kind::Failure(f)
+            }
+        })
+    }
+
+    /// Sends an answer; false when the coordinator has gone.
+    fn send(&self, kind: pb::cast_response::Kind) -> bool {
+        self.out.blocking_send(Ok(pb::CastResponse { kind: Some(kind) })).is_ok()
+    }
+}

@@ -1,0 +1,61 @@
+//! `trove-worker`: serves the datasets under a data root to a TROVE farm (SPEC §5).
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use trove_worker::WorkerConfig;
+
+/// Holds the dataset files under a data root and casts their piece tasks for a coordinator.
+#[derive(Parser)]
+#[command(name = "trove-worker", version)]
+struct Args {
+    /// The coordinator's URL, e.g. http://127.0.0.1:7000.
+    #[arg(long)]
+    coordinator: String,
+    /// Address to listen on (port 0 picks a free port); the bound address is printed as the
+    /// first line of standard output.
+    #[arg(long, default_value = "127.0.0.1:0")]
+    listen: String,
+    /// The folder whose files this worker holds, by key (path under it). Nothing outside it
+    /// is ever read.
+    #[arg(long)]
+    data_root: PathBuf,
+    /// Most voxel bytes kept resident (e.g. 512MiB).
+    #[arg(long, value_name = "BYTES", value_parser = trove_proto::parse_bytes)]
+    memory_budget: Option<u64>,
+    /// The address the coordinator should use to reach this worker (default: the bound
+    /// address; on a cluster, the pod's address and port).
+    #[arg(long)]
+    advertise: Option<String>,
+}
+
+fn main() -> ExitCode {
+    trove_proto::init_logging();
+    match run() {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+#[tokio::main]
+async fn run() -> Result<()> {
+    let args = Args::parse();
+    let listener = tokio::net::TcpListener::bind(&args.listen)
+        .await
+        .with_context(|| format!("cannot listen on {}", args.listen))?;
+    let bound = listener.local_addr().context("the listener has no address")?;
+    println!("{bound}");
+    let config = WorkerConfig {
+        coordinator: args.coordinator,
+        advertise: args.advertise,
+        data_root: args.data_root,
+        memory_budget: args.memory_budget,
+    };
+    trove_worker::run(listener, trove_proto::shutdown_signal(), config).await.context("worker")?;
+    Ok(())
+}
