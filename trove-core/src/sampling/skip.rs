@@ -153,8 +153,9 @@ impl Jumps {
                 2
             };
             let j = exits[a];
-            if !(j < n as f64) {
-                // The line stays in this cell to the end of the piece.
+            if j.is_nan() || j >= n as f64 {
+                // The line stays in this cell to the end of the piece (as before the
+                // comparison was spelled out: NaN, which finite bounds cannot produce, too).
                 return n;
             }
             // Samples before j − margin are based in this cell; the first one after it may not be.

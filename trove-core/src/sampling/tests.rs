@@ -37,7 +37,7 @@ fn opacity_correction_is_exact_at_the_ends_and_precise_for_tiny_values() {
 fn sparse(dims: Dims, seed: u64, rarity: u64) -> Vec<f32> {
     let [nx, ny, nz] = dims.as_array().map(|n| n as u64);
     let hash = |a: u64, b: u64, c: u64| {
-        (a * 73_856_093 ^ b * 19_349_663 ^ c * 83_492_791 ^ seed).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ((a * 73_856_093) ^ (b * 19_349_663) ^ (c * 83_492_791) ^ seed).wrapping_mul(0x9E37_79B9_7F4A_7C15)
     };
     let mut v = Vec::with_capacity((nx * ny * nz) as usize);
     for k in 0..nz {
