@@ -8,6 +8,7 @@
 mod accuracy;
 mod distorted;
 mod farm_sim;
+mod peers;
 mod table1;
 
 use std::process::ExitCode;
@@ -40,6 +41,10 @@ enum Command {
     /// 256 workers, fed by costs measured here; predicts speedup, efficiency and where the
     /// coordinator becomes the bottleneck.
     FarmSim(farm_sim::Args),
+    /// Issue 10: TROVE against VTK's fixed-point CPU ray caster on the CT head and the
+    /// synthetic 256³ volume, same view, step and threads, alternating runs; medians, the
+    /// time ratio, samples per second and each image's error against a converged TROVE image.
+    Peers(peers::Args),
 }
 
 fn main() -> ExitCode {
@@ -52,6 +57,7 @@ fn main() -> ExitCode {
         Command::Distorted(args) => distorted::run(args),
         Command::Accuracy(args) => accuracy::run(args),
         Command::FarmSim(args) => farm_sim::run(args),
+        Command::Peers(args) => peers::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
