@@ -100,6 +100,13 @@ impl<const N: usize> Segment<N> {
     fn constant(y: [f64; N]) -> Segment<N> {
         Segment { x0: 0.0, inv_w: 1.0, y0: y, dy: [0.0; N] }
     }
+
+    /// The segment's value at `v` (not clamped).
+    #[inline(always)]
+    fn eval(&self, v: f64) -> [f64; N] {
+        let t = (v - self.x0) * self.inv_w;
+        std::array::from_fn(|c| self.y0[c] + t * self.dy[c])
+    }
 }
 
 /// A LUT or a ramp as one kind of map: break points splitting the line into segments, each
@@ -131,9 +138,52 @@ impl<const N: usize> Piecewise<N> {
     /// The map's value at a finite `v` (not clamped).
     #[inline(always)]
     pub fn eval(&self, v: f64) -> [f64; N] {
-        let s = &self.segments[self.segment(v)];
-        let t = (v - s.x0) * s.inv_w;
-        std::array::from_fn(|c| s.y0[c] + t * s.dy[c])
+        self.segments[self.segment(v)].eval(v)
+    }
+}
+
+/// A piecewise colour map and a piecewise opacity map merged, so that a sample finds both of
+/// its segments with one lookup instead of two. The joint break points are the union of the
+/// two maps'; each joint segment holds copies of the colour and the opacity segment that
+/// apply over it (no break point of either map falls inside it), so every value evaluates
+/// with exactly the arithmetic of the two maps apart.
+#[derive(Clone, Debug)]
+pub(crate) struct JointPiecewise {
+    breaks: Vec<f64>,
+    /// `breaks.len() + 1` pairs: over joint segment j, the opacity and the colour segment.
+    segments: Vec<(Segment<1>, Segment<3>)>,
+    index: BreakIndex,
+}
+
+impl JointPiecewise {
+    pub(crate) fn new(colour: &Piecewise<3>, opacity: &Piecewise<1>) -> JointPiecewise {
+        let mut breaks: Vec<f64> = colour.breaks.iter().chain(&opacity.breaks).copied().collect();
+        breaks.sort_by(f64::total_cmp);
+        breaks.dedup();
+        // Over joint segment j ≥ 1, [breaks[j − 1], breaks[j]), a map's segment is the number
+        // of its own break points ≤ breaks[j − 1]; below the first break point it is 0.
+        let own = |map_breaks: &[f64], j: usize| match j {
+            0 => 0,
+            _ => map_breaks.partition_point(|&x| x <= breaks[j - 1]),
+        };
+        let segments = (0..=breaks.len())
+            .map(|j| (opacity.segments[own(&opacity.breaks, j)], colour.segments[own(&colour.breaks, j)]))
+            .collect();
+        let index = BreakIndex::new(&breaks);
+        JointPiecewise { breaks, segments, index }
+    }
+
+    /// The opacity and colour at a finite `v`, clamped; `None` when the sample contributes
+    /// nothing (opacity 0 or a non-finite result). The colour is evaluated only when the
+    /// opacity is not 0.
+    #[inline(always)]
+    pub(crate) fn classify(&self, v: f64) -> Option<(f64, [f64; 3])> {
+        let (opacity, colour) = &self.segments[self.index.find(&self.breaks, v)];
+        let opacity = clamp1(opacity.eval(v)[0])?;
+        if opacity == 0.0 {
+            return None;
+        }
+        Some((opacity, clamp3(colour.eval(v))?))
     }
 }
 
@@ -704,5 +754,37 @@ mod tests {
         assert_eq!(ColourMap::map_raw(RawColour::Rgb, [255.0, 0.0, 51.0]), Some([1.0, 0.0, 0.2]));
         assert_eq!(ColourMap::map_raw(RawColour::Bit, [1.0, 1.0, 1.0]), Some([1.0; 3]));
         assert_eq!(ColourMap::map_raw(RawColour::Grey, [f64::NAN, 0.0, 0.0]), None);
+    }
+
+    #[test]
+    fn joint_maps_classify_bit_for_bit_as_the_two_maps_apart() {
+        // Break points shared, interleaved and doubled (a ramp's step), LUT against ramp.
+        let colour_ramp = Ramp::new(vec![
+            (0.0, [0.0, 0.1, 0.2]),
+            (7.0, [0.3, 0.9, 0.1]),
+            (10.0, [1.0, 0.5, 0.0]),
+            (10.0, [0.2, 0.2, 0.2]),
+            (31.5, [1.2, -0.3, 0.7]),
+        ]);
+        let colour_lut = Lut::new(vec![3.0, 10.0, 12.25], vec![[0.1; 3], [0.5, 0.6, 0.7], [0.9, 0.0, 0.3], [1.0; 3]]);
+        let opacity_ramp = Ramp::new(vec![(2.0, [0.0]), (10.0, [0.3]), (12.25, [0.01]), (40.0, [1.5])]);
+        let opacity_lut = Lut::new(vec![5.0, 7.0, 31.5], vec![0.0, 0.2, 0.0, 0.9]);
+        let values: Vec<f64> = (-40..=400)
+            .map(|i| f64::from(i) * 0.125)
+            .chain(
+                [3.0, 7.0, 10.0, 12.25, 31.5, 2.0, 40.0].into_iter().flat_map(|b: f64| [b.next_down(), b, b.next_up()]),
+            )
+            .collect();
+        for colour in [colour_ramp.piecewise(), colour_lut.piecewise()] {
+            for opacity in [opacity_ramp.piecewise(), opacity_lut.piecewise()] {
+                let joint = JointPiecewise::new(colour, opacity);
+                for &v in &values {
+                    let apart = clamp1(opacity.eval(v)[0])
+                        .filter(|&a| a != 0.0)
+                        .and_then(|a| clamp3(colour.eval(v)).map(|c| (a, c)));
+                    assert_eq!(joint.classify(v), apart, "{v}");
+                }
+            }
+        }
     }
 }

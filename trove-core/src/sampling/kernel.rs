@@ -1,5 +1,5 @@
 //! The sampler's loop, generic over what an object uses: interpolation `I`, the stored type
-//! of its voxel channel `V`, its colour map `C` and its opacity map `O`. Each combination is
+//! of its voxel channel `V`, and its colour and opacity maps `M`. Each combination is
 //! compiled into its own loop, chosen once per object when it is bound
 //! ([`super::bind`]), so the loop has no dispatch, allocation, search or copy per sample.
 //! The general instance (`DynInterp`, a decoding reader, the map enums) is the same code
@@ -13,7 +13,7 @@ use crate::dataset::macrocell::Level;
 use crate::dataset::{ChannelReader, Voxels};
 use crate::geometry::SampleWalk;
 use crate::interp::Interp;
-use crate::mapping::{clamp1, clamp3, ColourMap, OpacityMap, Piecewise, Polynomial, RawColour};
+use crate::mapping::{clamp1, clamp3, ColourMap, JointPiecewise, OpacityMap, Piecewise, Polynomial, RawColour};
 
 /// Casting one object over one piece, whatever its combination (the only dynamic call: one
 /// per piece).
@@ -163,39 +163,66 @@ impl ColourFn for GeneralColour<'_> {
     }
 }
 
-/// One combination's loop and what it needs.
-pub(super) struct Kernel<'a, I, V, C, O> {
-    pub interp: I,
-    pub voxels: V,
+/// An object's colour and opacity maps as the loop classifies a sample with them.
+pub(super) trait Maps: Send + Sync {
+    /// The sample's opacity and colour, clamped; `None` when it contributes nothing (opacity
+    /// 0, or a non-finite result). Opacity is mapped first: a sample of opacity 0 would add
+    /// nothing whatever its colour, so its colour is not evaluated.
+    fn classify<I: Interp>(&self, interp: &I, s: &I::Stencil, v: f64) -> Option<(f64, [f64; 3])>;
+}
+
+/// A colour map and an opacity map evaluated apart.
+pub(super) struct Separate<C, O> {
     pub colour: C,
     pub opacity: O,
+}
+
+impl<C: ColourFn, O: OpacityFn> Maps for Separate<C, O> {
+    #[inline(always)]
+    fn classify<I: Interp>(&self, interp: &I, s: &I::Stencil, v: f64) -> Option<(f64, [f64; 3])> {
+        let opacity = self.opacity.opacity(interp, s, v)?;
+        if opacity == 0.0 {
+            return None;
+        }
+        Some((opacity, self.colour.colour(interp, s, v)?))
+    }
+}
+
+/// LUT or ramp colour with LUT or ramp opacity: one segment lookup finds both.
+impl Maps for JointPiecewise {
+    #[inline(always)]
+    fn classify<I: Interp>(&self, _interp: &I, _s: &I::Stencil, v: f64) -> Option<(f64, [f64; 3])> {
+        JointPiecewise::classify(self, v)
+    }
+}
+
+/// One combination's loop and what it needs.
+pub(super) struct Kernel<'a, I, V, M> {
+    pub interp: I,
+    pub voxels: V,
+    pub maps: M,
     pub skip: Option<Skipper<'a>>,
     pub correction: bool,
     pub specialised: bool,
 }
 
-impl<I: Interp, V: VoxelSource, C: ColourFn, O: OpacityFn> Kernel<'_, I, V, C, O> {
+impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
     /// Classifies one sample and composites it behind `acc`; false when it contributes
-    /// nothing. Opacity is mapped first: a sample of opacity 0 would add nothing whatever its
-    /// colour, so its colour is not evaluated.
+    /// nothing ([`Maps::classify`]).
     #[inline(always)]
     fn sample(&self, s: &I::Stencil, ell: f64, acc: &mut Rgba) -> bool {
         let v = self.voxels.value(&self.interp, s);
         if V::READS && !v.is_finite() {
             return false;
         }
-        let Some(opacity) = self.opacity.opacity(&self.interp, s, v) else { return false };
-        if opacity == 0.0 {
-            return false;
-        }
-        let Some(colour) = self.colour.colour(&self.interp, s, v) else { return false };
+        let Some((opacity, colour)) = self.maps.classify(&self.interp, s, v) else { return false };
         let alpha = if self.correction { corrected_opacity(opacity, ell) } else { opacity };
         acc.add_sample(colour, alpha);
         true
     }
 }
 
-impl<I: Interp, V: VoxelSource, C: ColourFn, O: OpacityFn> Cast for Kernel<'_, I, V, C, O> {
+impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
     fn cast(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult {
         let mut acc = Rgba::CLEAR;
         let mut samples = 0;
