@@ -15,7 +15,7 @@ use std::process::Command;
 
 use anyhow::{anyhow, bail, Context, Result};
 use trove_core::render::{self, RenderOptions, Rendered};
-use trove_core::scene::Scene;
+use trove_core::scene::{DataRoot, Scene};
 
 /// `trove-bench peers` options.
 #[derive(clap::Args)]
@@ -35,6 +35,9 @@ pub struct Args {
     /// The folder of the peers scenes (cthead.toml, synthetic-u8.toml).
     #[arg(long, default_value = "scenes/peers")]
     scenes: PathBuf,
+    /// The data root of the CT head's key (the shared data).
+    #[arg(long, default_value = "../shared/data")]
+    data_root: PathBuf,
     /// Where the images go.
     #[arg(long, default_value = "/tmp/trove-peers")]
     out: PathBuf,
@@ -44,7 +47,11 @@ pub struct Args {
 struct Peer {
     name: &'static str,
     scene: &'static str,
-    /// `vtk_raycast.py` arguments; `{scenes}` stands for the scenes folder.
+    /// The scene's data root: the shared data (`--data-root`), or the scenes folder's `data/`,
+    /// where `make_test_volume.py` writes the synthetic volume.
+    shared_data: bool,
+    /// `vtk_raycast.py` arguments; `{data}` stands for the scene's data root, `{peers}` for
+    /// the peers folder.
     vtk: &'static [&'static str],
 }
 
@@ -52,9 +59,10 @@ const PEERS: [Peer; 2] = [
     Peer {
         name: "CT head",
         scene: "cthead.toml",
+        shared_data: true,
         vtk: &[
             "--nrrd",
-            "{scenes}/../../../shared/data/cthead_256x256x113_uint16_le.nhdr",
+            "{data}/cthead_256x256x113_uint16_le.nhdr",
             "--tf",
             "{peers}/tf/cthead_tf.json",
             "--eye",
@@ -74,9 +82,10 @@ const PEERS: [Peer; 2] = [
     Peer {
         name: "synthetic 256³ u8",
         scene: "synthetic-u8.toml",
+        shared_data: false,
         vtk: &[
             "--raw",
-            "{scenes}/data/sphere256_u8.raw",
+            "{data}/sphere256_u8.raw",
             "--dims",
             "256",
             "256",
@@ -84,7 +93,7 @@ const PEERS: [Peer; 2] = [
             "--dtype",
             "uint8",
             "--tf",
-            "{scenes}/data/sphere256_u8_tf.json",
+            "{data}/sphere256_u8_tf.json",
             "--eye",
             "558.21",
             "428.99",
@@ -127,7 +136,7 @@ pub fn run(args: Args) -> Result<()> {
     println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
     for peer in &PEERS {
         let path = args.scenes.join(peer.scene);
-        let scene = match Scene::load(&path) {
+        let scene = match Scene::load_in(&path, &DataRoot::Given(data_root(&args, peer))) {
             Ok(s) => s,
             Err(e) => {
                 println!("| {} | skipped: {e} |", peer.name);
@@ -158,7 +167,8 @@ fn bench_one(args: &Args, peer: &Peer, scene: &Scene, vtk: bool) -> Result<()> {
     }
     let rendered = last.ok_or_else(|| anyhow!("no round ran"))?;
     rendered.image.save(&trove_png)?;
-    let reference = render::render(&converged(scene)?, &RenderOptions::default())?.image;
+    let root = DataRoot::Given(data_root(args, peer));
+    let reference = render::render(&converged(scene, &root)?, &RenderOptions::default())?.image;
     reference.save(&args.out.join(format!("{stem}-reference.png")))?;
     let rmse_vtk = if vtk { Some(rmse_levels(&read_png(&vtk_png)?, &reference.to_rgb8())?) } else { None };
     let rmse_trove = rmse_levels(&rendered.image.to_rgb8(), &reference.to_rgb8())?;
@@ -185,6 +195,15 @@ fn print_row(name: &str, rounds: &[Round], samples: u64, rmse_vtk: Option<f64>, 
     );
 }
 
+/// Where `peer`'s data files are.
+fn data_root(args: &Args, peer: &Peer) -> PathBuf {
+    if peer.shared_data {
+        args.data_root.clone()
+    } else {
+        args.scenes.join("data")
+    }
+}
+
 /// Whether `python3` can import `vtk`.
 fn vtk_available() -> bool {
     Command::new("python3").args(["-c", "import vtk"]).output().is_ok_and(|o| o.status.success())
@@ -192,9 +211,8 @@ fn vtk_available() -> bool {
 
 /// One VTK process: its median re-render and its load + first frame, seconds.
 fn run_vtk(args: &Args, peer: &Peer, out: &Path) -> Result<(f64, f64)> {
-    let fill = |a: &str| {
-        a.replace("{scenes}", &args.scenes.to_string_lossy()).replace("{peers}", &args.peers.to_string_lossy())
-    };
+    let data = data_root(args, peer);
+    let fill = |a: &str| a.replace("{data}", &data.to_string_lossy()).replace("{peers}", &args.peers.to_string_lossy());
     let output = Command::new("python3")
         .arg(args.peers.join("vtk_raycast.py"))
         .args(peer.vtk.iter().map(|a| fill(a)))
@@ -219,7 +237,7 @@ fn run_vtk(args: &Args, peer: &Peer, out: &Path) -> Result<(f64, f64)> {
 /// sample's opacity a means "per original step"; at a quarter of the step each opacity point
 /// of the map becomes 1 − (1 − a)^¼, which keeps the extinction per unit length at every
 /// point of the ramp (between points the two differ only in second order).
-fn converged(scene: &Scene) -> Result<Scene> {
+fn converged(scene: &Scene, root: &DataRoot) -> Result<Scene> {
     let path = scene.path();
     let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let mut table: toml::Table = text.parse().context("the scene's TOML")?;
@@ -232,7 +250,7 @@ fn converged(scene: &Scene) -> Result<Scene> {
             quarter_ramp_opacity(object).with_context(|| format!("object `{}`", original.name()))?;
         }
     }
-    Ok(Scene::parse(&toml::to_string(&table)?, path)?)
+    Ok(Scene::parse_in(&toml::to_string(&table)?, path, root)?)
 }
 
 /// Replaces each point [v, a] of the object's opacity ramp by [v, 1 − (1 − a)^¼].
@@ -292,7 +310,7 @@ mod tests {
         let path = dir.join("scene.toml");
         std::fs::write(&path, text).unwrap();
         let scene = Scene::load(&path).unwrap();
-        let fine = converged(&scene).unwrap();
+        let fine = converged(&scene, &DataRoot::Given(dir.clone())).unwrap();
         assert_eq!(fine.objects()[0].sampling_distance(), 0.05);
         // Four samples of the quartered opacity let through what one of the original did.
         let a = fine.objects()[0].opacity().map(1.0).unwrap();

@@ -138,7 +138,10 @@ fn run_in(args: &Args, dir: &Path) -> Result<()> {
     ];
     print!("{}", table(&runs));
 
-    println!("\nWork units: {TASK_BYTES} bytes per piece task, {RESULT_BYTES} bytes per piece result.");
+    println!(
+        "\nWork units in memory: {TASK_BYTES} bytes per piece task, {RESULT_BYTES} bytes per piece result \
+         (on the wire: `trove-bench farm`)."
+    );
 
     println!("\nEarly termination (samples cast; skipped = samples of pieces never cast behind opaque rays):\n");
     let fig10 = load_scene(dir, &texts[2])?;
@@ -230,7 +233,7 @@ fn table(runs: &[Rendered; 4]) -> String {
 }
 
 /// Writes variant `v` of the head dataset, `n`³ little-endian u16 voxels.
-fn write_dataset(path: &Path, v: u32, n: u32, storage: Storage) -> Result<()> {
+pub(crate) fn write_dataset(path: &Path, v: u32, n: u32, storage: Storage) -> Result<()> {
     let mut bytes = Vec::with_capacity(2 * (n as usize).pow(3));
     for k in 0..n {
         for j in 0..n {

@@ -10,7 +10,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use trove_coordinator::client::FarmClient;
 use trove_coordinator::farm::{self, FarmConfig};
 use trove_core::render::{self, Algorithm, RenderOptions};
-use trove_core::scene::Scene;
+use trove_core::scene::{DataRoot, Scene, DATA_ROOT_ENV};
 use trove_proto::parse_bytes;
 use trove_proto::v1 as pb;
 
@@ -27,6 +27,9 @@ enum Command {
     Render(RenderArgs),
     /// Serve a farm's job API and worker membership (SPEC §5).
     Coordinator(CoordinatorArgs),
+    /// Check or fetch the public datasets the example scenes read (docs/data.md).
+    #[command(subcommand)]
+    Data(crate::data::DataCommand),
 }
 
 #[derive(clap::Args)]
@@ -50,6 +53,11 @@ struct RenderArgs {
     /// Override the scene's `[render] distorted_sampling` for every distorted box.
     #[arg(long, value_enum)]
     distorted_sampling: Option<DistortedSampling>,
+    /// The folder under which the scene's dataset paths (keys) resolve. Default: the
+    /// TROVE_DATA environment variable, else the scene file's folder. Local renders only: a
+    /// farm's workers resolve the keys under their own --data-root.
+    #[arg(long, value_name = "DIR")]
+    data_root: Option<PathBuf>,
     /// Render through the farm whose coordinator listens at this URL (e.g.
     /// http://127.0.0.1:7000) instead of in this process. The scene's dataset paths are
     /// keys that the workers resolve under their data roots.
@@ -102,6 +110,7 @@ pub fn run() -> Result<()> {
         Command::Render(args) if args.coordinator.is_some() => farm_render(args),
         Command::Render(args) => render_command(args),
         Command::Coordinator(args) => coordinator_command(args),
+        Command::Data(data) => data.run(),
     }
 }
 
@@ -110,7 +119,8 @@ fn render_command(args: RenderArgs) -> Result<()> {
     if let Some(stats) = &args.stats {
         check_output(stats, &["json"])?;
     }
-    let mut scene = Scene::load(&args.scene)?;
+    let root = DataRoot::choose(args.data_root.clone(), std::env::var_os(DATA_ROOT_ENV));
+    let mut scene = Scene::load_in(&args.scene, &root)?;
     if let Some(mode) = args.distorted_sampling {
         scene.set_straight_distorted_sampling(matches!(mode, DistortedSampling::Straight));
     }
@@ -179,6 +189,14 @@ fn farm_render(args: RenderArgs) -> Result<()> {
         || !matches!(args.algorithm, AlgorithmArg::Grouped)
     {
         bail!("--memory-budget, --distorted-sampling and --algorithm apply to local renders; a farm's workers set their own budgets and always cast grouped by dataset");
+    }
+    if let Some(dir) = &args.data_root {
+        bail!(
+            "--data-root {} applies to local renders: through a farm the scene's dataset paths are sent as \
+             written, as keys that each worker resolves under its own --data-root (start the workers on \
+             copies of that folder)",
+            dir.display()
+        );
     }
     let text = std::fs::read_to_string(&args.scene)
         .with_context(|| format!("{}: cannot read the scene file", args.scene.display()))?;

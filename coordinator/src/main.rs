@@ -3,6 +3,7 @@
 //! `trove-core` (rendering) and this crate's library (the farm and its client).
 
 mod cli;
+mod data;
 
 use std::process::ExitCode;
 

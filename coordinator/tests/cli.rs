@@ -15,13 +15,23 @@ fn trove() -> &'static Path {
     Path::new(env!("CARGO_BIN_EXE_trove"))
 }
 
-/// Runs `trove` with `args`, with backtraces enabled so that a panic could not hide.
+/// Runs `trove` with `args`, with backtraces enabled so that a panic could not hide, and
+/// without the caller's `TROVE_DATA`, which would move every relative key.
 fn run(args: &[&dyn AsRef<std::ffi::OsStr>]) -> Output {
+    run_with_data(args, None)
+}
+
+/// [`run`] with `TROVE_DATA` set to `data` when given.
+fn run_with_data(args: &[&dyn AsRef<std::ffi::OsStr>], data: Option<&Path>) -> Output {
     let mut cmd = Command::new(trove());
     for a in args {
         cmd.arg(a);
     }
-    cmd.env("RUST_BACKTRACE", "1").env_remove("RUST_LOG").output().expect("run trove")
+    cmd.env("RUST_BACKTRACE", "1").env_remove("RUST_LOG").env_remove("TROVE_DATA");
+    if let Some(data) = data {
+        cmd.env("TROVE_DATA", data);
+    }
+    cmd.output().expect("run trove")
 }
 
 fn stderr(out: &Output) -> String {
@@ -187,4 +197,103 @@ fn png_and_pfm_agree_to_rounding() {
         }
     }
     assert!(object_seen, "the sphere must be visible, or this compares only background");
+}
+
+/// The tiny scene reading its voxels from the key `ball.raw` (8³ u8) instead of a generator.
+fn keyed_scene() -> String {
+    let text = tiny_scene().replace(
+        r#"generator = { kind = "sphere", radius = 0.5, profile = "radial", value = 1.0, type = "f32" }"#,
+        "raw = \"ball.raw\"\ntype = \"u8\"",
+    );
+    assert!(text.contains("ball.raw"), "the edit must change the scene");
+    text
+}
+
+/// 8³ u8 voxels: a bright ball in a dark box.
+fn ball_raw() -> Vec<u8> {
+    let at = |i: usize| (i as f64 + 0.5) / 8.0 - 0.5;
+    (0..512).map(|i| if at(i % 8).hypot(at(i / 8 % 8)).hypot(at(i / 64)) < 0.4 { 250 } else { 10 }).collect()
+}
+
+/// A scene in `DIR/scenes` whose key `ball.raw` is in `DIR/data`, and the PNG it renders to
+/// when the file lies beside it instead (the scene-folder default, SPEC §1).
+fn data_root_fixture(name: &str) -> (PathBuf, PathBuf, PathBuf, Vec<u8>) {
+    let dir = scratch(name);
+    let (scenes, data, beside) = (dir.join("scenes"), dir.join("data"), dir.join("beside"));
+    for d in [&scenes, &data, &beside] {
+        std::fs::create_dir_all(d).unwrap();
+    }
+    std::fs::write(data.join("ball.raw"), ball_raw()).unwrap();
+    std::fs::write(beside.join("ball.raw"), ball_raw()).unwrap();
+    let reference = dir.join("reference.png");
+    let out = run(&[&"render", &write(&beside, "scene.toml", &keyed_scene()), &"-o", &reference]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let scene = write(&scenes, "scene.toml", &keyed_scene());
+    (dir, scene, data, std::fs::read(reference).unwrap())
+}
+
+#[test]
+fn keys_resolve_under_data_root_then_trove_data_then_the_scene_folder() {
+    let (dir, scene, data, reference) = data_root_fixture("cli-data-root");
+    let png = dir.join("out.png");
+    let renders = |args: &[&dyn AsRef<std::ffi::OsStr>], env: Option<&Path>| {
+        let _ = std::fs::remove_file(&png);
+        let out = run_with_data(args, env);
+        assert!(out.status.success(), "{}", stderr(&out));
+        std::fs::read(&png).unwrap()
+    };
+    let nowhere = dir.join("nowhere");
+    assert!(renders(&[&"render", &scene, &"-o", &png, &"--data-root", &data], None) == reference);
+    assert!(renders(&[&"render", &scene, &"-o", &png], Some(&data)) == reference, "TROVE_DATA");
+    // The option overrides the variable.
+    assert!(renders(&[&"render", &scene, &"-o", &png, &"--data-root", &data], Some(&nowhere)) == reference);
+    // An empty variable counts as unset; the scene's folder does not hold the file.
+    let looked = dir.join("scenes").join("ball.raw");
+    let out = run_with_data(&[&"render", &scene, &"-o", &png], Some(Path::new("")));
+    failed(&out, &[&looked.display().to_string()]);
+}
+
+#[test]
+fn a_key_that_names_no_file_says_where_it_looked_and_how_to_look_elsewhere() {
+    let (dir, scene, _, _) = data_root_fixture("cli-no-data");
+    let png = dir.join("out.png");
+    let (file, key) = (scene.display().to_string(), "datasets[0].channels.voxel.raw");
+    let looked = dir.join("scenes").join("ball.raw").display().to_string();
+    let out = run(&[&"render", &scene, &"-o", &png]);
+    failed(&out, &[&file, key, "\"ball.raw\"", &looked, "--data-root DIR", "TROVE_DATA=DIR", "docs/data.md"]);
+    let elsewhere = dir.join("elsewhere");
+    let looked = elsewhere.join("ball.raw").display().to_string();
+    let out = run_with_data(&[&"render", &scene, &"-o", &png], Some(&elsewhere));
+    failed(&out, &[&file, key, &looked, "from TROVE_DATA"]);
+    let out = run(&[&"render", &scene, &"-o", &png, &"--data-root", &elsewhere]);
+    failed(&out, &[&file, key, &looked, "(--data-root)"]);
+    assert!(!png.exists(), "no image may be written");
+}
+
+#[test]
+fn a_farm_render_refuses_a_data_root() {
+    let (dir, scene, data, _) = data_root_fixture("cli-farm-data-root");
+    // Refused before connecting: nothing listens at this address.
+    let out = run(&[
+        &"render",
+        &scene,
+        &"-o",
+        &dir.join("out.png"),
+        &"--coordinator",
+        &"http://127.0.0.1:9",
+        &"--data-root",
+        &data,
+    ]);
+    failed(&out, &["--data-root", "applies to local renders", "its own --data-root"]);
+}
+
+#[test]
+fn trove_data_verify_takes_the_same_data_root() {
+    let dir = scratch("cli-data-verify");
+    let empty = dir.join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let out = run(&[&"data", &"verify", &"--data-root", &empty]);
+    failed(&out, &[&empty.display().to_string(), "missing", "trove data fetch --data-root"]);
+    let out = run_with_data(&[&"data", &"verify"], Some(&empty));
+    failed(&out, &[&empty.display().to_string(), "missing"]);
 }

@@ -87,7 +87,6 @@ fn a_coordinator_and_two_worker_processes_render_what_local_mode_renders() {
         std::fs::create_dir_all(dir.join(w)).unwrap();
     }
     std::fs::write(dir.join("w0/slab.raw"), &voxels).unwrap();
-    std::fs::write(dir.join("slab.raw"), &voxels).unwrap();
     std::fs::write(dir.join("scene.toml"), SCENE).unwrap();
 
     let (_coordinator, address) = start(trove(), &["coordinator", "--listen", "127.0.0.1:0", "--heartbeat-ms", "100"]);
@@ -100,8 +99,14 @@ fn a_coordinator_and_two_worker_processes_render_what_local_mode_renders() {
     }
 
     let local = dir.join("local.png");
-    let out =
-        Command::new(trove()).args(["render", "scene.toml", "-o", "local.png"]).current_dir(&dir).output().unwrap();
+    // One scene text: locally with w0 as the data root, and through workers whose roots hold
+    // its keys (the client sends them as written). TROVE_DATA must not move either.
+    let out = Command::new(trove())
+        .args(["render", "scene.toml", "-o", "local.png", "--data-root", "w0"])
+        .current_dir(&dir)
+        .env_remove("TROVE_DATA")
+        .output()
+        .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
 
     // Workers register within a few heartbeats; a render before that is refused as "not
@@ -112,6 +117,7 @@ fn a_coordinator_and_two_worker_processes_render_what_local_mode_renders() {
         let out = Command::new(trove())
             .args(["render", "scene.toml", "-o", "farm.png", "--stats", "farm.json", "--coordinator", &url])
             .current_dir(&dir)
+            .env_remove("TROVE_DATA")
             .output()
             .unwrap();
         if out.status.success() {

@@ -1,13 +1,19 @@
 //! Helpers shared by the integration tests: scratch folders, rendering scene text, and the
-//! location of the shared real data (tests that need it skip with a message when absent);
-//! [`reference`] holds the scenes with closed-form ray integrals that the accuracy tests and
-//! `trove-bench accuracy` measure the renderer against. None of this belongs in
-//! `trove-core`: the library ships only what renders.
+//! location of the shared real data; [`reference`] holds the scenes with closed-form ray
+//! integrals that the accuracy tests and `trove-bench accuracy` measure the renderer against.
+//! None of this belongs in `trove-core`: the library ships only what renders.
+//!
+//! Tests that need the real data (`../shared/data`, see `docs/data.md`) run only where it is.
+//! Where it is absent they report the skip on the terminal — past cargo's output capture, which
+//! would otherwise hide it behind an `ok` — and pass; with `TROVE_REQUIRE_DATA=1` (set by
+//! `.ci/run`, since CI always has the data) a skip is a failure instead, so a broken data path
+//! can never turn the data tests into silent passes.
 
 pub mod reference;
 
 pub mod farm;
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
@@ -15,7 +21,7 @@ use trove_core::composite::Rgba;
 use trove_core::geometry::{split_into_pieces, Segment};
 use trove_core::render::{render, Algorithm, Image, RenderOptions, Rendered};
 use trove_core::sampling::{CastOptions, ObjectCaster};
-use trove_core::scene::Scene;
+use trove_core::scene::{DataRoot, Scene, SceneError, SceneErrorKind};
 use trove_core::RenderError;
 
 /// A fresh scratch folder under the system temp dir, unique to this test.
@@ -219,9 +225,11 @@ pub fn max_abs_difference(a: &Image, b: &Image) -> f64 {
     a.max_abs_difference(b)
 }
 
-/// Every example scene in `scenes/`, sorted, loaded and shrunk so that its longer side is
-/// `max_side` pixels (aspect kept). Scenes that read `../shared/data` are skipped, with a
-/// message, where that folder is absent.
+/// Every example scene in `scenes/`, sorted, loaded with [`shared_data_dir`] as the data
+/// root (given explicitly, as `--data-root` would give it: tests never read `TROVE_DATA`) and
+/// shrunk so that its longer side is `max_side` pixels (aspect kept). A scene whose data is
+/// not there is skipped where that folder is absent, with a line on the terminal (see
+/// [`skip`]); anywhere else a missing file is a failure.
 pub fn example_scenes(max_side: u32) -> Vec<(PathBuf, Scene)> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(repo_root().join("scenes"))
         .expect("scenes/ exists")
@@ -229,22 +237,31 @@ pub fn example_scenes(max_side: u32) -> Vec<(PathBuf, Scene)> {
         .filter(|p| p.extension().is_some_and(|e| e == "toml"))
         .collect();
     files.sort();
-    let shared = repo_root().join("../shared/data").is_dir();
+    let data = shared_data_dir();
+    let root = DataRoot::Given(data.clone());
     let mut scenes = Vec::new();
     for path in files {
-        let text = std::fs::read_to_string(&path).expect("read scene");
-        if text.contains("shared/data") && !shared {
-            eprintln!("skipping {}: it reads ../shared/data, which is absent", path.display());
-            continue;
-        }
-        let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
-        let (width, height) = (scene.image().width, scene.image().height);
-        let scale = max_side as f64 / width.max(height) as f64;
-        let shrink = |side: u32| ((side as f64 * scale).round() as u32).max(1);
-        let scene = scene.with_image_size(shrink(width), shrink(height)).unwrap_or_else(|e| panic!("{e}"));
+        let scene = match Scene::load_in(&path, &root) {
+            Ok(scene) => scene,
+            Err(SceneError { kind: SceneErrorKind::DataNotFound { .. }, .. }) if !data.is_dir() => {
+                let name = path.file_name().unwrap_or_default().to_string_lossy();
+                skip(&format!("scenes/{name} reads ../shared/data, which is absent"));
+                continue;
+            }
+            Err(e) => panic!("{e}"),
+        };
+        let (width, height) = shrunk(scene.image().width, scene.image().height, max_side);
+        let scene = scene.with_image_size(width, height).unwrap_or_else(|e| panic!("{e}"));
         scenes.push((path, scene));
     }
     scenes
+}
+
+/// An image size scaled so that its longer side is `max_side` (aspect kept, at least 1).
+fn shrunk(width: u32, height: u32, max_side: u32) -> (u32, u32) {
+    let scale = max_side as f64 / width.max(height) as f64;
+    let shrink = |side: u32| ((side as f64 * scale).round() as u32).max(1);
+    (shrink(width), shrink(height))
 }
 
 /// Renders `scene` with `algorithm` under an optional memory budget; without one, checks
@@ -256,15 +273,48 @@ pub fn render_with(scene: &Scene, algorithm: Algorithm, memory_budget: Option<u6
     render(scene, &RenderOptions { algorithm, memory_budget, progress: None })
 }
 
-/// `../shared/data` seen from the repository root, if present.
+/// `../shared/data` beside the repository: the data root of the example scenes, present or
+/// not.
+pub fn shared_data_dir() -> PathBuf {
+    repo_root().join("../shared/data")
+}
+
+/// `../shared/data` seen from the repository root, if present; otherwise the calling test
+/// should return early, and this reports the skip (see [`skip`]).
 pub fn shared_data() -> Option<PathBuf> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
+    let dir = shared_data_dir();
     if dir.is_dir() {
         Some(dir)
     } else {
-        eprintln!("skipping: ../shared/data not found (this test reads the shared real datasets)");
+        skip("../shared/data, the real datasets, is absent");
         None
     }
+}
+
+/// The variable that turns every skip into a failure (`.ci/run` sets it).
+pub const REQUIRE_DATA: &str = "TROVE_REQUIRE_DATA";
+
+/// Whether skips are failures: `TROVE_REQUIRE_DATA` is set to anything but empty or `0`.
+pub fn data_required() -> bool {
+    std::env::var_os(REQUIRE_DATA).is_some_and(|v| !v.is_empty() && v != "0")
+}
+
+/// Reports that the running test skips part or all of its work for `reason`, or fails it
+/// when [`data_required`].
+///
+/// libtest captures `print!`/`eprint!` and shows them only for failing tests, so a skipped
+/// test would look like any other pass. This writes to the standard error handle itself,
+/// which the capture does not intercept, so the line appears in the run's output next to
+/// the test's `ok`, naming the test (libtest names each test's thread after it).
+pub fn skip(reason: &str) {
+    let test = std::thread::current().name().unwrap_or("a test").to_string();
+    if data_required() {
+        panic!("{test}: {reason}, and {REQUIRE_DATA} is set, so this is a failure, not a skip (docs/data.md)");
+    }
+    let _ = writeln!(
+        std::io::stderr().lock(),
+        "SKIPPED in {test}: {reason}; see docs/data.md, or set {REQUIRE_DATA}=1 to fail instead"
+    );
 }
 
 /// The repository root.
@@ -318,42 +368,17 @@ pub fn read_pfm(path: &Path) -> Image {
     Image::new(w as u32, h as u32, pixels)
 }
 
-/// The text of example scene `path` as a farm job: every dataset path rewritten as a key
-/// under `data` (its path relative to `data`, which must hold it), and the image shrunk so
-/// its longer side is `max_side` pixels, as [`example_scenes`] shrinks it.
-pub fn keyed_scene_text(path: &Path, data: &Path, max_side: u32) -> String {
+/// The text of example scene `path` as a farm job: its dataset keys as written (a farm's
+/// workers resolve them under their own data roots) and its image shrunk so that its longer
+/// side is `max_side` pixels, as [`example_scenes`] shrinks it.
+pub fn shrunk_scene_text(path: &Path, max_side: u32) -> String {
     let text = std::fs::read_to_string(path).expect("read scene");
     let mut table: toml::Table = text.parse().unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let folder = path.parent().expect("a scene file has a folder");
-    let data = data.canonicalize().expect("data folder");
-    let key = |value: &mut toml::Value| {
-        let rel = value.as_str().expect("a path string");
-        let full = folder.join(rel).canonicalize().unwrap_or_else(|e| panic!("{rel}: {e}"));
-        let key = full.strip_prefix(&data).unwrap_or_else(|_| panic!("{rel} is not under {}", data.display()));
-        *value = toml::Value::String(key.to_string_lossy().replace('\\', "/"));
-    };
-    for d in table.get_mut("datasets").and_then(|v| v.as_array_mut()).into_iter().flatten() {
-        let d = d.as_table_mut().expect("dataset table");
-        for field in ["file", "image"] {
-            if let Some(v) = d.get_mut(field) {
-                key(v);
-            }
-        }
-        for c in
-            d.get_mut("channels").and_then(|v| v.as_table_mut()).into_iter().flat_map(|t| t.iter_mut().map(|(_, v)| v))
-        {
-            for field in ["raw", "nrrd"] {
-                if let Some(v) = c.get_mut(field) {
-                    key(v);
-                }
-            }
-        }
-    }
     let image = table.get_mut("image").and_then(|v| v.as_table_mut()).expect("[image]");
-    let (w, h) = (image["width"].as_integer().unwrap() as f64, image["height"].as_integer().unwrap() as f64);
-    let scale = max_side as f64 / w.max(h);
-    image.insert("width".into(), toml::Value::Integer(((w * scale).round() as i64).max(1)));
-    image.insert("height".into(), toml::Value::Integer(((h * scale).round() as i64).max(1)));
+    let side = |key: &str| u32::try_from(image[key].as_integer().expect("an integer")).expect("a pixel count");
+    let (width, height) = shrunk(side("width"), side("height"), max_side);
+    image.insert("width".into(), toml::Value::Integer(width.into()));
+    image.insert("height".into(), toml::Value::Integer(height.into()));
     toml::to_string(&table).expect("serialise scene")
 }
 
@@ -388,6 +413,20 @@ mod tests {
             for i in 0..3 {
                 assert!((a[i] - b[i]).abs() < 1e-7, "{a:?} vs {b:?}");
             }
+        }
+    }
+
+    /// The complete scenes in the user documentation load: the reference must not teach a
+    /// scene that TROVE refuses.
+    #[test]
+    fn the_scenes_in_docs_scene_format_load() {
+        let doc = std::fs::read_to_string(repo_root().join("docs/scene-format.md")).expect("docs/scene-format.md");
+        let blocks: Vec<&str> = doc.split("```toml\n").skip(1).filter_map(|b| b.split("```").next()).collect();
+        let scenes: Vec<&&str> = blocks.iter().filter(|b| b.contains("[image]")).collect();
+        assert!(!scenes.is_empty(), "no complete scene in docs/scene-format.md");
+        let dir = scratch("doc-scenes");
+        for text in scenes {
+            Scene::parse(text, dir.join("scene.toml")).unwrap_or_else(|e| panic!("{e}\n{text}"));
         }
     }
 }

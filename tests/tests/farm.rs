@@ -8,10 +8,10 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use trove_core::render::{render, RenderOptions};
-use trove_core::scene::Scene;
+use trove_core::scene::{DataRoot, Scene};
 use trove_proto::v1 as pb;
 use trove_tests::farm::{data_root, TestFarm};
-use trove_tests::{example_scenes, keyed_scene_text, scratch, shared_data};
+use trove_tests::{example_scenes, scratch, shared_data, shrunk_scene_text};
 
 /// The files the example scenes read, split over three workers; the CT head (used by four
 /// scenes) is held by two of them.
@@ -41,8 +41,9 @@ fn generated_scene(size: u32) -> String {
     )
 }
 
-fn local_png(text: &str, as_if: &Path) -> Vec<u8> {
-    let scene = Scene::parse(text, as_if).unwrap_or_else(|e| panic!("{e}"));
+/// The PNG local mode renders from `text` with its keys under `data` (`--data-root data`).
+fn local_png(text: &str, name: &str, data: &Path) -> Vec<u8> {
+    let scene = Scene::parse_in(text, name, &DataRoot::Given(data.to_path_buf())).unwrap_or_else(|e| panic!("{e}"));
     render(&scene, &RenderOptions::default()).unwrap().image.encode_png().unwrap()
 }
 
@@ -52,9 +53,9 @@ fn every_example_scene_renders_through_the_farm_as_in_local_mode() {
     let dir = scratch("farm-scenes");
     let farm = TestFarm::start(&three_roots(&dir, &data));
     for (path, _) in example_scenes(48) {
-        let text = keyed_scene_text(&path, &data, 48);
-        let expected = local_png(&text, &data.join("scene.toml"));
+        let text = shrunk_scene_text(&path, 48);
         let name = path.file_name().unwrap().to_string_lossy().to_string();
+        let expected = local_png(&text, &name, &data);
         let files = farm.render(&text, &name, false).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert!(files.png == expected, "{name}: the farm's PNG differs from local mode's");
         let stats: serde_json::Value = serde_json::from_slice(&files.stats_json).unwrap();
@@ -112,7 +113,7 @@ fn a_malformed_scene_is_refused_naming_file_and_key_and_the_coordinator_keeps_se
     assert!(status.is_err());
     // The coordinator still serves good jobs.
     let good = generated_scene(8);
-    assert_eq!(farm.render(&good, "good.toml", false).unwrap().png, local_png(&good, &dir.join("good.toml")));
+    assert_eq!(farm.render(&good, "good.toml", false).unwrap().png, local_png(&good, "good.toml", &dir));
 }
 
 #[test]
@@ -127,8 +128,8 @@ fn two_jobs_submitted_together_both_finish_correctly() {
             cb.render(b.clone(), "b.toml".into(), Default::default(), |_| {})
         )
     });
-    assert_eq!(ra.unwrap().png, local_png(&a, &dir.join("a.toml")));
-    assert_eq!(rb.unwrap().png, local_png(&b, &dir.join("b.toml")));
+    assert_eq!(ra.unwrap().png, local_png(&a, "a.toml", &dir));
+    assert_eq!(rb.unwrap().png, local_png(&b, "b.toml", &dir));
 }
 
 #[test]
@@ -175,11 +176,16 @@ fn a_cancelled_job_stops_casting_within_a_batch() {
         tokio::time::sleep(Duration::from_millis(500)).await;
         let b: u64 = client.workers().await.unwrap().iter().map(|w| w.batches_done + w.batches_in_flight).sum();
         assert_eq!(a, b, "batches still being answered after the cancel settled");
+        // What the cancelled job had out no longer counts against its workers' capacity.
+        let out: u64 = client.workers().await.unwrap().iter().map(|w| w.batches_in_flight).sum();
+        assert_eq!(out, 0, "the cancelled job's batches still count as in flight");
         (last.state(), done_at_cancel, b)
     });
     assert_eq!(state, pb::JobState::Cancelled);
     // At most the batches in flight at the cancel (a few per worker) were answered after it.
     assert!(done_after <= done_at_cancel + 16, "{done_at_cancel} → {done_after}");
+    // And the farm goes on serving: the next job on the same worker finishes.
+    farm.render(&generated_scene(40), "after.toml", false).expect("a job after the cancelled one");
 }
 
 #[test]

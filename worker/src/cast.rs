@@ -20,7 +20,7 @@ use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 use trove_core::dataset::{Catalog, DatasetError, FileInfo, FileKind};
-use trove_core::render::workunit::{decode_tasks, encode_results};
+use trove_core::render::wire::{decode_tasks, encode_results};
 use trove_core::render::{BatchCaster, PieceRgba, VolumeStore};
 use trove_core::scene::Scene;
 use trove_proto::convert::{self, JOB_HEADER};
@@ -196,7 +196,10 @@ impl Caster {
                 if self.cancelled.load(Ordering::SeqCst) {
                     return;
                 }
-                let Some(kind) = self.cast(&caster, &batch, bytes_loaded, loading_nanos) else { return };
+                let span = tracing::debug_span!("batch", id = batch.batch_id, attempt = batch.attempt);
+                let Some(kind) = span.in_scope(|| self.cast(&caster, &batch, bytes_loaded, loading_nanos)) else {
+                    return;
+                };
                 if !self.send(kind) {
                     return;
                 }
@@ -214,14 +217,14 @@ impl Caster {
         bytes_loaded: u64,
         loading_nanos: u64,
     ) -> Option<pb::cast_response::Kind> {
-        let Some(tasks) = decode_tasks(&batch.tasks) else {
-            let mut f = convert::failure(
-                pb::Reason::BadBatch,
-                false,
-                format!("{} bytes of tasks is not a whole number of 24-byte tasks", batch.tasks.len()),
-            );
-            f.batch_id = batch.batch_id;
-            return Some(pb::cast_response::Kind::Failure(f));
+        let tasks = match decode_tasks(&batch.tasks) {
+            Ok(tasks) => tasks,
+            Err(e) => {
+                let message = format!("batch {}: {} bytes of tasks: {e}", batch.batch_id, batch.tasks.len());
+                let mut f = convert::failure(pb::Reason::BadBatch, false, message);
+                f.batch_id = batch.batch_id;
+                return Some(pb::cast_response::Kind::Failure(f));
+            }
         };
         self.busy.fetch_add(1, Ordering::Relaxed);
         let started = Instant::now();

@@ -14,7 +14,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use trove_core::render::intersection::{intersect, Intersections};
-use trove_core::render::workunit::{decode_results, encode_results, encode_tasks};
+use trove_core::render::wire::{decode_results, encode_results, encode_tasks};
 use trove_core::render::{BatchCaster, PieceRgba, Scheduler};
 use trove_core::scene::Scene;
 
@@ -244,9 +244,9 @@ fn time_schedule(scene: &Scene, inter: Intersections) -> Result<(f64, f64, f64)>
         open.retain(|&d| {
             let started = Instant::now();
             let Some(batch) = scheduler.next_batch(d) else { return false };
-            let wire = std::hint::black_box(encode_tasks(&batch.tasks));
+            std::hint::black_box(encode_tasks(&batch.tasks));
             dispatch += started.elapsed().as_secs_f64();
-            let answer = encode_results(&vec![PieceRgba::default(); wire.len() / 24]);
+            let answer = encode_results(&vec![PieceRgba::default(); batch.tasks.len()]);
             let started = Instant::now();
             let results = decode_results(&answer).expect("whole results");
             let ok = scheduler.record(batch.id, &results).is_ok();

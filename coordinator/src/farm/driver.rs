@@ -31,7 +31,7 @@ use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Status;
 use trove_core::render::intersection::{intersect, task_sample_positions};
-use trove_core::render::workunit::{decode_results, encode_tasks};
+use trove_core::render::wire::{decode_results, encode_tasks};
 use trove_core::render::{quantize, Algorithm, RenderStats, Scheduler, StoreStats};
 use trove_core::scene::Scene;
 use trove_proto::convert::{self, JOB_HEADER};
@@ -90,10 +90,27 @@ type StreamKey = (String, usize);
 
 /// What happens to a job.
 enum Event {
-    Intersected { band: usize, rows: Range<u32>, scheduler: Box<Scheduler>, seconds: f64 },
-    Composited { band: usize, part: Box<Composited> },
-    Answer { stream: StreamKey, response: pb::CastResponse, bytes: u64 },
-    StreamEnded { stream: StreamKey, status: Option<Status> },
+    Intersected {
+        band: usize,
+        rows: Range<u32>,
+        scheduler: Box<Scheduler>,
+        seconds: f64,
+    },
+    Composited {
+        band: usize,
+        part: Box<Composited>,
+    },
+    Answer {
+        stream: StreamKey,
+        response: pb::CastResponse,
+        bytes: u64,
+    },
+    StreamEnded {
+        stream: StreamKey,
+        status: Option<Status>,
+    },
+    /// A step that ran off the event loop failed; the job cannot go on.
+    Failed(Failed),
 }
 
 /// A band's share of the image and statistics.
@@ -232,7 +249,9 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
             }
         }
     };
-    // Closing every stream tells the workers to drop what they still hold for this job.
+    // Closing every stream tells the workers to drop what they still hold for this job; the
+    // workers' load counts, shared with other jobs, give back what this job still had out.
+    driver.release_in_flight();
     driver.streams.clear();
     match outcome {
         Ok(()) => driver.finish(started).await,
@@ -271,12 +290,18 @@ impl Driver {
             tokio::task::spawn_blocking(move || {
                 let started = Instant::now();
                 let inter = intersect(&scene, rows.clone());
-                // A band of at most BAND_PIXELS rays holds far fewer than 2³² tasks.
-                if let Ok(scheduler) = Scheduler::new(&scene, inter, batch_tasks) {
-                    let seconds = started.elapsed().as_secs_f64();
-                    let scheduler = Box::new(scheduler);
-                    let _ = events.blocking_send(Event::Intersected { band, rows, scheduler, seconds });
-                }
+                let event = match Scheduler::new(&scene, inter, batch_tasks) {
+                    Ok(scheduler) => {
+                        let seconds = started.elapsed().as_secs_f64();
+                        Event::Intersected { band, rows, scheduler: Box::new(scheduler), seconds }
+                    }
+                    // A band of at most BAND_PIXELS rays holds far fewer tasks than the
+                    // scheduler's limit; should it not, the job fails rather than waits.
+                    Err(e) => {
+                        Event::Failed(Box::new(convert::failure(pb::Reason::LimitExceeded, false, e.to_string())))
+                    }
+                };
+                let _ = events.blocking_send(event);
             });
         }
         self.dispatch()
@@ -426,6 +451,7 @@ impl Driver {
 
     fn handle(&mut self, event: Event) -> Result<(), Failed> {
         match event {
+            Event::Failed(failure) => Err(failure),
             Event::Intersected { band, rows, scheduler, seconds } => {
                 let inter = scheduler.intersections();
                 self.stats.segments += inter.segments;
@@ -488,9 +514,12 @@ impl Driver {
         let Some(Band::Casting { scheduler, .. }) = self.bands.get_mut(&batch.band) else {
             return Ok(());
         };
+        // Either refusal is only logged: the batch is given to another worker.
         let recorded = match decode_results(&result.results) {
-            Some(results) => scheduler.record(batch.id, &results).map(|()| results.len() as u64),
-            None => Err(trove_core::render::ScheduleError::ResultCount { id: batch.id, expected: 0, got: 0 }),
+            Ok(results) => {
+                scheduler.record(batch.id, &results).map(|()| results.len() as u64).map_err(|e| e.to_string())
+            }
+            Err(e) => Err(format!("undecodable results: {e}")),
         };
         let tasks = match recorded {
             Ok(n) => n,
@@ -549,6 +578,15 @@ impl Driver {
             }
         }
         self.unusable.insert(stream.clone());
+    }
+
+    /// Returns every batch still out to its worker's load count (the job is over).
+    fn release_in_flight(&mut self) {
+        for (_, batch) in self.in_flight.drain() {
+            if let Some(s) = self.streams.get(&batch.stream) {
+                s.worker.in_flight.fetch_sub(1, Ordering::Relaxed);
+            }
+        }
     }
 
     /// Gives up on workers that missed their heartbeats and on batches past their deadline.

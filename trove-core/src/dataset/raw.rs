@@ -370,15 +370,28 @@ pub(crate) mod testutil {
         }
     }
 
-    /// The shared test data folder, or `None` (with a message) when it is absent.
+    /// The shared test data folder (`../shared/data`, docs/data.md), or `None` when it is
+    /// absent: then the calling test returns early, and the skip is reported on the terminal
+    /// past libtest's output capture (which shows `eprintln!` only for failing tests, so a
+    /// skip would look like a pass). With `TROVE_REQUIRE_DATA=1` (CI, which always has the
+    /// data) an absent folder fails the test instead. `trove_tests::skip` does the same for
+    /// the integration tests.
     pub fn data_dir() -> Option<PathBuf> {
+        use std::io::Write;
         let d = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"));
         if d.is_dir() {
-            Some(d)
-        } else {
-            eprintln!("skipping: ../shared/data not found");
-            None
+            return Some(d);
         }
+        let test = std::thread::current().name().unwrap_or("a test").to_string();
+        if std::env::var_os("TROVE_REQUIRE_DATA").is_some_and(|v| !v.is_empty() && v != "0") {
+            panic!("{test}: ../shared/data is absent and TROVE_REQUIRE_DATA is set: a failure, not a skip");
+        }
+        let _ = writeln!(
+            std::io::stderr().lock(),
+            "SKIPPED in {test}: ../shared/data, the real datasets, is absent; \
+             see docs/data.md, or set TROVE_REQUIRE_DATA=1 to fail instead"
+        );
+        None
     }
 
     /// Gzip-compresses `bytes`.

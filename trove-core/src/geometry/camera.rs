@@ -129,11 +129,68 @@ impl Camera {
         let y = (1.0 - 2.0 * (row as f64 + 0.5) / height as f64) * s;
         Ray { origin: self.eye, dir: (self.forward + x * self.right + y * self.up).normalize() }
     }
+
+    /// An upper bound on how many pixels' rays can meet the convex hull of `points`: the
+    /// pixels of its projected bounding rectangle, with a pixel of margin for rounding; the
+    /// whole image when a point is not in front of the eye (the projection would wrap).
+    pub(crate) fn pixels_covering(&self, points: &[DVec3], width: u32, height: u32) -> u64 {
+        let all = width as u64 * height as u64;
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for &p in points {
+            let d = p - self.eye;
+            let depth = d.dot(self.forward);
+            // Not `depth <= …`: a NaN depth must take the whole image too.
+            if depth.partial_cmp(&(1e-9 * d.length())) != Some(std::cmp::Ordering::Greater) {
+                return all;
+            }
+            let aspect = width as f64 / height as f64;
+            // Inverse of `ray`: the continuous column and row the point projects to.
+            let x = d.dot(self.right) / depth / (aspect * self.tan_half_fov);
+            let y = d.dot(self.up) / depth / self.tan_half_fov;
+            let (col, row) = ((x + 1.0) * width as f64 / 2.0, (1.0 - y) * height as f64 / 2.0);
+            lo = [lo[0].min(col), lo[1].min(row)];
+            hi = [hi[0].max(col), hi[1].max(row)];
+        }
+        let span = |lo: f64, hi: f64, n: u32| -> u64 {
+            let first = (lo.floor() - 1.0).max(0.0);
+            let last = (hi.ceil() + 1.0).min(n as f64);
+            if last > first {
+                (last - first) as u64
+            } else {
+                0
+            }
+        };
+        span(lo[0], hi[0], width).saturating_mul(span(lo[1], hi[1], height)).min(all)
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn pixels_covering_holds_every_pixel_whose_ray_meets_the_points() {
+        let cam = Camera::new(DVec3::new(0.3, 0.2, 5.0), DVec3::ZERO, DVec3::Y, 40.0).unwrap();
+        let (w, h) = (64, 48);
+        let corners: Vec<DVec3> =
+            (0..8).map(|i| DVec3::new((i & 1) as f64 - 0.5, ((i >> 1) & 1) as f64, ((i >> 2) & 1) as f64)).collect();
+        let bound = cam.pixels_covering(&corners, w, h);
+        // Every pixel whose ray passes within the box's bounds is inside the bound's rectangle.
+        let mut hit = 0;
+        for row in 0..h {
+            for col in 0..w {
+                let r = cam.ray(col, row, w, h);
+                let t = (0.5 - r.origin.z) / r.dir.z;
+                let p = r.at(t);
+                if (-0.5..=0.5).contains(&p.x) && (0.0..=1.0).contains(&p.y) {
+                    hit += 1;
+                }
+            }
+        }
+        assert!(hit > 0 && bound >= hit && bound < (w * h) as u64 / 2, "hit {hit}, bound {bound}");
+        // A point behind the eye: the whole image.
+        assert_eq!(cam.pixels_covering(&[DVec3::new(0.0, 0.0, 9.0)], w, h), (w * h) as u64);
+    }
 
     #[test]
     fn centre_pixel_looks_at_target_and_row_zero_is_up() {

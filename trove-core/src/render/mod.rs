@@ -26,6 +26,7 @@ mod per_ray;
 pub mod schedule;
 mod stats;
 mod store;
+pub mod wire;
 pub mod workunit;
 
 use std::sync::Arc;

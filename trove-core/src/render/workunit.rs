@@ -7,7 +7,8 @@
 //! A [`PieceRgba`] is what casting it yields: 16 bytes of premultiplied colour and opacity.
 //! Tasks are independent of each other, so any slice of them whose objects share one
 //! dataset is a batch that can be cast anywhere that dataset is resident
-//! ([`BatchCaster`]); results come back in the same order, so a batch needs no ids.
+//! ([`BatchCaster`]); results come back in the same order, so a batch needs no ids. Their
+//! compact, lossless wire forms are in [`super::wire`].
 //!
 //! # Why f32 results are enough
 //! A piece's colour and opacity lie in [0, 1]; rounding them to f32 changes each by at most
@@ -57,9 +58,9 @@ pub struct PieceRgba {
     pub alpha: f32,
 }
 
-/// Bytes of one task on the wire and in memory.
+/// Bytes of one task in memory (on the wire, see [`super::wire`]).
 pub const TASK_BYTES: usize = std::mem::size_of::<PieceTask>();
-/// Bytes of one result on the wire and in memory.
+/// Bytes of one result in memory (on the wire, see [`super::wire`]).
 pub const RESULT_BYTES: usize = std::mem::size_of::<PieceRgba>();
 
 impl PieceTask {
@@ -106,46 +107,6 @@ impl PieceTask {
         } else {
             termination
         }
-    }
-
-    /// Little-endian wire form.
-    pub fn to_bytes(&self) -> [u8; TASK_BYTES] {
-        let mut b = [0u8; TASK_BYTES];
-        b[0..8].copy_from_slice(&self.t0.to_le_bytes());
-        b[8..16].copy_from_slice(&self.t1.to_le_bytes());
-        b[16..20].copy_from_slice(&self.ray.to_le_bytes());
-        b[20..22].copy_from_slice(&self.object.to_le_bytes());
-        b[22..24].copy_from_slice(&self.front.to_le_bytes());
-        b
-    }
-
-    /// Reads the wire form written by [`PieceTask::to_bytes`].
-    pub fn from_bytes(b: &[u8; TASK_BYTES]) -> PieceTask {
-        let f64_at = |i: usize| f64::from_le_bytes(b[i..i + 8].try_into().expect("8 bytes"));
-        PieceTask {
-            t0: f64_at(0),
-            t1: f64_at(8),
-            ray: u32::from_le_bytes(b[16..20].try_into().expect("4 bytes")),
-            object: u16::from_le_bytes([b[20], b[21]]),
-            front: u16::from_le_bytes([b[22], b[23]]),
-        }
-    }
-}
-
-impl PieceRgba {
-    /// Little-endian wire form.
-    pub fn to_bytes(&self) -> [u8; RESULT_BYTES] {
-        let mut b = [0u8; RESULT_BYTES];
-        for (i, v) in self.colour.iter().chain([&self.alpha]).enumerate() {
-            b[i * 4..i * 4 + 4].copy_from_slice(&v.to_le_bytes());
-        }
-        b
-    }
-
-    /// Reads the wire form written by [`PieceRgba::to_bytes`].
-    pub fn from_bytes(b: &[u8; RESULT_BYTES]) -> PieceRgba {
-        let at = |i: usize| f32::from_le_bytes(b[i * 4..i * 4 + 4].try_into().expect("4 bytes"));
-        PieceRgba { colour: [at(0), at(1), at(2)], alpha: at(3) }
     }
 }
 
@@ -272,35 +233,6 @@ fn longest_piece(object: &crate::scene::Object) -> f64 {
     (hi - lo).length() * (1.0 + 1e-9) + 1e-12
 }
 
-/// Little-endian wire form of a slice of tasks: 24 bytes each.
-pub fn encode_tasks(tasks: &[PieceTask]) -> Vec<u8> {
-    tasks.iter().flat_map(|t| t.to_bytes()).collect()
-}
-
-/// Reads tasks written by [`encode_tasks`]; `None` when the length is not a multiple of 24.
-pub fn decode_tasks(bytes: &[u8]) -> Option<Vec<PieceTask>> {
-    let chunks = bytes.chunks_exact(TASK_BYTES);
-    if !chunks.remainder().is_empty() {
-        return None;
-    }
-    Some(chunks.map(|c| PieceTask::from_bytes(c.try_into().expect("chunks_exact"))).collect())
-}
-
-/// Little-endian wire form of a slice of results: 16 bytes each.
-pub fn encode_results(results: &[PieceRgba]) -> Vec<u8> {
-    results.iter().flat_map(|r| r.to_bytes()).collect()
-}
-
-/// Reads results written by [`encode_results`]; `None` when the length is not a multiple
-/// of 16.
-pub fn decode_results(bytes: &[u8]) -> Option<Vec<PieceRgba>> {
-    let chunks = bytes.chunks_exact(RESULT_BYTES);
-    if !chunks.remainder().is_empty() {
-        return None;
-    }
-    Some(chunks.map(|c| PieceRgba::from_bytes(c.try_into().expect("chunks_exact"))).collect())
-}
-
 #[cfg(test)]
 mod tests {
     use std::collections::BTreeMap;
@@ -425,15 +357,6 @@ mod tests {
     fn a_task_is_24_bytes_and_a_result_16() {
         assert_eq!(TASK_BYTES, 24);
         assert_eq!(RESULT_BYTES, 16);
-    }
-
-    #[test]
-    fn wire_forms_round_trip() {
-        let mut t = PieceTask::new(262_143, 4095, 1.25, 3.5e-3 + 7.0, false);
-        t.set_front_alpha(0.3);
-        assert_eq!(PieceTask::from_bytes(&t.to_bytes()), t);
-        let r = PieceRgba { colour: [0.1, 0.5, 1.0], alpha: 0.75 };
-        assert_eq!(PieceRgba::from_bytes(&r.to_bytes()), r);
     }
 
     #[test]

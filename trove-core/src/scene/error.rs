@@ -14,7 +14,7 @@ use std::path::PathBuf;
 use thiserror::Error;
 
 use super::mappings::{MAX_POLYNOMIAL_TERMS, MAX_TABLE_ENTRIES};
-use super::MAX_IMAGE_SIDE;
+use super::{DataRoot, MAX_IMAGE_SIDE};
 use crate::dataset::generator::GeneratorError;
 use crate::dataset::{ChannelName, DatasetError, Dims, DimsError, VoxelType};
 use crate::geometry::hexahedron::HexahedronError;
@@ -25,7 +25,7 @@ use crate::geometry::{CameraError, InversionPrecisionError};
 /// Displayed as `FILE: KEY: WHAT` (`FILE: WHAT` for the file as a whole). When a lower layer
 /// found the problem, `WHAT` is that cause, which is the [`source`](Error::source) rather
 /// than part of this error's own text: print the chain (`{:#}` with anyhow) to see it all,
-/// e.g. `scenes/x.toml: datasets[0].file: cannot read data/x.nhdr: No such file or directory`.
+/// e.g. `scenes/x.toml: datasets[0].file: cannot read data/x.nhdr: Permission denied (os error 13)`.
 #[derive(Debug)]
 pub struct SceneError {
     /// The scene file.
@@ -249,6 +249,20 @@ pub enum SceneErrorKind {
     /// A dataset file refused by the catalog or its reader.
     #[error(transparent)]
     Dataset(DatasetError),
+    /// A dataset key whose file does not exist under the data root of a local load
+    /// ([`Scene::load_in`](super::Scene::load_in)). The most common first-day error — a
+    /// scene whose data lives elsewhere — so it says where it looked and how to look
+    /// elsewhere rather than only the OS's "No such file or directory".
+    #[error("dataset key \"{key}\" names no file: looked for {}; {root}", looked_for.display())]
+    DataNotFound {
+        /// The key as written.
+        key: String,
+        /// The path it resolved to.
+        looked_for: PathBuf,
+        /// The data root it resolved under, and who chose it (boxed: it keeps
+        /// [`SceneError`] small, which every `Result` of the scene loader carries).
+        root: Box<DataRoot>,
+    },
     /// A channel name outside SPEC §1.1.
     #[error("unknown channel; expected one of {}", ChannelName::ALL.map(|c| c.name()).join(", "))]
     UnknownChannel,

@@ -78,7 +78,7 @@ pub(super) fn scene(text: &str, path: &Path, catalog: &dyn Catalog) -> Result<Sc
         };
         objects.push(object(o, &key, ds, &datasets[ds], straight).map_err(fail)?);
     }
-    render_budget(&image, &objects, &datasets).map_err(fail)?;
+    render_budget(&image, &camera, &objects, &datasets).map_err(fail)?;
     Ok(Scene { path: path.to_path_buf(), image, camera, render, datasets, objects })
 }
 
@@ -104,11 +104,13 @@ fn world_diagonal(placement: &Placement) -> f64 {
 }
 
 /// Refuses a scene whose worst-case sample count exceeds [`MAX_SAMPLES_PER_RENDER`]: every
-/// pixel's ray through every object's bounding-box diagonal, at the object's step (its
-/// world sampling distance, or one voxel: the VC diagonal of its extent). A clear refusal
-/// beats a render that cannot finish; termination 1.0 cannot shorten it either.
+/// ray that can meet an object (the pixels of its projected bounding rectangle) through its
+/// bounding-box diagonal, at the object's step (its world sampling distance, or one voxel:
+/// the VC diagonal of its extent). A clear refusal beats a render that cannot finish;
+/// termination 1.0 cannot shorten it either.
 pub(super) fn render_budget(
     image: &ImageSettings,
+    camera: &Camera,
     objects: &[Object],
     datasets: &[DatasetInfo],
 ) -> Result<(), KeyError> {
@@ -125,8 +127,11 @@ pub(super) fn render_budget(
             }
         })
         .collect();
-    let pixels = image.width as f64 * image.height as f64;
-    let total = pixels * per_ray.iter().sum::<f64>();
+    let total: f64 = objects
+        .iter()
+        .zip(&per_ray)
+        .map(|(o, n)| camera.pixels_covering(&o.placement.corners(), image.width, image.height) as f64 * n)
+        .sum();
     if total <= MAX_SAMPLES_PER_RENDER {
         return Ok(());
     }

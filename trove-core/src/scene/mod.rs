@@ -5,6 +5,7 @@
 //! then checks everything a user can get wrong and builds the model below, in which every
 //! invariant holds: a [`Scene`] is never half-valid, so renderers do not re-check.
 
+mod data_root;
 mod error;
 mod file;
 mod load;
@@ -14,11 +15,12 @@ mod tests;
 
 use std::path::{Path, PathBuf};
 
-use crate::dataset::{Catalog, DatasetInfo, FsCatalog};
+use crate::dataset::{Catalog, DatasetInfo};
 use crate::geometry::{Camera, Placement};
 use crate::interp::Interpolation;
 use crate::mapping::{ColourMap, OpacityMap};
 
+pub use data_root::{DataRoot, DATA_ROOT_ENV};
 pub use error::{SceneError, SceneErrorKind};
 
 /// Largest image side accepted, in pixels.
@@ -139,23 +141,37 @@ pub struct Scene {
 impl Scene {
     /// Reads and validates a scene file, opening every dataset's headers so that size
     /// mismatches are reported before anything renders. Dataset keys are paths relative to
-    /// the scene's folder ([`FsCatalog::trusting`]).
+    /// the scene's folder ([`DataRoot::SceneFolder`]).
     pub fn load(path: impl AsRef<Path>) -> Result<Scene, SceneError> {
+        Scene::load_in(path, &DataRoot::SceneFolder)
+    }
+
+    /// [`Scene::load`] with dataset keys resolved under `root`, the folder a local render's
+    /// `--data-root` / `TROVE_DATA` / scene-folder rule chose (keys are trusted paths there:
+    /// `..` and absolute paths allowed, [`FsCatalog::trusting`]). A key whose file does not
+    /// exist is [`SceneErrorKind::DataNotFound`], naming the key, the path looked for and the
+    /// root.
+    ///
+    /// [`FsCatalog::trusting`]: crate::dataset::FsCatalog::trusting
+    pub fn load_in(path: impl AsRef<Path>, root: &DataRoot) -> Result<Scene, SceneError> {
         let path = path.as_ref();
         let text = std::fs::read_to_string(path).map_err(|e| SceneError {
             file: path.to_path_buf(),
             key: None,
             kind: SceneErrorKind::Read(e),
         })?;
-        Scene::parse(&text, path)
+        Scene::parse_in(&text, path, root)
     }
 
     /// Validates scene text as if read from `path` (relative dataset paths resolve against
-    /// its folder, [`FsCatalog::trusting`]).
+    /// its folder, [`DataRoot::SceneFolder`]).
     pub fn parse(text: &str, path: impl AsRef<Path>) -> Result<Scene, SceneError> {
-        let path = path.as_ref();
-        let folder = path.parent().map(Path::to_path_buf).unwrap_or_default();
-        Scene::parse_with(text, path, &FsCatalog::trusting(folder))
+        Scene::parse_in(text, path, &DataRoot::SceneFolder)
+    }
+
+    /// [`Scene::parse`] with dataset keys resolved under `root` (see [`Scene::load_in`]).
+    pub fn parse_in(text: &str, path: impl AsRef<Path>, root: &DataRoot) -> Result<Scene, SceneError> {
+        data_root::parse_in(text, path.as_ref(), root)
     }
 
     /// Validates scene text, describing its dataset keys through `catalog` (a sandboxed
@@ -164,7 +180,8 @@ impl Scene {
         load::scene(text, path.as_ref(), catalog)
     }
 
-    /// The scene file (for messages; relative dataset keys were resolved against its folder).
+    /// The scene file, for messages (its dataset keys were resolved under the data root,
+    /// which is its folder unless one was given).
     pub fn path(&self) -> &Path {
         &self.path
     }
@@ -202,7 +219,7 @@ impl Scene {
         let width = load::image_side(width.into(), "image.width").map_err(fail)?;
         let height = load::image_side(height.into(), "image.height").map_err(fail)?;
         let image = ImageSettings { width, height, ..self.image };
-        load::render_budget(&image, &self.objects, &self.datasets).map_err(fail)?;
+        load::render_budget(&image, &self.camera, &self.objects, &self.datasets).map_err(fail)?;
         self.image = image;
         Ok(self)
     }

@@ -9,7 +9,7 @@
 
 use std::path::{Path, PathBuf};
 
-use super::{Scene, SceneErrorKind as Kind, MAX_IMAGE_SIDE, MAX_OBJECTS};
+use super::{DataRoot, Scene, SceneErrorKind as Kind, MAX_IMAGE_SIDE, MAX_OBJECTS};
 use crate::dataset::generator::GeneratorError;
 use crate::dataset::{
     ChannelName, DataFile, DatasetError, DimsError, FileInfo, FileKind, FsCatalog, KeyProblem, VoxelType,
@@ -685,13 +685,14 @@ fn nrrd_size_and_dims_must_agree() {
 fn nonexistent_files_are_refused_naming_the_path() {
     let dir = scratch("missing-files");
     let gen = "generator = { kind = \"sphere\", radius = 0.4 }";
-    // The error names the file (resolved against the scene's folder, not the working
-    // directory) and keeps the OS error's kind.
+    // The error names the key and the file it looked for (resolved against the scene's
+    // folder, not the working directory), and the data root it looked in.
     let missing = |name: &str| {
         let file = dir.join(name);
+        let name = name.to_string();
         move |k: &Kind| {
-            matches!(k, Kind::Dataset(e @ DatasetError::Io { path, source })
-                if *path == file && source.kind() == std::io::ErrorKind::NotFound && !e.is_retryable())
+            matches!(k, Kind::DataNotFound { key, looked_for, root }
+                if *key == name && *looked_for == file && **root == DataRoot::SceneFolder)
         }
     };
     let text = with(&[(gen, "raw = \"absent.raw\"\ntype = \"u8\"")]);
@@ -706,6 +707,48 @@ fn nonexistent_files_are_refused_naming_the_path() {
     refusal(&dir, &text, Some("datasets[1].image"), missing("absent.png"));
     let text = with(&[(RGBA, "image = \"sub/absent.png\"\n")]);
     refusal(&dir, &text, Some("datasets[1].image"), missing("sub/absent.png"));
+
+    // A header found under the data root whose own data file is missing is a fault of that
+    // header, not of the data root: the error names the data file and keeps the OS's kind.
+    std::fs::write(
+        dir.join("lost.nhdr"),
+        "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 4 4 4\nencoding: raw\ndata file: lost.raw\n",
+    )
+    .unwrap();
+    let lost = dir.join("lost.raw");
+    let text = with(&[(BALL, "file = \"lost.nhdr\"\n")]);
+    refusal(&dir, &text, Some("datasets[0].file"), |k| {
+        matches!(k, Kind::Dataset(e @ DatasetError::Io { path, source })
+            if *path == lost && source.kind() == std::io::ErrorKind::NotFound && !e.is_retryable())
+    });
+}
+
+#[test]
+fn keys_resolve_under_the_data_root_given() {
+    let data = scratch("data-root");
+    let scenes = scratch("data-root-scenes");
+    std::fs::write(data.join("ball.raw"), [7u8; 64]).unwrap();
+    let gen = "generator = { kind = \"sphere\", radius = 0.4 }";
+    let text = with(&[(gen, "raw = \"ball.raw\"\ntype = \"u8\"")]);
+    let path = scenes.join(NAME);
+    for root in [DataRoot::Given(data.clone()), DataRoot::Environment(data.clone())] {
+        let scene = Scene::parse_in(&text, &path, &root).unwrap_or_else(|e| panic!("{root:?}: {e}"));
+        assert_eq!(scene.path(), path, "messages still name the scene file");
+    }
+    std::fs::write(&path, &text).unwrap();
+    assert!(Scene::load_in(&path, &DataRoot::Given(data.clone())).is_ok());
+    // The scene's folder does not hold it, and a root given replaces that folder.
+    let e = Scene::load(&path).unwrap_err();
+    let looked = scenes.join("ball.raw");
+    assert!(
+        matches!(&e.kind, Kind::DataNotFound { key, looked_for, root }
+            if key == "ball.raw" && *looked_for == looked && **root == DataRoot::SceneFolder),
+        "{e:?}"
+    );
+    let elsewhere = DataRoot::Environment(scenes.join("elsewhere"));
+    let e = Scene::load_in(&path, &elsewhere).unwrap_err();
+    assert_eq!(e.key.as_deref(), Some("datasets[0].channels.voxel.raw"));
+    assert!(matches!(&e.kind, Kind::DataNotFound { root, .. } if **root == elsewhere), "{e:?}");
 }
 
 #[test]
@@ -1177,9 +1220,34 @@ fn messages_name_the_file_the_key_and_what_was_expected() {
     let gen = "generator = { kind = \"sphere\", radius = 0.4 }";
     let absent = dir.join("absent.raw");
     let text = with(&[(gen, "raw = \"absent.raw\"\ntype = \"u8\"")]);
-    let got = in_dir(&text);
-    let want = format!("{}: datasets[0].channels.voxel.raw: cannot read {}: ", scene.display(), absent.display());
-    assert!(got.starts_with(&want) && got.len() > want.len(), "{got}");
+    assert_eq!(
+        in_dir(&text),
+        format!(
+            "{}: datasets[0].channels.voxel.raw: dataset key \"absent.raw\" names no file: looked for {}; keys \
+             resolve in the scene file's folder when no data root is given; pass --data-root DIR or set \
+             TROVE_DATA=DIR to name the folder that holds the data (docs/data.md)",
+            scene.display(),
+            absent.display()
+        )
+    );
+    let under = |root: &DataRoot| shown(&Scene::parse_in(&text, &scene, root).unwrap_err());
+    let data = Path::new("/data/trove");
+    let looked = data.join("absent.raw");
+    assert_eq!(
+        under(&DataRoot::Given(data.into())),
+        format!(
+            "{}: datasets[0].channels.voxel.raw: dataset key \"absent.raw\" names no file: looked for {}; the \
+             data root is {} (--data-root)",
+            scene.display(),
+            looked.display(),
+            data.display()
+        )
+    );
+    let env = under(&DataRoot::Environment(data.into()));
+    assert!(
+        env.ends_with(&format!("the data root is {} (from TROVE_DATA; --data-root overrides it)", data.display())),
+        "{env}"
+    );
     std::fs::write(dir.join("ball.raw"), [0u8; 100]).unwrap();
     let text = with(&[(gen, "raw = \"ball.raw\"\ntype = \"u16\"")]);
     assert_eq!(
