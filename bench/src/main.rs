@@ -9,6 +9,7 @@ mod accuracy;
 mod distorted;
 mod farm;
 mod farm_sim;
+mod peers;
 mod table1;
 
 use std::process::ExitCode;
@@ -44,6 +45,10 @@ enum Command {
     /// The farm on this machine: a coordinator and 1–3 worker processes on loopback
     /// against local mode, in time, bytes on the wire and coordinator memory.
     Farm(farm::Args),
+    /// Issue 10: TROVE against VTK's fixed-point CPU ray caster on the CT head and the
+    /// synthetic 256³ volume, same view, step and threads, alternating runs; medians, the
+    /// time ratio, samples per second and each image's error against a converged TROVE image.
+    Peers(peers::Args),
 }
 
 fn main() -> ExitCode {
@@ -57,6 +62,7 @@ fn main() -> ExitCode {
         Command::Accuracy(args) => accuracy::run(args),
         Command::FarmSim(args) => farm_sim::run(args),
         Command::Farm(args) => farm::run(args),
+        Command::Peers(args) => peers::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

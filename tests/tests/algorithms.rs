@@ -163,7 +163,6 @@ fn grouped_early_termination_casts_about_as_many_samples_as_per_ray() {
     }
 }
 
-/// Four datasets of 24³ f32 (55 296 bytes each) in rows, so rays alternate between them.
 /// A wide slab of `depth` in z from `z0`, covering x and y over [−1, 2], of a constant
 /// dataset `dataset`, with constant opacity `opacity` and an explicit sampling distance.
 fn constant_slab(name: &str, dataset: &str, z0: f64, depth: f64, opacity: f64, step: f64) -> String {
@@ -215,6 +214,8 @@ fn samples_skipped_counts_every_sample_position_hidden_behind_an_opaque_object()
     }
 }
 
+/// Four datasets of 24³ f32 in rows, so rays alternate between them; with the total bytes
+/// they occupy once loaded (55 296 voxel bytes each plus their macrocell ranges).
 fn budget_scene(dir: &Path) -> (Scene, u64) {
     let mut text = header(48, 0.999) + &datasets(4, 24);
     // An unused dataset must never be loaded.
@@ -227,7 +228,10 @@ fn budget_scene(dir: &Path) -> (Scene, u64) {
             i += 1;
         }
     }
-    (parse(dir, &text), 4 * 24u64.pow(3) * 4)
+    let scene = parse(dir, &text);
+    let total = scene.datasets()[..4].iter().map(|d| d.resident_bytes()).sum();
+    assert!(total > 4 * 24u64.pow(3) * 4);
+    (scene, total)
 }
 
 #[test]
@@ -319,7 +323,9 @@ fn under_a_budget_a_mapped_raw_file_is_read_into_memory_and_counted() {
         + &format!("[[datasets]]\nname = \"d0\"\ndims = [{n}, {n}, {n}]\n[datasets.channels.voxel]\nraw = \"v.raw\"\ntype = \"f32\"\n")
         + &object("o", 0, [-0.5, -0.5, -0.5], 1.0, false);
     let scene = parse(&dir, &text);
-    let bytes = (n * n * n * 4) as u64;
+    // The voxels and their macrocell ranges.
+    let bytes = scene.datasets()[0].resident_bytes();
+    assert!(bytes > (n * n * n * 4) as u64);
     let mapped = render_with(&scene, Algorithm::Grouped, None).unwrap();
     let copied = render_with(&scene, Algorithm::Grouped, Some(bytes)).unwrap();
     assert_eq!(mapped.image, copied.image);

@@ -6,7 +6,9 @@
 //!
 //! The datasets are generated (`marschner_lobb`), so a scene needs no files: the workload
 //! is taken from its intersection alone (which never reads a voxel), and the calibration
-//! casts real voxels of the same family at a small size.
+//! casts real voxels of the same family at a small size. The opacity map is non-zero at
+//! every value, so empty-space skipping never applies and every sample position the
+//! intersection counts is a sample a worker casts.
 
 use std::fmt::Write as _;
 
@@ -87,7 +89,7 @@ impl SceneSpec {
                  [datasets.channels.voxel]\ngenerator = {{ kind = \"marschner_lobb\" }}\n\
                  [[objects]]\nname = \"o{i}\"\ndataset = \"d{i}\"\nsampling_distance = {step:?}\n\
                  colour = {{ type = \"ramp\", points = [[0.2, 0.2, 0.3, 0.9], [0.8, 1.0, 0.9, 0.6]] }}\n\
-                 opacity = {{ type = \"ramp\", points = [[0.3, 0.0], [0.9, 0.02]] }}\n\
+                 opacity = {{ type = \"ramp\", points = [[0.3, 0.001], [0.9, 0.02]] }}\n\
                  transform = {{ matrix = [[{side:?}, 0, 0, {x:?}], [0, {side:?}, 0, {y:?}], [0, 0, {side:?}, {z:?}], [0, 0, 0, 1]] }}\n\n"
             );
         }

@@ -321,6 +321,145 @@ impl Channel {
     }
 }
 
+/// Random access to a channel's voxels as f32 (SPEC §3.1), for the sampler and the
+/// macrocell scan. [`ChannelReader`] implements it by matching on the storage type at every
+/// read; the typed views below ([`U8Voxels`], [`U16LeVoxels`], ...) decode one type only,
+/// so code made generic over `Voxels` is compiled once per type with no dispatch per voxel.
+pub trait Voxels: Copy + Send + Sync {
+    /// Whether every value is finite (integer types), so scans need not test.
+    const ALWAYS_FINITE: bool = false;
+
+    /// The value at linear index `i` (x fastest, then y, then z). Panics if out of range.
+    fn get(&self, i: usize) -> f32;
+
+    /// [`Voxels::get`] widened to f64 (the same value: integer types convert directly).
+    #[inline(always)]
+    fn get_f64(&self, i: usize) -> f64 {
+        self.get(i) as f64
+    }
+
+    /// Decodes `out.len()` consecutive voxels from index `start` (a row, for scans).
+    #[inline]
+    fn decode(&self, start: usize, out: &mut [f32]) {
+        for (k, o) in out.iter_mut().enumerate() {
+            *o = self.get(start + k);
+        }
+    }
+
+    /// The values at `i` and `i + dx` (`dx` 0 or 1: a voxel and its neighbour along x, or
+    /// the voxel twice on a single-voxel axis), as f64: the x pairs of a trilinear stencil,
+    /// read with one bounds check and one load where the type allows.
+    #[inline(always)]
+    fn pair(&self, i: usize, dx: usize) -> [f64; 2] {
+        [self.get_f64(i), self.get_f64(i + dx)]
+    }
+}
+
+impl Voxels for ChannelReader<'_> {
+    #[inline(always)]
+    fn get(&self, i: usize) -> f32 {
+        self.read(i)
+    }
+}
+
+macro_rules! typed_voxels {
+    ($(#[$doc:meta])* $name:ident, $variant:ident, $ty:ty, $bytes:literal, $from:ident, $finite:literal) => {
+        $(#[$doc])*
+        #[derive(Clone, Copy, Debug)]
+        pub struct $name<'a>(&'a [u8]);
+
+        impl<'a> $name<'a> {
+            /// The typed view of `reader`, or `None` when it stores another type.
+            pub fn of(reader: ChannelReader<'a>) -> Option<$name<'a>> {
+                match reader {
+                    ChannelReader::$variant(b) => Some($name(b)),
+                    _ => None,
+                }
+            }
+
+            #[inline(always)]
+            fn number(&self, i: usize) -> $ty {
+                <$ty>::$from(self.0[$bytes * i..$bytes * i + $bytes].try_into().expect("one voxel"))
+            }
+        }
+
+        impl Voxels for $name<'_> {
+            const ALWAYS_FINITE: bool = $finite;
+
+            #[inline(always)]
+            fn get(&self, i: usize) -> f32 {
+                self.number(i) as f32
+            }
+
+            #[inline(always)]
+            fn get_f64(&self, i: usize) -> f64 {
+                // u8 and u16 widen exactly, to the value `get` gives; f32 too.
+                self.number(i) as f64
+            }
+
+            #[inline]
+            fn decode(&self, start: usize, out: &mut [f32]) {
+                let bytes = &self.0[$bytes * start..$bytes * (start + out.len())];
+                for (o, b) in out.iter_mut().zip(bytes.chunks_exact($bytes)) {
+                    let mut number = [0u8; $bytes];
+                    number.copy_from_slice(b);
+                    *o = <$ty>::$from(number) as f32;
+                }
+            }
+
+            #[inline(always)]
+            fn pair(&self, i: usize, dx: usize) -> [f64; 2] {
+                if dx == 1 {
+                    let b: &[u8; 2 * $bytes] = self.0[$bytes * i..$bytes * i + 2 * $bytes].try_into().expect("two voxels");
+                    let (lo, hi) = b.split_at($bytes);
+                    [
+                        <$ty>::$from(lo.try_into().expect("one voxel")) as f64,
+                        <$ty>::$from(hi.try_into().expect("one voxel")) as f64,
+                    ]
+                } else {
+                    [self.get_f64(i), self.get_f64(i + dx)]
+                }
+            }
+        }
+    };
+}
+
+typed_voxels!(
+    /// A `u8` channel.
+    U8Voxels, U8, u8, 1, from_le_bytes, true
+);
+typed_voxels!(
+    /// A little-endian `u16` channel.
+    U16LeVoxels, U16Le, u16, 2, from_le_bytes, true
+);
+typed_voxels!(
+    /// A little-endian `f32` channel.
+    F32LeVoxels, F32Le, f32, 4, from_le_bytes, false
+);
+
+/// A `bit` channel: one LSB-first bit per voxel.
+#[derive(Clone, Copy, Debug)]
+pub struct BitVoxels<'a>(&'a [u8]);
+
+impl<'a> BitVoxels<'a> {
+    /// The typed view of `reader`, or `None` when it stores another type.
+    pub fn of(reader: ChannelReader<'a>) -> Option<BitVoxels<'a>> {
+        match reader {
+            ChannelReader::Bit(b) => Some(BitVoxels(b)),
+            _ => None,
+        }
+    }
+}
+
+impl Voxels for BitVoxels<'_> {
+    const ALWAYS_FINITE: bool = true;
+
+    #[inline(always)]
+    fn get(&self, i: usize) -> f32 {
+        ((self.0[i >> 3] >> (i & 7)) & 1) as f32
+    }
+}
+
 /// A borrowed, decoded view of a channel's bytes.
 #[derive(Clone, Copy, Debug)]
 pub enum ChannelReader<'a> {

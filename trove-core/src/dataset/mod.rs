@@ -12,6 +12,7 @@ mod channel;
 mod error;
 pub(crate) mod generator;
 pub(crate) mod image_file;
+pub(crate) mod macrocell;
 mod mmap;
 pub(crate) mod nifti_file;
 pub(crate) mod nrrd;
@@ -20,7 +21,10 @@ mod source;
 mod volume;
 
 pub use catalog::{Catalog, DataFile, FileInfo, FileKind, FsCatalog, VolumeFormat};
-pub use channel::{Channel, ChannelName, ChannelReader, ChannelSizeError, Endian, VoxelBytes, VoxelType};
+pub use channel::{
+    BitVoxels, Channel, ChannelName, ChannelReader, ChannelSizeError, Endian, F32LeVoxels, U16LeVoxels, U8Voxels,
+    VoxelBytes, VoxelType, Voxels,
+};
 pub use error::{DatasetError, KeyProblem};
 pub use generator::{Generator, GeneratorError};
 pub use raw::StoredType;

@@ -4,6 +4,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use super::generator::Generator;
+use super::macrocell::{Macrocells, RANGED_CHANNELS};
 use super::raw::StoredType;
 use super::{Channel, ChannelName, DataFile, Dims, Endian, Volume, VoxelType};
 use crate::DatasetError;
@@ -136,9 +137,14 @@ impl DatasetInfo {
         self.channels.contains_key(&channel)
     }
 
-    /// Bytes the dataset occupies once loaded (what a memory budget counts).
+    /// Bytes the dataset occupies once loaded (what a memory budget counts): its channels
+    /// and the macrocell ranges [`Volume::new`] computes for `voxel` and `alpha`.
     pub fn resident_bytes(&self) -> u64 {
-        self.channels.values().map(|(ty, _)| ty.byte_len(self.dims.voxel_count()).unwrap_or(u64::MAX)).sum()
+        let ranged = RANGED_CHANNELS.iter().filter(|c| self.has(**c)).count() as u64;
+        self.channels
+            .values()
+            .map(|(ty, _)| ty.byte_len(self.dims.voxel_count()).unwrap_or(u64::MAX))
+            .fold(ranged * Macrocells::byte_len(self.dims), u64::saturating_add)
     }
 
     /// The dataset's identity: what it reads (each channel's file region, or its generator

@@ -2,9 +2,11 @@
 
 use std::collections::BTreeMap;
 use std::fmt;
+use std::sync::Arc;
 
 use thiserror::Error;
 
+use super::macrocell::{Macrocells, RANGED_CHANNELS};
 use super::{Channel, ChannelName};
 
 /// Why [`Dims::new`] refused three sizes.
@@ -83,18 +85,24 @@ impl fmt::Display for Dims {
     }
 }
 
-/// The resident voxels of one dataset: every channel it declares, each exactly `dims`.
+/// The resident voxels of one dataset: every channel it declares, each exactly `dims`, and
+/// the macrocell ranges of the channels opacity maps read (for empty-space skipping).
 #[derive(Clone, Debug)]
 pub struct Volume {
     dims: Dims,
     channels: BTreeMap<ChannelName, Channel>,
+    macrocells: BTreeMap<ChannelName, Arc<Macrocells>>,
 }
 
 impl Volume {
-    /// Assembles a volume; each channel was already checked against `dims` by
-    /// [`Channel::new`].
+    /// Assembles a volume and scans its `voxel` and `alpha` channels for macrocell ranges;
+    /// each channel was already checked against `dims` by [`Channel::new`].
     pub fn new(dims: Dims, channels: BTreeMap<ChannelName, Channel>) -> Volume {
-        Volume { dims, channels }
+        let macrocells = RANGED_CHANNELS
+            .iter()
+            .filter_map(|name| channels.get(name).map(|ch| (*name, Arc::new(Macrocells::compute(ch, dims)))))
+            .collect();
+        Volume { dims, channels, macrocells }
     }
 
     /// Dimensions.
@@ -112,13 +120,25 @@ impl Volume {
         self.channels.iter().map(|(n, c)| (*n, c))
     }
 
-    /// The same volume with every channel in owned memory (see [`Channel::owned_copy`]).
-    pub fn owned_copy(&self) -> Volume {
-        Volume { dims: self.dims, channels: self.channels.iter().map(|(n, c)| (*n, c.owned_copy())).collect() }
+    /// The macrocell ranges of `name`, for the channels in [`RANGED_CHANNELS`] the dataset has.
+    pub fn macrocells(&self, name: ChannelName) -> Option<&Macrocells> {
+        self.macrocells.get(&name).map(|m| &**m)
     }
 
-    /// Resident bytes (what a memory budget counts).
+    /// The same volume with every channel in owned memory (see [`Channel::owned_copy`]);
+    /// the macrocell ranges are owned already and shared.
+    pub fn owned_copy(&self) -> Volume {
+        Volume {
+            dims: self.dims,
+            channels: self.channels.iter().map(|(n, c)| (*n, c.owned_copy())).collect(),
+            macrocells: self.macrocells.clone(),
+        }
+    }
+
+    /// Resident bytes (what a memory budget counts): the channels and their macrocell
+    /// ranges. Equal to [`super::DatasetInfo::resident_bytes`] of the dataset it was loaded from.
     pub fn byte_len(&self) -> u64 {
-        self.channels.values().map(|c| c.byte_len() as u64).sum()
+        let ranges = self.macrocells.len() as u64 * Macrocells::byte_len(self.dims);
+        self.channels.values().map(|c| c.byte_len() as u64).sum::<u64>() + ranges
     }
 }

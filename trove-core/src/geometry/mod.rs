@@ -9,4 +9,4 @@ mod placement;
 
 pub use camera::{Camera, CameraError, CameraField, Ray};
 pub use pieces::{split_into_pieces, Piece, Segment};
-pub use placement::{sample_count, Extent, InversionPrecisionError, Placement, Shape, VcLine};
+pub use placement::{sample_count, Extent, InversionPrecisionError, LineSamples, Placement, SampleWalk, Shape, VcLine};

@@ -281,6 +281,55 @@ fn slab_segment(o: DVec3, d: DVec3) -> Option<(f64, f64)> {
     (t_near <= t_far && t_far.is_finite()).then_some((t_near, t_far))
 }
 
+/// The samples of a walk along a straight VC line (affine boxes, and distorted boxes in the
+/// paper's straight mode): sample k sits at `vc0 + delta·(k + ½)/n` (SPEC §4.2) and every
+/// sample has the same ℓ. Each coordinate is monotone in k (every rounding step is), which
+/// empty-space skipping relies on to jump over whole runs of samples.
+#[derive(Clone, Copy, Debug)]
+pub struct LineSamples {
+    vc0: DVec3,
+    delta: DVec3,
+    n: u64,
+    /// 1/n, so a sample's position costs a multiplication, not a division.
+    inv_n: f64,
+}
+
+impl LineSamples {
+    /// The number of samples.
+    #[inline]
+    pub fn len(&self) -> u64 {
+        self.n
+    }
+
+    /// Whether there is none (never: n ≥ 1).
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
+    }
+
+    /// The VC point of sample k: vc0 + δ·((k + ½)·(1/n)), within an ulp or two of
+    /// (k + ½)/n of the way along.
+    #[inline(always)]
+    pub fn point(&self, k: u64) -> [f64; 3] {
+        (self.vc0 + self.delta * ((k as f64 + 0.5) * self.inv_n)).to_array()
+    }
+
+    /// ℓ, the VC length of each sample's sub-interval.
+    #[inline]
+    pub fn ell(&self) -> f64 {
+        self.delta.length() / self.n as f64
+    }
+
+    /// VC at the piece's start.
+    pub fn start(&self) -> [f64; 3] {
+        self.vc0.to_array()
+    }
+
+    /// VC change over the whole piece.
+    pub fn delta(&self) -> [f64; 3] {
+        self.delta.to_array()
+    }
+}
+
 enum WalkState<'a> {
     /// Sample the straight VC line vc0 + s·delta, s ∈ [0, 1].
     Line { vc0: DVec3, delta: DVec3 },
@@ -313,6 +362,22 @@ impl SampleWalk<'_> {
     pub fn is_empty(&self) -> bool {
         self.n == 0
     }
+
+    /// The walk as a straight line of samples, when it is one (and has not started).
+    pub fn line(&self) -> Option<LineSamples> {
+        match self.state {
+            WalkState::Line { vc0, delta } if self.k == 0 => {
+                Some(LineSamples { vc0, delta, n: self.n, inv_n: 1.0 / self.n as f64 })
+            }
+            _ => None,
+        }
+    }
+
+    /// Whether every sample of the walk lies outside the box (its end points could not be
+    /// inverted): the piece contributes nothing.
+    pub fn is_failed(&self) -> bool {
+        matches!(self.state, WalkState::Failed)
+    }
 }
 
 /// One sample: VC point (None when outside the box) and ℓ in voxels.
@@ -331,7 +396,8 @@ impl Iterator for SampleWalk<'_> {
         let n = self.n as f64;
         match &mut self.state {
             WalkState::Line { vc0, delta } => {
-                let vc = *vc0 + *delta * ((k + 0.5) / n);
+                // As `LineSamples::point`.
+                let vc = *vc0 + *delta * ((k + 0.5) * (1.0 / n));
                 Some((Some(vc.to_array()), delta.length() / n))
             }
             WalkState::Exact { hex, prev_q, prev_vc } => {

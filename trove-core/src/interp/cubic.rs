@@ -175,6 +175,108 @@ pub fn weights(t: [f64; 3]) -> [f64; SAMPLES] {
     w
 }
 
+/// A bound on the sum of the negative weights, Σᵢ max(0, −wᵢ(t)), over the cell t ∈ [0, 1]³:
+/// with Σ wᵢ = 1 the fitted value then lies within N·(max − min) of the values it reads,
+/// which is how far empty-space skipping must widen a macrocell's range for the cubic.
+///
+/// Each weight is a polynomial of degree ≤ 3 per axis. On each of 8³ sub-cubes its tensor
+/// Bernstein coefficients of degree (3, 3, 3) bound it from below (convex hull property), so
+/// on that sub-cube Σᵢ max(0, −wᵢ) ≤ Σᵢ max(0, −min coefficient of wᵢ); N is the largest of
+/// these over the sub-cubes, widened for rounding. Computed once.
+pub fn negative_weight_bound() -> f64 {
+    static BOUND: OnceLock<f64> = OnceLock::new();
+    *BOUND.get_or_init(|| {
+        const PARTS: usize = 8;
+        let f = fit_matrix();
+        // Each weight as a 4×4×4 tensor of monomial coefficients c[x power][y power][z power].
+        let tensors: Vec<[[[f64; 4]; 4]; 4]> = (0..SAMPLES)
+            .map(|sample| {
+                let mut c = [[[0.0; 4]; 4]; 4];
+                for (&[a, b, e], row) in MONOMIALS.iter().zip(f.iter()) {
+                    c[a as usize][b as usize][e as usize] += row[sample];
+                }
+                c
+            })
+            .collect();
+        let choose = |n: usize, k: usize| -> f64 {
+            const C: [[f64; 4]; 4] =
+                [[1.0, 0.0, 0.0, 0.0], [1.0, 1.0, 0.0, 0.0], [1.0, 2.0, 1.0, 0.0], [1.0, 3.0, 3.0, 1.0]];
+            C[n][k]
+        };
+        // Per axis, the substitution x = a + h·s followed by the change to the Bernstein basis
+        // of degree 3 in s is one 4×4 matrix: bernstein[i] = Σ_p m[i][p]·monomial[p].
+        let axis_matrix = |a: f64, h: f64| -> [[f64; 4]; 4] {
+            let mut m = [[0.0; 4]; 4];
+            for (i, row) in m.iter_mut().enumerate() {
+                for (p, out) in row.iter_mut().enumerate() {
+                    // x^p = Σ_q C(p, q)·a^(p−q)·h^q·s^q, and s^q has Bernstein coefficient
+                    // C(i, q)/C(3, q) at index i.
+                    *out = (0..=p.min(i))
+                        .map(|q| choose(p, q) * a.powi((p - q) as i32) * h.powi(q as i32) * choose(i, q) / choose(3, q))
+                        .sum();
+                }
+            }
+            m
+        };
+        let h = 1.0 / PARTS as f64;
+        let matrices: Vec<[[f64; 4]; 4]> = (0..PARTS).map(|k| axis_matrix(k as f64 * h, h)).collect();
+        // Applied one axis at a time: 3·4⁴ products per weight and sub-cube.
+        type Tensor = [[[f64; 4]; 4]; 4];
+        let along = |c: &Tensor, m: &[[f64; 4]; 4], axis: usize| -> Tensor {
+            let mut out = [[[0.0; 4]; 4]; 4];
+            for i in 0..4 {
+                for u in 0..4 {
+                    for v in 0..4 {
+                        out[i][u][v] = (0..4)
+                            .map(|p| {
+                                m[i][p]
+                                    * match axis {
+                                        0 => c[p][u][v],
+                                        1 => c[u][p][v],
+                                        _ => c[u][v][p],
+                                    }
+                            })
+                            .sum();
+                    }
+                }
+            }
+            // Put the transformed axis back in its place.
+            let mut placed = [[[0.0; 4]; 4]; 4];
+            for i in 0..4 {
+                for u in 0..4 {
+                    for v in 0..4 {
+                        match axis {
+                            0 => placed[i][u][v] = out[i][u][v],
+                            1 => placed[u][i][v] = out[i][u][v],
+                            _ => placed[u][v][i] = out[i][u][v],
+                        }
+                    }
+                }
+            }
+            placed
+        };
+        let mut worst = 0.0f64;
+        for mx in &matrices {
+            let along_x: Vec<Tensor> = tensors.iter().map(|c| along(c, mx, 0)).collect();
+            for my in &matrices {
+                let along_xy: Vec<Tensor> = along_x.iter().map(|c| along(c, my, 1)).collect();
+                for mz in &matrices {
+                    let negative: f64 = along_xy
+                        .iter()
+                        .map(|c| {
+                            let b = along(c, mz, 2);
+                            let lowest = b.iter().flatten().flatten().copied().fold(f64::INFINITY, f64::min);
+                            (-lowest).max(0.0)
+                        })
+                        .sum();
+                    worst = worst.max(negative);
+                }
+            }
+        }
+        worst * (1.0 + 1e-9) + 1e-9
+    })
+}
+
 /// Monomial-coefficient vector of `Σ coef · x^e0 y^e1 z^e2` (all exponents must be among eq. 4's).
 fn poly(terms: &[(f64, [u8; 3])]) -> [f64; TERMS] {
     let mut out = [0.0; TERMS];
@@ -446,6 +548,26 @@ mod tests {
                 assert!((w[i] - wm[sigma(i)]).abs() < 1e-12, "axis {a}, sample {i}");
             }
         }
+    }
+
+    #[test]
+    fn negative_weights_stay_within_their_bound_over_the_cell() {
+        let bound = negative_weight_bound();
+        let mut worst = 0.0f64;
+        let steps = 12;
+        for i in 0..=steps {
+            for j in 0..=steps {
+                for k in 0..=steps {
+                    let t = [i, j, k].map(|v| v as f64 / steps as f64);
+                    let negative: f64 = weights(t).iter().map(|w| (-w).max(0.0)).sum();
+                    worst = worst.max(negative);
+                }
+            }
+        }
+        assert!(worst > 0.0, "the fitted cubic overshoots somewhere");
+        assert!(worst <= bound, "sampled {worst} exceeds the bound {bound}");
+        // A bound, but not a loose one.
+        assert!(bound < 1.5 * worst, "bound {bound} against sampled {worst}");
     }
 
     fn eval(lambda: &[f64], p: [f64; 3]) -> f64 {

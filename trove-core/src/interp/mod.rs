@@ -1,12 +1,14 @@
 //! Interpolation functions ℐ (paper §2.3.4, SPEC §3.3 and §4.5).
 //!
-//! A sample point in volume coordinates becomes a [`Stencil`]: the voxels read and how they
-//! are weighted. The stencil is built once per sample and applied to every channel the
-//! object's mappings read, so a raw-RGBA object pays for one index computation, not four.
+//! A sample point in volume coordinates becomes a stencil ([`Interp::locate`]): the voxels
+//! read and how they are weighted. The stencil is built once per sample and applied to every
+//! channel the object's mappings read, so a raw-RGBA object pays for one index computation,
+//! not four. Each function is its own type implementing [`Interp`], so the sampler compiles
+//! one loop per function; [`DynInterp`] chooses per sample and is the general path.
 
 pub mod cubic;
 
-use crate::dataset::{ChannelReader, Dims};
+use crate::dataset::{Dims, Voxels};
 
 /// Which interpolation function an object uses.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -41,127 +43,515 @@ impl Interpolation {
 /// noise in the geometry.
 pub const SNAP_TOLERANCE: f64 = 1e-9;
 
-/// `u` (≥ 0, already clamped) snapped to the nearest multiple of `step` when within the
-/// tolerance, relative to an axis of `n` voxels. Truncating casts stand in for `round` and
+/// One axis of a dataset with what every sample needs precomputed. The arithmetic is the
+/// SPEC §3.3/§4.5 rule, written once: clamp to [0, n − 1], snap to the nearest integer (or
+/// half-integer) within `SNAP_TOLERANCE · n`. Truncating casts stand in for `round` and
 /// `floor` on these non-negative values: without SSE4.1 those are libm calls, and this runs
 /// for every axis of every sample.
-#[inline(always)]
-fn snap(u: f64, n: u32, step: f64) -> f64 {
-    let r = ((u / step + 0.5) as u64) as f64 * step;
-    if (u - r).abs() <= SNAP_TOLERANCE * n as f64 {
-        r
-    } else {
-        u
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Axis {
+    /// Voxels along the axis.
+    n: u32,
+    /// n − 1, the largest coordinate.
+    last: f64,
+    /// The snapping tolerance, SNAP_TOLERANCE · n.
+    tol: f64,
+    /// max(n − 2, 0): the largest lower cell corner.
+    x0_max: f64,
+}
+
+impl Axis {
+    fn new(n: u32) -> Axis {
+        Axis { n, last: (n - 1) as f64, tol: SNAP_TOLERANCE * n as f64, x0_max: (n as f64 - 2.0).max(0.0) }
+    }
+
+    /// Trilinear's (and the cubic's) cell along this axis: lower corner x0 and offset
+    /// t = u − x0 ∈ [0, 1].
+    #[inline(always)]
+    fn cell(&self, u: f64) -> (u32, f64) {
+        let u = u.clamp(0.0, self.last);
+        let r = ((u + 0.5) as i64) as f64;
+        let u = if (u - r).abs() <= self.tol { r } else { u };
+        let x0 = ((u as i64) as f64).min(self.x0_max);
+        (x0 as u32, u - x0)
+    }
+
+    /// The nearest voxel, the upper one at a tie.
+    #[inline(always)]
+    fn nearest(&self, u: f64) -> u32 {
+        let u = u.clamp(0.0, self.last);
+        let r = ((u / 0.5 + 0.5) as i64) as f64 * 0.5;
+        let u = if (u - r).abs() <= self.tol { r } else { u };
+        ((u + 0.5) as i64 as u32).min(self.n - 1)
     }
 }
 
-/// One axis of trilinear's cell: lower index x0, upper index (clamped) and offset t.
-#[inline(always)]
-fn cell_axis(u: f64, n: u32) -> (usize, f64) {
-    let last = (n - 1) as f64;
-    let u = snap(u.clamp(0.0, last), n, 1.0);
-    let x0 = ((u as u64) as f64).min((n as f64 - 2.0).max(0.0));
-    (x0 as usize, u - x0)
+fn axes(dims: Dims) -> [Axis; 3] {
+    dims.as_array().map(Axis::new)
 }
 
-/// The voxels a sample reads and their weights.
-// A per-sample temporary on the stack: boxing the cubic variant would allocate per sample.
-#[allow(clippy::large_enum_variant)]
-#[derive(Clone, Debug)]
-pub enum Stencil {
-    /// One voxel.
-    Nearest(usize),
-    /// The 8 cell corners (index x + 2y + 4z) and the per-axis weights h.
-    Linear {
-        /// Linear voxel indices of the corners.
-        idx: [usize; 8],
-        /// Weight of the upper corner along x, y, z.
-        h: [f64; 3],
-    },
-    /// The 32 points of the cubic fit (ordering in [`cubic`]) and their weights.
-    Cubic {
-        /// Linear voxel indices.
-        idx: [usize; 32],
-        /// Weights; Σ wᵢ vᵢ is the fitted field at the sample.
-        w: [f64; 32],
-    },
-}
+/// An interpolation function bound to a dataset's dims: where a sample reads and how it
+/// weights what it reads. The sampler is generic over it, so each function is compiled into
+/// its own loop; [`DynInterp`] is the general instance that decides per sample, kept for
+/// rare combinations and as the reference the specialised loops are tested against.
+pub trait Interp: Copy + Send + Sync {
+    /// What one sample reads: computed once per sample, applied to every channel read.
+    type Stencil: Copy;
 
-impl Stencil {
-    /// The stencil of `interp` at VC point `vc` in a dataset of `dims`. Coordinates are
-    /// clamped to the dataset first (SPEC §3.3), so every index is valid.
-    #[inline]
-    pub fn new(interp: &Interpolation, dims: Dims, vc: [f64; 3]) -> Stencil {
-        let n = dims.as_array();
-        match interp {
-            Interpolation::Nearest => {
-                let i: [usize; 3] = std::array::from_fn(|a| {
-                    let last = (n[a] - 1) as f64;
-                    let u = snap(vc[a].clamp(0.0, last), n[a], 0.5);
-                    ((u + 0.5) as usize).min(n[a] as usize - 1)
-                });
-                Stencil::Nearest(dims.index(i[0], i[1], i[2]))
-            }
-            Interpolation::Trilinear | Interpolation::Nonlinear { .. } => {
-                let mut lo = [0usize; 3];
-                let mut hi = [0usize; 3];
-                let mut h = [0.0; 3];
-                for a in 0..3 {
-                    let (x0, t) = cell_axis(vc[a], n[a]);
-                    lo[a] = x0;
-                    hi[a] = (x0 + 1).min(n[a] as usize - 1);
-                    h[a] = match interp {
-                        Interpolation::Nonlinear { omega } => omega[2] * t * t + omega[1] * t + omega[0],
-                        _ => t,
-                    };
-                }
-                let idx = std::array::from_fn(|c| {
-                    let pick = |a: usize| if c >> a & 1 == 0 { lo[a] } else { hi[a] };
-                    dims.index(pick(0), pick(1), pick(2))
-                });
-                Stencil::Linear { idx, h }
-            }
-            Interpolation::Cubic => {
-                let mut x0 = [0usize; 3];
-                let mut t = [0.0; 3];
-                for a in 0..3 {
-                    (x0[a], t[a]) = cell_axis(vc[a], n[a]);
-                }
-                let at = |a: usize, off: i64| (x0[a] as i64 + off).clamp(0, n[a] as i64 - 1) as usize;
-                let mut idx = [0usize; 32];
-                for c in 0..8 {
-                    let corner = [c & 1, c >> 1 & 1, c >> 2 & 1];
-                    idx[c] = dims.index(at(0, corner[0] as i64), at(1, corner[1] as i64), at(2, corner[2] as i64));
-                    for a in 0..3 {
-                        let mut off = corner.map(|v| v as i64);
-                        off[a] = if corner[a] == 0 { -1 } else { 2 };
-                        idx[8 + 3 * c + a] = dims.index(at(0, off[0]), at(1, off[1]), at(2, off[2]));
-                    }
-                }
-                Stencil::Cubic { idx, w: cubic::weights(t) }
-            }
-        }
-    }
+    /// The stencil at VC point `vc`. Coordinates are clamped to the dataset first (SPEC
+    /// §3.3), so every index is valid.
+    fn locate(&self, vc: [f64; 3]) -> Self::Stencil;
 
     /// The interpolated value of one channel. Non-finite when any voxel the stencil reads is
     /// non-finite, zero weights included (SPEC §4.5): 0·∞ is NaN, so plain arithmetic
     /// carries the poison through and the caller tests the result once.
-    #[inline]
-    pub fn apply(&self, ch: &ChannelReader<'_>) -> f64 {
-        match self {
-            Stencil::Nearest(i) => ch.read(*i) as f64,
-            Stencil::Linear { idx, h } => {
-                let v = idx.map(|i| ch.read(i) as f64);
-                let lerp = |v0: f64, v1: f64, h: f64| v0 - h * (v0 - v1);
-                let x00 = lerp(v[0], v[1], h[0]);
-                let x10 = lerp(v[2], v[3], h[0]);
-                let x01 = lerp(v[4], v[5], h[0]);
-                let x11 = lerp(v[6], v[7], h[0]);
-                lerp(lerp(x00, x10, h[1]), lerp(x01, x11, h[1]), h[2])
-            }
-            Stencil::Cubic { idx, w } => idx.iter().zip(w).map(|(&i, &w)| w * ch.read(i) as f64).sum(),
+    fn apply<V: Voxels>(&self, s: &Self::Stencil, voxels: &V) -> f64;
+
+    /// The stencil's base voxel per axis (the nearest voxel, or the cell's lower corner),
+    /// whose macrocell ([`crate::dataset::macrocell`]) the sample belongs to. Along a
+    /// straight line of samples each component is monotone in the sample index.
+    fn base(&self, s: &Self::Stencil) -> [u32; 3];
+
+    /// How many macrocells around its base cell a stencil reaches (0, or 1 for the cubic).
+    fn cell_radius(&self) -> u32;
+
+    /// Along `axis`: the largest base index, and where base index b starts in raw VC minus
+    /// b (0 for a cell corner, whose base is b over [b, b + 1); −½ for the nearest voxel,
+    /// over [b − ½, b + ½)). Rounding rules aside (see [`Interp::span_tolerance`]), a sample
+    /// based in macrocell c along the axis then has its coordinate in
+    /// `[c·B + offset, (c + 1)·B + offset)`, unbounded beyond the first and last cell.
+    fn base_grid(&self, axis: usize) -> (u32, f64);
+
+    /// How far (in VC) rounding rules can move a coordinate across a span's bound along
+    /// `axis`: the snapping tolerance of SPEC §4.5.
+    fn span_tolerance(&self, axis: usize) -> f64;
+
+    /// The values the interpolation can produce from voxels whose finite values lie in
+    /// `[lo, hi]`, rounding included: `integer` says the values are integers below 2⁵³
+    /// (bit, u8, u16, u32 channels), for which convex combinations in f64 stay in
+    /// `[lo, hi]` exactly.
+    fn value_bounds(&self, lo: f64, hi: f64, integer: bool) -> (f64, f64);
+}
+
+/// Slack for rounding in a few nested f64 operations over values up to `magnitude`.
+fn rounding_slack(magnitude: f64, operations: f64) -> f64 {
+    operations * f64::EPSILON * magnitude
+}
+
+/// The stencil of [`Nearest`]: one voxel.
+#[derive(Clone, Copy, Debug)]
+pub struct NearestAt {
+    index: usize,
+    base: [u32; 3],
+}
+
+/// `nearest` (SPEC §3.3): the nearest voxel; at an exact half-way point, the upper one.
+#[derive(Clone, Copy, Debug)]
+pub struct Nearest {
+    dims: Dims,
+    axes: [Axis; 3],
+}
+
+impl Nearest {
+    /// Bound to a dataset of `dims`.
+    pub fn new(dims: Dims) -> Nearest {
+        Nearest { dims, axes: axes(dims) }
+    }
+}
+
+impl Interp for Nearest {
+    type Stencil = NearestAt;
+
+    #[inline(always)]
+    fn locate(&self, vc: [f64; 3]) -> NearestAt {
+        let base = [self.axes[0].nearest(vc[0]), self.axes[1].nearest(vc[1]), self.axes[2].nearest(vc[2])];
+        NearestAt { index: self.dims.index(base[0] as usize, base[1] as usize, base[2] as usize), base }
+    }
+
+    #[inline(always)]
+    fn apply<V: Voxels>(&self, s: &NearestAt, voxels: &V) -> f64 {
+        voxels.get_f64(s.index)
+    }
+
+    #[inline(always)]
+    fn base(&self, s: &NearestAt) -> [u32; 3] {
+        s.base
+    }
+
+    fn cell_radius(&self) -> u32 {
+        0
+    }
+
+    fn base_grid(&self, axis: usize) -> (u32, f64) {
+        (self.axes[axis].n - 1, -0.5)
+    }
+
+    fn span_tolerance(&self, axis: usize) -> f64 {
+        self.axes[axis].tol
+    }
+
+    fn value_bounds(&self, lo: f64, hi: f64, _integer: bool) -> (f64, f64) {
+        // The value is a voxel's, exactly.
+        (lo, hi)
+    }
+}
+
+/// The per-axis weight of [`Linear`]: h(t).
+pub trait Weight: Copy + Send + Sync + std::fmt::Debug {
+    /// h(t) for t ∈ [0, 1].
+    fn h(&self, t: f64) -> f64;
+    /// Bounds on h over t ∈ [0, 1], rounding included.
+    fn range(&self) -> (f64, f64);
+}
+
+/// Trilinear's weight: h(t) = t.
+#[derive(Clone, Copy, Debug)]
+pub struct Identity;
+
+impl Weight for Identity {
+    #[inline(always)]
+    fn h(&self, t: f64) -> f64 {
+        t
+    }
+
+    fn range(&self) -> (f64, f64) {
+        (0.0, 1.0)
+    }
+}
+
+/// The nonlinear weight of eq. 3: h(t) = ω2·t² + ω1·t + ω0.
+#[derive(Clone, Copy, Debug)]
+pub struct Omega(pub [f64; 3]);
+
+impl Weight for Omega {
+    #[inline(always)]
+    fn h(&self, t: f64) -> f64 {
+        let omega = self.0;
+        omega[2] * t * t + omega[1] * t + omega[0]
+    }
+
+    fn range(&self) -> (f64, f64) {
+        // A quadratic on [0, 1]: its ends and its vertex bound it; widened for rounding.
+        let [w0, w1, w2] = self.0;
+        let vertex = if w2 != 0.0 { (-w1 / (2.0 * w2)).clamp(0.0, 1.0) } else { 0.0 };
+        let values = [0.0, 1.0, vertex].map(|t| w2 * t * t + w1 * t + w0);
+        let lo = values.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = values.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let slack = rounding_slack(w0.abs() + w1.abs() + w2.abs(), 8.0);
+        (lo - slack, hi + slack)
+    }
+}
+
+/// The stencil of [`Linear`]: the cell's lower corner and the per-axis weights.
+#[derive(Clone, Copy, Debug)]
+pub struct LinearAt {
+    index: usize,
+    base: [u32; 3],
+    h: [f64; 3],
+}
+
+/// `trilinear` (W = [`Identity`]) and `nonlinear` (W = [`Omega`]), in eq. 3's form
+/// v0 − h·(v0 − v1) per axis.
+#[derive(Clone, Copy, Debug)]
+pub struct Linear<W> {
+    dims: Dims,
+    axes: [Axis; 3],
+    /// Index offsets of the upper corner along x, y, z (0 along a single-voxel axis, whose
+    /// upper neighbour is clamped onto the voxel itself).
+    offsets: [usize; 3],
+    weight: W,
+    /// How far h leaves [0, 1] over t ∈ [0, 1] (0 for trilinear): lerps then overshoot.
+    h_excess: f64,
+}
+
+impl<W: Weight> Linear<W> {
+    /// Bound to a dataset of `dims`.
+    pub fn new(dims: Dims, weight: W) -> Linear<W> {
+        let [nx, ny, nz] = dims.as_array().map(|n| n as usize);
+        let offsets = [usize::from(nx > 1), if ny > 1 { nx } else { 0 }, if nz > 1 { nx * ny } else { 0 }];
+        let (h_lo, h_hi) = weight.range();
+        Linear { dims, axes: axes(dims), offsets, weight, h_excess: (-h_lo).max(h_hi - 1.0).max(0.0) }
+    }
+}
+
+impl<W: Weight> Interp for Linear<W> {
+    type Stencil = LinearAt;
+
+    #[inline(always)]
+    fn locate(&self, vc: [f64; 3]) -> LinearAt {
+        let (x, tx) = self.axes[0].cell(vc[0]);
+        let (y, ty) = self.axes[1].cell(vc[1]);
+        let (z, tz) = self.axes[2].cell(vc[2]);
+        LinearAt {
+            index: self.dims.index(x as usize, y as usize, z as usize),
+            base: [x, y, z],
+            h: [self.weight.h(tx), self.weight.h(ty), self.weight.h(tz)],
         }
     }
+
+    #[inline(always)]
+    fn apply<V: Voxels>(&self, s: &LinearAt, voxels: &V) -> f64 {
+        let [ox, oy, oz] = self.offsets;
+        let i = s.index;
+        let lerp = |[v0, v1]: [f64; 2], h: f64| v0 - h * (v0 - v1);
+        let h = s.h;
+        let x00 = lerp(voxels.pair(i, ox), h[0]);
+        let x10 = lerp(voxels.pair(i + oy, ox), h[0]);
+        let x01 = lerp(voxels.pair(i + oz, ox), h[0]);
+        let x11 = lerp(voxels.pair(i + oz + oy, ox), h[0]);
+        lerp([lerp([x00, x10], h[1]), lerp([x01, x11], h[1])], h[2])
+    }
+
+    #[inline(always)]
+    fn base(&self, s: &LinearAt) -> [u32; 3] {
+        s.base
+    }
+
+    fn cell_radius(&self) -> u32 {
+        0
+    }
+
+    fn base_grid(&self, axis: usize) -> (u32, f64) {
+        (self.axes[axis].x0_max as u32, 0.0)
+    }
+
+    fn span_tolerance(&self, axis: usize) -> f64 {
+        self.axes[axis].tol
+    }
+
+    fn value_bounds(&self, lo: f64, hi: f64, integer: bool) -> (f64, f64) {
+        let s = self.h_excess;
+        let magnitude = lo.abs().max(hi.abs());
+        if s == 0.0 && integer {
+            // Each lerp is a convex combination of two values in [lo, hi] whose difference
+            // is exact and whose rounding cannot leave the interval (module tests).
+            return (lo, hi);
+        }
+        // Each of the three nested lerps can overshoot its inputs' interval by s times its
+        // width on each side, so the width grows by (1 + 2s) per level.
+        let growth = (1.0 + 2.0 * s).powi(3);
+        let overshoot = (hi - lo) * (growth - 1.0) / 2.0 + rounding_slack(magnitude, 32.0 * growth);
+        (lo - overshoot, hi + overshoot)
+    }
+}
+
+/// The stencil of [`Cubic`]: the cell's lower corner and offsets.
+#[derive(Clone, Copy, Debug)]
+pub struct CubicAt {
+    x0: [u32; 3],
+    t: [f64; 3],
+}
+
+/// `cubic` (SPEC §3.3): the fitted 20-term field of eq. 4 over the 32-point stencil of the
+/// cell (see [`cubic`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Cubic {
+    dims: Dims,
+    axes: [Axis; 3],
+}
+
+impl Cubic {
+    /// Bound to a dataset of `dims`.
+    pub fn new(dims: Dims) -> Cubic {
+        Cubic { dims, axes: axes(dims) }
+    }
+}
+
+impl Interp for Cubic {
+    type Stencil = CubicAt;
+
+    #[inline(always)]
+    fn locate(&self, vc: [f64; 3]) -> CubicAt {
+        let (x, tx) = self.axes[0].cell(vc[0]);
+        let (y, ty) = self.axes[1].cell(vc[1]);
+        let (z, tz) = self.axes[2].cell(vc[2]);
+        CubicAt { x0: [x, y, z], t: [tx, ty, tz] }
+    }
+
+    #[inline]
+    fn apply<V: Voxels>(&self, s: &CubicAt, voxels: &V) -> f64 {
+        let n = self.dims.as_array();
+        let at = |a: usize, off: i64| (s.x0[a] as i64 + off).clamp(0, n[a] as i64 - 1) as usize;
+        let mut idx = [0usize; 32];
+        for c in 0..8 {
+            let corner = [c & 1, c >> 1 & 1, c >> 2 & 1];
+            idx[c] = self.dims.index(at(0, corner[0] as i64), at(1, corner[1] as i64), at(2, corner[2] as i64));
+            for a in 0..3 {
+                let mut off = corner.map(|v| v as i64);
+                off[a] = if corner[a] == 0 { -1 } else { 2 };
+                idx[8 + 3 * c + a] = self.dims.index(at(0, off[0]), at(1, off[1]), at(2, off[2]));
+            }
+        }
+        let w = cubic::weights(s.t);
+        idx.iter().zip(&w).map(|(&i, &w)| w * voxels.get_f64(i)).sum()
+    }
+
+    #[inline(always)]
+    fn base(&self, s: &CubicAt) -> [u32; 3] {
+        s.x0
+    }
+
+    fn cell_radius(&self) -> u32 {
+        1
+    }
+
+    fn base_grid(&self, axis: usize) -> (u32, f64) {
+        (self.axes[axis].x0_max as u32, 0.0)
+    }
+
+    fn span_tolerance(&self, axis: usize) -> f64 {
+        self.axes[axis].tol
+    }
+
+    fn value_bounds(&self, lo: f64, hi: f64, _integer: bool) -> (f64, f64) {
+        // Σ wᵢvᵢ with Σ wᵢ = 1 lies within [lo − N·w, hi + N·w], N bounding the sum of the
+        // negative weights over the cell; plus rounding of 32 products and of the weights.
+        let negative = cubic::negative_weight_bound();
+        let magnitude = lo.abs().max(hi.abs());
+        let overshoot = (hi - lo) * negative + rounding_slack(magnitude, 64.0 * (1.0 + 2.0 * negative) + 1e4);
+        (lo - overshoot, hi + overshoot)
+    }
+}
+
+/// Interpolation for maps that read no channel (constant colour and opacity): no stencil.
+#[derive(Clone, Copy, Debug)]
+pub struct NoInterp;
+
+impl Interp for NoInterp {
+    type Stencil = ();
+
+    #[inline(always)]
+    fn locate(&self, _vc: [f64; 3]) {}
+
+    #[inline(always)]
+    fn apply<V: Voxels>(&self, _s: &(), _voxels: &V) -> f64 {
+        0.0
+    }
+
+    fn base(&self, _s: &()) -> [u32; 3] {
+        [0; 3]
+    }
+
+    fn cell_radius(&self) -> u32 {
+        0
+    }
+
+    fn base_grid(&self, _axis: usize) -> (u32, f64) {
+        (0, 0.0)
+    }
+
+    fn span_tolerance(&self, _axis: usize) -> f64 {
+        0.0
+    }
+
+    fn value_bounds(&self, lo: f64, hi: f64, _integer: bool) -> (f64, f64) {
+        (lo, hi)
+    }
+}
+
+/// The stencil of [`DynInterp`].
+#[derive(Clone, Copy, Debug)]
+pub enum DynStencil {
+    /// Of [`Nearest`].
+    Nearest(NearestAt),
+    /// Of [`Linear`].
+    Linear(LinearAt),
+    /// Of [`Cubic`].
+    Cubic(CubicAt),
+}
+
+/// Any interpolation function, chosen per sample: the general instance of [`Interp`].
+#[derive(Clone, Copy, Debug)]
+pub enum DynInterp {
+    /// `nearest`.
+    Nearest(Nearest),
+    /// `trilinear`.
+    Trilinear(Linear<Identity>),
+    /// `nonlinear`.
+    Nonlinear(Linear<Omega>),
+    /// `cubic`.
+    Cubic(Cubic),
+}
+
+impl DynInterp {
+    /// `interp` bound to a dataset of `dims`.
+    pub fn new(interp: &Interpolation, dims: Dims) -> DynInterp {
+        match *interp {
+            Interpolation::Nearest => DynInterp::Nearest(Nearest::new(dims)),
+            Interpolation::Trilinear => DynInterp::Trilinear(Linear::new(dims, Identity)),
+            Interpolation::Nonlinear { omega } => DynInterp::Nonlinear(Linear::new(dims, Omega(omega))),
+            Interpolation::Cubic => DynInterp::Cubic(Cubic::new(dims)),
+        }
+    }
+}
+
+/// Delegates a method to the bound function; stencils of another kind never reach it.
+macro_rules! each {
+    ($self:ident, $f:ident => $body:expr) => {
+        match $self {
+            DynInterp::Nearest($f) => $body,
+            DynInterp::Trilinear($f) => $body,
+            DynInterp::Nonlinear($f) => $body,
+            DynInterp::Cubic($f) => $body,
+        }
+    };
+}
+
+impl Interp for DynInterp {
+    type Stencil = DynStencil;
+
+    #[inline]
+    fn locate(&self, vc: [f64; 3]) -> DynStencil {
+        match self {
+            DynInterp::Nearest(f) => DynStencil::Nearest(f.locate(vc)),
+            DynInterp::Trilinear(f) => DynStencil::Linear(f.locate(vc)),
+            DynInterp::Nonlinear(f) => DynStencil::Linear(f.locate(vc)),
+            DynInterp::Cubic(f) => DynStencil::Cubic(f.locate(vc)),
+        }
+    }
+
+    #[inline]
+    fn apply<V: Voxels>(&self, s: &DynStencil, voxels: &V) -> f64 {
+        match (self, s) {
+            (DynInterp::Nearest(f), DynStencil::Nearest(s)) => f.apply(s, voxels),
+            (DynInterp::Trilinear(f), DynStencil::Linear(s)) => f.apply(s, voxels),
+            (DynInterp::Nonlinear(f), DynStencil::Linear(s)) => f.apply(s, voxels),
+            (DynInterp::Cubic(f), DynStencil::Cubic(s)) => f.apply(s, voxels),
+            _ => unreachable!("a stencil is applied by the function that located it"),
+        }
+    }
+
+    #[inline]
+    fn base(&self, s: &DynStencil) -> [u32; 3] {
+        match s {
+            DynStencil::Nearest(s) => s.base,
+            DynStencil::Linear(s) => s.base,
+            DynStencil::Cubic(s) => s.x0,
+        }
+    }
+
+    fn cell_radius(&self) -> u32 {
+        each!(self, f => f.cell_radius())
+    }
+
+    fn base_grid(&self, axis: usize) -> (u32, f64) {
+        each!(self, f => f.base_grid(axis))
+    }
+
+    fn span_tolerance(&self, axis: usize) -> f64 {
+        each!(self, f => f.span_tolerance(axis))
+    }
+
+    fn value_bounds(&self, lo: f64, hi: f64, integer: bool) -> (f64, f64) {
+        each!(self, f => f.value_bounds(lo, hi, integer))
+    }
+}
+
+/// `interp`'s value of one channel at VC point `vc` of a dataset of `dims` (SPEC §3.3):
+/// the general path, one sample at a time.
+pub fn interpolate<V: Voxels>(interp: &Interpolation, dims: Dims, vc: [f64; 3], voxels: &V) -> f64 {
+    let f = DynInterp::new(interp, dims);
+    f.apply(&f.locate(vc), voxels)
 }
 
 #[cfg(test)]
@@ -189,7 +579,7 @@ mod tests {
         let ch = field(dims, |x, y, z| lin(x, y, z) as f32);
         let r = ch.reader();
         for &p in &[[0.25, 1.5, 0.75], [3.9, 2.999, 1.2], [4.0, 3.0, 2.0], [0.0, 0.0, 0.0], [2.5, 0.1, 1.9]] {
-            let v = Stencil::new(&Interpolation::Trilinear, dims, p).apply(&r);
+            let v = interpolate(&Interpolation::Trilinear, dims, p, &r);
             assert!((v - lin(p[0], p[1], p[2])).abs() < 1e-12, "{p:?}: {v}");
         }
     }
@@ -201,8 +591,8 @@ mod tests {
         let r = ch.reader();
         let nl = Interpolation::Nonlinear { omega: [0.0, 1.0, 0.0] };
         for &p in &[[0.3, 1.7, 2.2], [2.9, 0.01, 1.5]] {
-            let a = Stencil::new(&Interpolation::Trilinear, dims, p).apply(&r);
-            let b = Stencil::new(&nl, dims, p).apply(&r);
+            let a = interpolate(&Interpolation::Trilinear, dims, p, &r);
+            let b = interpolate(&nl, dims, p, &r);
             assert_eq!(a, b);
         }
     }
@@ -212,7 +602,7 @@ mod tests {
         let dims = Dims::new([4, 1, 1]).unwrap();
         let ch = field(dims, |x, _, _| x as f32 * 10.0);
         let r = ch.reader();
-        let at = |u: f64| Stencil::new(&Interpolation::Nearest, dims, [u, 0.0, 0.0]).apply(&r);
+        let at = |u: f64| interpolate(&Interpolation::Nearest, dims, [u, 0.0, 0.0], &r);
         assert_eq!(at(1.49), 10.0);
         assert_eq!(at(1.5), 20.0);
         // Rounding noise below the tie is still the tie (SPEC §4.5).
@@ -226,7 +616,7 @@ mod tests {
         let dims = Dims::new([3, 1, 1]).unwrap();
         let ch = field(dims, |x, _, _| [5.0, 7.0, 11.0][x as usize]);
         let r = ch.reader();
-        let at = |u: f64| Stencil::new(&Interpolation::Trilinear, dims, [u, -0.4, 0.4]).apply(&r);
+        let at = |u: f64| interpolate(&Interpolation::Trilinear, dims, [u, -0.4, 0.4], &r);
         assert_eq!(at(-0.5), 5.0);
         assert_eq!(at(2.0), 11.0);
         assert_eq!(at(2.5), 11.0);
@@ -239,7 +629,7 @@ mod tests {
         for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
             let ch = field(dims, |x, _, _| if x == 1.0 { bad } else { 3.0 });
             let r = ch.reader();
-            let v = Stencil::new(&Interpolation::Trilinear, dims, [0.0, 0.0, 0.0]).apply(&r);
+            let v = interpolate(&Interpolation::Trilinear, dims, [0.0, 0.0, 0.0], &r);
             assert!(!v.is_finite(), "{bad}: {v}");
         }
     }
@@ -256,12 +646,12 @@ mod tests {
         let r = ch.reader();
         // Interior: the 32-point stencil of the cell needs x0 − 1 ≥ 0 and x0 + 2 ≤ n − 1.
         for &p in &[[1.25, 1.5, 2.75], [3.9, 2.01, 4.5], [2.0, 3.0, 5.0], [4.999, 1.0, 1.0]] {
-            let v = Stencil::new(&Interpolation::Cubic, dims, p).apply(&r);
+            let v = interpolate(&Interpolation::Cubic, dims, p, &r);
             // The field is stored in f32, so compare against the f32-rounded data's scale.
             assert!((v - cubic_poly(p[0], p[1], p[2])).abs() < 1e-4, "{p:?}: {v} vs {}", cubic_poly(p[0], p[1], p[2]));
         }
         // Trilinear cannot: the same points are off by the curvature.
-        let tri = Stencil::new(&Interpolation::Trilinear, dims, [1.25, 1.5, 2.75]).apply(&r);
+        let tri = interpolate(&Interpolation::Trilinear, dims, [1.25, 1.5, 2.75], &r);
         assert!((tri - cubic_poly(1.25, 1.5, 2.75)).abs() > 1e-3);
     }
 
@@ -271,7 +661,7 @@ mod tests {
         let dims = Dims::new([6, 6, 6]).unwrap();
         let ch = field(dims, |x, y, z| ((x * 3.0 + y * 5.0 + z * 7.0) % 4.0) as f32 * (x - 2.5).abs() as f32);
         let r = ch.reader();
-        let at = |u: f64| Stencil::new(&Interpolation::Cubic, dims, [u, 2.3, 1.7]).apply(&r);
+        let at = |u: f64| interpolate(&Interpolation::Cubic, dims, [u, 2.3, 1.7], &r);
         // The value at x = 3 from the cell [3, 4] (t = 0) versus from the cell [2, 3] (t = 1).
         let upper_cell = {
             let w = cubic::weights([0.0, 0.3, 0.7]);
@@ -288,7 +678,7 @@ mod tests {
     }
 
     /// Σ w·v over the 32 fit points of the cell with lower corner `x0`, clamped to `dims`.
-    fn gather(r: &ChannelReader<'_>, dims: Dims, x0: [usize; 3], w: &[f64; 32]) -> f64 {
+    fn gather(r: &crate::dataset::ChannelReader<'_>, dims: Dims, x0: [usize; 3], w: &[f64; 32]) -> f64 {
         let n = dims.as_array();
         (0..32)
             .map(|i| {

@@ -325,7 +325,8 @@ mod tests {
 
     use super::*;
 
-    /// `count` generated datasets of 10³ f32 = 4000 bytes each.
+    /// `count` generated datasets of 10³ f32 = 4000 bytes each, plus the macrocell ranges of
+    /// their voxel channel: 3³ cells and 1 coarse block of 8 bytes.
     fn scene(count: usize) -> Scene {
         let mut text = String::from(
             "[image]\nwidth = 2\nheight = 2\nbackground = [0, 0, 0]\n\
@@ -343,7 +344,7 @@ mod tests {
         Scene::parse(&text, "store.toml").unwrap()
     }
 
-    const BYTES: u64 = 4000;
+    const BYTES: u64 = 4000 + (27 + 1) * 8;
 
     #[test]
     fn least_recently_used_goes_first() {

@@ -72,6 +72,21 @@ pub struct Object {
     placement: Placement,
 }
 
+/// Objects built without a scene, for unit tests of the sampler, which construct the maps and
+/// placements a scene file would (the loader alone builds objects outside tests).
+#[cfg(test)]
+impl Object {
+    pub(crate) fn for_tests(
+        colour: ColourMap,
+        opacity: OpacityMap,
+        interpolation: Interpolation,
+        sampling_distance: f64,
+        placement: Placement,
+    ) -> Object {
+        Object { name: "o".into(), dataset: 0, colour, opacity, interpolation, sampling_distance, placement }
+    }
+}
+
 impl Object {
     /// Unique name in the scene.
     pub fn name(&self) -> &str {

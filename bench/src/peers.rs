@@ -1,0 +1,320 @@
+//! TROVE side by side with VTK's fixed-point CPU ray caster (issue 10): the CT head and the
+//! synthetic 256³ u8 volume of `../shared/peers/make_test_volume.py`, with the camera, image
+//! size, step, threads and transfer function of `scenes/peers/*.toml` on both sides.
+//!
+//! Runs alternate (VTK, then TROVE, `rounds` times) so that load from other jobs on a
+//! shared machine falls on both; medians are reported. VTK's re-render (its frame without
+//! loading) is set against TROVE's volume-rendering stage, VTK's load and first frame
+//! against TROVE's whole render. Each image's error is the RMSE, in 8-bit levels, against a
+//! converged TROVE image (the same scene at a quarter of its step). VTK runs through
+//! `vtk_raycast.py`; without Python's `vtk` module, or without a scene's data, that part is
+//! skipped with a message.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use anyhow::{anyhow, bail, Context, Result};
+use trove_core::render::{self, RenderOptions, Rendered};
+use trove_core::scene::{DataRoot, Scene};
+
+/// `trove-bench peers` options.
+#[derive(clap::Args)]
+pub struct Args {
+    /// Alternating rounds (each: one VTK process, one TROVE render) per scene.
+    #[arg(long, default_value_t = 5)]
+    rounds: u32,
+    /// Frames VTK re-renders per process (it reports their median).
+    #[arg(long, default_value_t = 5)]
+    vtk_repeat: u32,
+    /// Threads on both sides.
+    #[arg(long, default_value_t = 2)]
+    threads: usize,
+    /// The peers folder (vtk_raycast.py).
+    #[arg(long, default_value = "../shared/peers")]
+    peers: PathBuf,
+    /// The folder of the peers scenes (cthead.toml, synthetic-u8.toml).
+    #[arg(long, default_value = "scenes/peers")]
+    scenes: PathBuf,
+    /// The data root of the CT head's key (the shared data).
+    #[arg(long, default_value = "../shared/data")]
+    data_root: PathBuf,
+    /// Where the images go.
+    #[arg(long, default_value = "/tmp/trove-peers")]
+    out: PathBuf,
+}
+
+/// One benchmark volume: its TROVE scene and the VTK arguments that describe the same view.
+struct Peer {
+    name: &'static str,
+    scene: &'static str,
+    /// The scene's data root: the shared data (`--data-root`), or the scenes folder's `data/`,
+    /// where `make_test_volume.py` writes the synthetic volume.
+    shared_data: bool,
+    /// `vtk_raycast.py` arguments; `{data}` stands for the scene's data root, `{peers}` for
+    /// the peers folder.
+    vtk: &'static [&'static str],
+}
+
+const PEERS: [Peer; 2] = [
+    Peer {
+        name: "CT head",
+        scene: "cthead.toml",
+        shared_data: true,
+        vtk: &[
+            "--nrrd",
+            "{data}/cthead_256x256x113_uint16_le.nhdr",
+            "--tf",
+            "{peers}/tf/cthead_tf.json",
+            "--eye",
+            "430",
+            "-380",
+            "20",
+            "--look-at",
+            "127.5",
+            "127.5",
+            "113",
+            "--up",
+            "0",
+            "0",
+            "-1",
+        ],
+    },
+    Peer {
+        name: "synthetic 256³ u8",
+        scene: "synthetic-u8.toml",
+        shared_data: false,
+        vtk: &[
+            "--raw",
+            "{data}/sphere256_u8.raw",
+            "--dims",
+            "256",
+            "256",
+            "256",
+            "--dtype",
+            "uint8",
+            "--tf",
+            "{data}/sphere256_u8_tf.json",
+            "--eye",
+            "558.21",
+            "428.99",
+            "730.49",
+            "--look-at",
+            "127.5",
+            "127.5",
+            "127.5",
+            "--up",
+            "0",
+            "1",
+            "0",
+        ],
+    },
+];
+
+/// Arguments both VTK runs share (the scenes' image size, field of view and step).
+const VTK_COMMON: [&str; 11] =
+    ["--size", "512", "512", "--fov", "30", "--sample-distance", "0.5", "--interp", "linear", "--shade", "off"];
+
+/// One round's timings, seconds.
+#[derive(Clone, Copy, Debug, Default)]
+struct Round {
+    vtk_rerender: Option<f64>,
+    vtk_first: Option<f64>,
+    trove_rendering: f64,
+    trove_total: f64,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    let vtk = vtk_available();
+    if !vtk {
+        println!("Python's `vtk` module is absent (pip install vtk): TROVE is timed alone.");
+    }
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(args.threads).build()?;
+    println!(
+        "| scene | VTK re-render | TROVE volume rendering | VTK/TROVE (median of rounds) | VTK load + first | TROVE total | TROVE samples/s | RMSE VTK | RMSE TROVE |"
+    );
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for peer in &PEERS {
+        let path = args.scenes.join(peer.scene);
+        let scene = match Scene::load_in(&path, &DataRoot::Given(data_root(&args, peer))) {
+            Ok(s) => s,
+            Err(e) => {
+                println!("| {} | skipped: {e} |", peer.name);
+                continue;
+            }
+        };
+        pool.install(|| bench_one(&args, peer, &scene, vtk))?;
+    }
+    Ok(())
+}
+
+/// Alternating rounds over one scene, then its row of the table.
+fn bench_one(args: &Args, peer: &Peer, scene: &Scene, vtk: bool) -> Result<()> {
+    let stem = peer.scene.trim_end_matches(".toml");
+    let (vtk_png, trove_png) = (args.out.join(format!("{stem}-vtk.png")), args.out.join(format!("{stem}-trove.png")));
+    let mut rounds = Vec::new();
+    let mut last: Option<Rendered> = None;
+    for _ in 0..args.rounds.max(1) {
+        let mut round = Round::default();
+        if vtk {
+            let (rerender, first) = run_vtk(args, peer, &vtk_png)?;
+            (round.vtk_rerender, round.vtk_first) = (Some(rerender), Some(first));
+        }
+        let r = render::render(scene, &RenderOptions::default())?;
+        (round.trove_rendering, round.trove_total) = (r.stats.seconds.volume_rendering, r.stats.seconds.total);
+        rounds.push(round);
+        last = Some(r);
+    }
+    let rendered = last.ok_or_else(|| anyhow!("no round ran"))?;
+    rendered.image.save(&trove_png)?;
+    let root = DataRoot::Given(data_root(args, peer));
+    let reference = render::render(&converged(scene, &root)?, &RenderOptions::default())?.image;
+    reference.save(&args.out.join(format!("{stem}-reference.png")))?;
+    let rmse_vtk = if vtk { Some(rmse_levels(&read_png(&vtk_png)?, &reference.to_rgb8())?) } else { None };
+    let rmse_trove = rmse_levels(&rendered.image.to_rgb8(), &reference.to_rgb8())?;
+    print_row(peer.name, &rounds, rendered.stats.samples, rmse_vtk, rmse_trove);
+    Ok(())
+}
+
+fn print_row(name: &str, rounds: &[Round], samples: u64, rmse_vtk: Option<f64>, rmse_trove: f64) {
+    let vtk_rerender = median(rounds.iter().filter_map(|r| r.vtk_rerender));
+    let vtk_first = median(rounds.iter().filter_map(|r| r.vtk_first));
+    let rendering = median(rounds.iter().map(|r| r.trove_rendering)).unwrap_or(f64::NAN);
+    let total = median(rounds.iter().map(|r| r.trove_total)).unwrap_or(f64::NAN);
+    let seconds = |s: Option<f64>| s.map_or("–".to_string(), |s| format!("{s:.3}"));
+    // Each round's VTK and TROVE ran back to back, under the same load: the median of the
+    // rounds' ratios is steadier than the ratio of the medians.
+    let ratio = median(rounds.iter().filter_map(|r| r.vtk_rerender.map(|v| v / r.trove_rendering)));
+    let ratio = ratio.map_or("–".to_string(), |r| format!("{r:.2}"));
+    println!(
+        "| {name} | {} | {rendering:.3} | {ratio} | {} | {total:.3} | {:.1} M | {} | {rmse_trove:.2} |",
+        seconds(vtk_rerender),
+        seconds(vtk_first),
+        samples as f64 / rendering / 1e6,
+        rmse_vtk.map_or("–".to_string(), |e| format!("{e:.2}")),
+    );
+}
+
+/// Where `peer`'s data files are.
+fn data_root(args: &Args, peer: &Peer) -> PathBuf {
+    if peer.shared_data {
+        args.data_root.clone()
+    } else {
+        args.scenes.join("data")
+    }
+}
+
+/// Whether `python3` can import `vtk`.
+fn vtk_available() -> bool {
+    Command::new("python3").args(["-c", "import vtk"]).output().is_ok_and(|o| o.status.success())
+}
+
+/// One VTK process: its median re-render and its load + first frame, seconds.
+fn run_vtk(args: &Args, peer: &Peer, out: &Path) -> Result<(f64, f64)> {
+    let data = data_root(args, peer);
+    let fill = |a: &str| a.replace("{data}", &data.to_string_lossy()).replace("{peers}", &args.peers.to_string_lossy());
+    let output = Command::new("python3")
+        .arg(args.peers.join("vtk_raycast.py"))
+        .args(peer.vtk.iter().map(|a| fill(a)))
+        .args(VTK_COMMON)
+        .args(["--threads", &args.threads.to_string(), "--repeat", &args.vtk_repeat.to_string()])
+        .arg("--out")
+        .arg(out)
+        .output()
+        .context("running vtk_raycast.py")?;
+    if !output.status.success() {
+        bail!("vtk_raycast.py failed: {}", String::from_utf8_lossy(&output.stderr));
+    }
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let line = stdout.lines().rev().find(|l| l.trim_start().starts_with('{')).context("no JSON line from VTK")?;
+    let json: serde_json::Value = serde_json::from_str(line).context("VTK's JSON line")?;
+    let field = |k: &str| json.get(k).and_then(serde_json::Value::as_f64).with_context(|| format!("VTK's `{k}`"));
+    Ok((field("rerender_median_s")?, field("load_s")? + field("first_render_s")?))
+}
+
+/// `scene` at a quarter of every object's sampling distance: the converged reference. The
+/// peers scenes have no opacity correction (VTK's opacity unit distance is the step), so a
+/// sample's opacity a means "per original step"; at a quarter of the step each opacity point
+/// of the map becomes 1 − (1 − a)^¼, which keeps the extinction per unit length at every
+/// point of the ramp (between points the two differ only in second order).
+fn converged(scene: &Scene, root: &DataRoot) -> Result<Scene> {
+    let path = scene.path();
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut table: toml::Table = text.parse().context("the scene's TOML")?;
+    let corrected = scene.render().opacity_correction;
+    let objects = table.get_mut("objects").and_then(|o| o.as_array_mut()).context("the scene's objects")?;
+    for (object, original) in objects.iter_mut().zip(scene.objects()) {
+        let object = object.as_table_mut().context("an object")?;
+        object.insert("sampling_distance".into(), toml::Value::Float(original.sampling_distance() / 4.0));
+        if !corrected {
+            quarter_ramp_opacity(object).with_context(|| format!("object `{}`", original.name()))?;
+        }
+    }
+    Ok(Scene::parse_in(&toml::to_string(&table)?, path, root)?)
+}
+
+/// Replaces each point [v, a] of the object's opacity ramp by [v, 1 − (1 − a)^¼].
+fn quarter_ramp_opacity(object: &mut toml::Table) -> Result<()> {
+    let opacity = object.get_mut("opacity").and_then(|o| o.as_table_mut()).context("an opacity table")?;
+    if opacity.get("type").and_then(|t| t.as_str()) != Some("ramp") {
+        bail!("the converged reference handles ramp opacities only");
+    }
+    let points = opacity.get_mut("points").and_then(|p| p.as_array_mut()).context("ramp points")?;
+    for point in points {
+        let point = point.as_array_mut().context("a ramp point")?;
+        let a = point.get(1).and_then(|a| a.as_float().or_else(|| a.as_integer().map(|i| i as f64))).context("a")?;
+        point[1] = toml::Value::Float(1.0 - (1.0 - a.clamp(0.0, 1.0)).powf(0.25));
+    }
+    Ok(())
+}
+
+fn read_png(path: &Path) -> Result<Vec<u8>> {
+    Ok(image::open(path).with_context(|| format!("reading {}", path.display()))?.to_rgb8().into_raw())
+}
+
+/// Root mean square difference of two RGB8 images, in levels of 255.
+fn rmse_levels(a: &[u8], b: &[u8]) -> Result<f64> {
+    if a.len() != b.len() {
+        bail!("image sizes differ: {} and {} bytes", a.len(), b.len());
+    }
+    let sum: f64 = a.iter().zip(b).map(|(x, y)| (f64::from(*x) - f64::from(*y)).powi(2)).sum();
+    Ok((sum / a.len() as f64).sqrt())
+}
+
+fn median(values: impl Iterator<Item = f64>) -> Option<f64> {
+    let mut v: Vec<f64> = values.collect();
+    v.sort_by(f64::total_cmp);
+    (!v.is_empty()).then(|| v[v.len() / 2])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rmse_of_equal_images_is_zero_and_of_one_level_off_is_one() {
+        assert_eq!(rmse_levels(&[1, 2, 3], &[1, 2, 3]).unwrap(), 0.0);
+        assert_eq!(rmse_levels(&[1, 2, 3], &[2, 3, 4]).unwrap(), 1.0);
+        assert!(rmse_levels(&[1], &[1, 2]).is_err());
+    }
+
+    #[test]
+    fn the_converged_scene_quarters_every_step_and_keeps_the_rest() {
+        let dir = trove_tests::scratch("peers-converged");
+        let text = trove_tests::Header::new(4, [0.0, 0.0, 3.0], [0.0; 3], 30.0).to_string()
+            + "[render]\nopacity_correction = false\n\n[[datasets]]\nname = \"d\"\ndims = [4, 4, 4]\n[datasets.channels.voxel]\n\
+               generator = { kind = \"constant\", value = 1.0 }\n\
+               [[objects]]\nname = \"o\"\ndataset = \"d\"\nsampling_distance = 0.2\n\
+               colour = { type = \"constant\", red = [1.0], green = [1.0], blue = [1.0] }\n\
+               opacity = { type = \"ramp\", points = [[0, 0], [1, 0.5904]] }\n";
+        let path = dir.join("scene.toml");
+        std::fs::write(&path, text).unwrap();
+        let scene = Scene::load(&path).unwrap();
+        let fine = converged(&scene, &DataRoot::Given(dir.clone())).unwrap();
+        assert_eq!(fine.objects()[0].sampling_distance(), 0.05);
+        // Four samples of the quartered opacity let through what one of the original did.
+        let a = fine.objects()[0].opacity().map(1.0).unwrap();
+        assert!(((1.0 - a).powi(4) - (1.0 - 0.5904)).abs() < 1e-12, "{a}");
+        assert_eq!(fine.image(), scene.image());
+    }
+}

@@ -1,0 +1,169 @@
+//! Choosing an object's loop once, when it is bound to its volume: interpolation × stored
+//! type of the `voxel` channel × colour map × opacity map.
+//!
+//! LUTs and ramps are one kind of map here ([`Piecewise`]), so four map combinations cover
+//! every object whose maps read the `voxel` channel; they are specialised for nearest and
+//! trilinear over u8, little-endian u16 and f32 channels (what scenes and benchmarks use),
+//! and piecewise colour and opacity also for nonlinear and cubic. A piecewise colour map and
+//! a piecewise opacity map are merged into one ([`JointPiecewise`]: one segment lookup per
+//! sample instead of two, the same arithmetic). Raw colour (images) with
+//! raw or constant opacity, and maps that read no channel at all, have their own loops.
+//! Everything else — big-endian or u32 voxels, bit voxels, mixed raw and voxel maps —
+//! takes the general loop, which is the same generic code deciding per sample.
+
+use super::kernel::{
+    Cast, ColourFn, GeneralColour, GeneralOpacity, Kernel, Maps, MaybeVoxel, NoVoxel, OpacityFn, RawAlpha, RawRgb,
+    Read, Separate,
+};
+use super::skip::Skipper;
+use crate::dataset::{ChannelReader, F32LeVoxels, U16LeVoxels, U8Voxels};
+use crate::interp::{Cubic, DynInterp, Identity, Interp, Interpolation, Linear, Nearest, NoInterp, Omega};
+use crate::mapping::{ColourMap, JointPiecewise, OpacityMap, Piecewise, RawColour};
+use crate::scene::Object;
+
+/// A bound loop.
+pub(super) type Bound<'a> = Box<dyn Cast + 'a>;
+
+/// A specialised loop, or (when the combination has none) the skipper back for the general one.
+type Choice<'a> = Result<Bound<'a>, Option<Skipper<'a>>>;
+
+/// What every loop of one object shares.
+pub(super) struct Parts<'a> {
+    pub object: &'a Object,
+    pub dims: crate::dataset::Dims,
+    pub voxel: Option<ChannelReader<'a>>,
+    pub raw_rgb: Option<(RawColour, [ChannelReader<'a>; 3])>,
+    pub alpha: Option<ChannelReader<'a>>,
+    pub correction: bool,
+}
+
+impl<'a> Parts<'a> {
+    fn kernel<I, V, M>(&self, interp: I, voxels: V, maps: M, skip: Option<Skipper<'a>>) -> Bound<'a>
+    where
+        I: Interp + 'a,
+        V: super::kernel::VoxelSource + 'a,
+        M: Maps + 'a,
+    {
+        Box::new(Kernel { interp, voxels, maps, skip, correction: self.correction, specialised: true })
+    }
+
+    /// The general loop.
+    pub(super) fn general(&self, skip: Option<Skipper<'a>>) -> Bound<'a> {
+        let constant_colour = match self.object.colour() {
+            ColourMap::Polynomial(_) if !self.object.colour().reads_voxel() => self.object.colour().map(0.0),
+            _ => None,
+        };
+        Box::new(Kernel {
+            interp: DynInterp::new(&self.object.interpolation(), self.dims),
+            voxels: MaybeVoxel(self.voxel),
+            maps: Separate {
+                colour: GeneralColour { map: self.object.colour(), raw: self.raw_rgb, constant: constant_colour },
+                opacity: GeneralOpacity { map: self.object.opacity(), alpha: self.alpha },
+            },
+            skip,
+            correction: self.correction,
+            specialised: false,
+        })
+    }
+
+    /// The specialised loop for this object, or `None` when its combination has none.
+    pub(super) fn specialised(&self, skip: Option<Skipper<'a>>) -> Choice<'a> {
+        let object = self.object;
+        let reads_channels = self.voxel.is_some() || self.raw_rgb.is_some() || self.alpha.is_some();
+        if !reads_channels {
+            if let (ColourMap::Polynomial(c), OpacityMap::Polynomial(o)) = (object.colour(), object.opacity()) {
+                return Ok(self.kernel(NoInterp, NoVoxel, Separate { colour: c, opacity: o }, skip));
+            }
+            return Err(skip);
+        }
+        match (object.colour(), object.opacity()) {
+            (ColourMap::Raw(kind), opacity) if self.voxel.is_none() => self.raw(*kind, opacity, skip),
+            (ColourMap::Lut(c), OpacityMap::Lut(o)) => self.joint(c.piecewise(), o.piecewise(), skip),
+            (ColourMap::Lut(c), OpacityMap::Ramp(o)) => self.joint(c.piecewise(), o.piecewise(), skip),
+            (ColourMap::Ramp(c), OpacityMap::Lut(o)) => self.joint(c.piecewise(), o.piecewise(), skip),
+            (ColourMap::Ramp(c), OpacityMap::Ramp(o)) => self.joint(c.piecewise(), o.piecewise(), skip),
+            (ColourMap::Polynomial(c), OpacityMap::Lut(o)) => self.separate(c, o.piecewise(), skip),
+            (ColourMap::Polynomial(c), OpacityMap::Ramp(o)) => self.separate(c, o.piecewise(), skip),
+            (ColourMap::Lut(c), OpacityMap::Polynomial(o)) => self.separate(c.piecewise(), o, skip),
+            (ColourMap::Ramp(c), OpacityMap::Polynomial(o)) => self.separate(c.piecewise(), o, skip),
+            (ColourMap::Polynomial(c), OpacityMap::Polynomial(o)) => self.separate(c, o, skip),
+            _ => Err(skip),
+        }
+    }
+
+    /// LUT or ramp colour and opacity, merged into one map (one segment lookup per sample),
+    /// with every interpolation.
+    fn joint(&self, colour: &Piecewise<3>, opacity: &Piecewise<1>, skip: Option<Skipper<'a>>) -> Choice<'a> {
+        self.with_maps(JointPiecewise::new(colour, opacity), true, skip)
+    }
+
+    /// Maps of which at least one is a polynomial, evaluated apart, with nearest and trilinear.
+    fn separate<C, O>(&self, colour: C, opacity: O, skip: Option<Skipper<'a>>) -> Choice<'a>
+    where
+        C: ColourFn + 'a,
+        O: OpacityFn + 'a,
+    {
+        self.with_maps(Separate { colour, opacity }, false, skip)
+    }
+
+    /// Maps over the `voxel` channel; `all_interpolations` adds nonlinear and cubic loops.
+    fn with_maps<M: Maps + 'a>(&self, maps: M, all_interpolations: bool, skip: Option<Skipper<'a>>) -> Choice<'a> {
+        let Some(voxel) = self.voxel else { return Err(skip) };
+        match self.object.interpolation() {
+            Interpolation::Nearest => self.typed(Nearest::new(self.dims), voxel, maps, skip),
+            Interpolation::Trilinear => self.typed(Linear::new(self.dims, Identity), voxel, maps, skip),
+            Interpolation::Nonlinear { omega } if all_interpolations => {
+                self.typed(Linear::new(self.dims, Omega(omega)), voxel, maps, skip)
+            }
+            Interpolation::Cubic if all_interpolations => self.typed(Cubic::new(self.dims), voxel, maps, skip),
+            _ => Err(skip),
+        }
+    }
+
+    /// The loop for the channel's stored type.
+    fn typed<I, M>(&self, interp: I, voxel: ChannelReader<'a>, maps: M, skip: Option<Skipper<'a>>) -> Choice<'a>
+    where
+        I: Interp + 'a,
+        M: Maps + 'a,
+    {
+        if let Some(v) = U8Voxels::of(voxel) {
+            Ok(self.kernel(interp, Read(v), maps, skip))
+        } else if let Some(v) = U16LeVoxels::of(voxel) {
+            Ok(self.kernel(interp, Read(v), maps, skip))
+        } else if let Some(v) = F32LeVoxels::of(voxel) {
+            Ok(self.kernel(interp, Read(v), maps, skip))
+        } else {
+            Err(skip)
+        }
+    }
+
+    /// Raw colour (rgb or grey, u8) with raw or constant opacity: photographs as volumes.
+    fn raw(&self, kind: RawColour, opacity: &'a OpacityMap, skip: Option<Skipper<'a>>) -> Choice<'a> {
+        let Some((_, readers)) = self.raw_rgb else { return Err(skip) };
+        let (Some(r), Some(g), Some(b)) =
+            (U8Voxels::of(readers[0]), U8Voxels::of(readers[1]), U8Voxels::of(readers[2]))
+        else {
+            return Err(skip);
+        };
+        let colour = RawRgb { kind, channels: [r, g, b] };
+        let alpha = self.alpha.and_then(U8Voxels::of);
+        match (self.object.interpolation(), opacity, alpha) {
+            (Interpolation::Nearest, OpacityMap::Raw, Some(a)) => {
+                Ok(self.kernel(Nearest::new(self.dims), NoVoxel, Separate { colour, opacity: RawAlpha(a) }, skip))
+            }
+            (Interpolation::Trilinear, OpacityMap::Raw, Some(a)) => Ok(self.kernel(
+                Linear::new(self.dims, Identity),
+                NoVoxel,
+                Separate { colour, opacity: RawAlpha(a) },
+                skip,
+            )),
+            (Interpolation::Nearest, OpacityMap::Polynomial(p), None) if !opacity.reads_voxel() => {
+                Ok(self.kernel(Nearest::new(self.dims), NoVoxel, Separate { colour, opacity: p }, skip))
+            }
+            (Interpolation::Trilinear, OpacityMap::Polynomial(p), None) if !opacity.reads_voxel() => {
+                Ok(self.kernel(Linear::new(self.dims, Identity), NoVoxel, Separate { colour, opacity: p }, skip))
+            }
+            _ => Err(skip),
+        }
+    }
+}

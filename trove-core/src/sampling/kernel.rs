@@ -1,0 +1,287 @@
+//! The sampler's loop, generic over what an object uses: interpolation `I`, the stored type
+//! of its voxel channel `V`, and its colour and opacity maps `M`. Each combination is
+//! compiled into its own loop, chosen once per object when it is bound
+//! ([`super::bind`]), so the loop has no dispatch, allocation, search or copy per sample.
+//! The general instance (`DynInterp`, a decoding reader, the map enums) is the same code
+//! deciding per sample; it serves rare combinations and is what the specialised loops are
+//! tested against.
+
+use super::skip::{cell_of, Jumps, Skipper};
+use super::{corrected_opacity, PieceResult};
+use crate::composite::Rgba;
+use crate::dataset::macrocell::Level;
+use crate::dataset::{ChannelReader, Voxels};
+use crate::geometry::SampleWalk;
+use crate::interp::Interp;
+use crate::mapping::{clamp1, clamp3, ColourMap, JointPiecewise, OpacityMap, Piecewise, Polynomial, RawColour};
+
+/// Casting one object over one piece, whatever its combination (the only dynamic call: one
+/// per piece).
+pub(super) trait Cast: Send + Sync {
+    /// See [`super::ObjectCaster::cast`].
+    fn cast(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult;
+    /// Whether this loop is a specialised one (for tests).
+    fn is_specialised(&self) -> bool;
+    /// Whether empty-space skipping is on (for tests).
+    fn skips(&self) -> bool;
+}
+
+/// The value of the `voxel` channel at a sample, if the maps read it.
+pub(super) trait VoxelSource: Send + Sync {
+    /// Whether the channel is read (a non-finite value then drops the sample, SPEC §4.5).
+    const READS: bool;
+    /// The interpolated value (0 when not read).
+    fn value<I: Interp>(&self, interp: &I, s: &I::Stencil) -> f64;
+}
+
+/// The `voxel` channel through a typed view (or the decoding reader).
+pub(super) struct Read<V>(pub V);
+
+impl<V: Voxels> VoxelSource for Read<V> {
+    const READS: bool = true;
+    #[inline(always)]
+    fn value<I: Interp>(&self, interp: &I, s: &I::Stencil) -> f64 {
+        interp.apply(s, &self.0)
+    }
+}
+
+/// No map reads the `voxel` channel.
+pub(super) struct NoVoxel;
+
+impl VoxelSource for NoVoxel {
+    const READS: bool = false;
+    #[inline(always)]
+    fn value<I: Interp>(&self, _interp: &I, _s: &I::Stencil) -> f64 {
+        0.0
+    }
+}
+
+/// The general path: the channel if some map reads it, else 0.
+pub(super) struct MaybeVoxel<'a>(pub Option<ChannelReader<'a>>);
+
+impl VoxelSource for MaybeVoxel<'_> {
+    const READS: bool = true;
+    #[inline]
+    fn value<I: Interp>(&self, interp: &I, s: &I::Stencil) -> f64 {
+        self.0.as_ref().map_or(0.0, |r| interp.apply(s, r))
+    }
+}
+
+/// An opacity map as the loop evaluates it: clamped to [0, 1], `None` when not finite.
+pub(super) trait OpacityFn: Send + Sync {
+    fn opacity<I: Interp>(&self, interp: &I, s: &I::Stencil, v: f64) -> Option<f64>;
+}
+
+/// A colour map as the loop evaluates it: clamped to [0, 1], `None` when not finite.
+pub(super) trait ColourFn: Send + Sync {
+    fn colour<I: Interp>(&self, interp: &I, s: &I::Stencil, v: f64) -> Option<[f64; 3]>;
+}
+
+impl OpacityFn for &Piecewise<1> {
+    #[inline(always)]
+    fn opacity<I: Interp>(&self, _interp: &I, _s: &I::Stencil, v: f64) -> Option<f64> {
+        clamp1(self.eval(v)[0])
+    }
+}
+
+impl OpacityFn for &Polynomial {
+    #[inline(always)]
+    fn opacity<I: Interp>(&self, _interp: &I, _s: &I::Stencil, v: f64) -> Option<f64> {
+        clamp1(self.eval(v))
+    }
+}
+
+/// Raw opacity: the `alpha` channel /255.
+pub(super) struct RawAlpha<V>(pub V);
+
+impl<V: Voxels> OpacityFn for RawAlpha<V> {
+    #[inline(always)]
+    fn opacity<I: Interp>(&self, interp: &I, s: &I::Stencil, _v: f64) -> Option<f64> {
+        OpacityMap::map_raw(interp.apply(s, &self.0))
+    }
+}
+
+/// Any opacity map, decided per sample.
+pub(super) struct GeneralOpacity<'a> {
+    pub map: &'a OpacityMap,
+    pub alpha: Option<ChannelReader<'a>>,
+}
+
+impl OpacityFn for GeneralOpacity<'_> {
+    #[inline]
+    fn opacity<I: Interp>(&self, interp: &I, s: &I::Stencil, v: f64) -> Option<f64> {
+        match &self.alpha {
+            Some(a) => OpacityMap::map_raw(interp.apply(s, a)),
+            None => self.map.map(v),
+        }
+    }
+}
+
+impl ColourFn for &Piecewise<3> {
+    #[inline(always)]
+    fn colour<I: Interp>(&self, _interp: &I, _s: &I::Stencil, v: f64) -> Option<[f64; 3]> {
+        clamp3(self.eval(v))
+    }
+}
+
+impl ColourFn for &[Polynomial; 3] {
+    #[inline(always)]
+    fn colour<I: Interp>(&self, _interp: &I, _s: &I::Stencil, v: f64) -> Option<[f64; 3]> {
+        clamp3([self[0].eval(v), self[1].eval(v), self[2].eval(v)])
+    }
+}
+
+/// Raw colour from three channels (grey and bit name one channel three times).
+pub(super) struct RawRgb<V> {
+    pub kind: RawColour,
+    pub channels: [V; 3],
+}
+
+impl<V: Voxels> ColourFn for RawRgb<V> {
+    #[inline(always)]
+    fn colour<I: Interp>(&self, interp: &I, s: &I::Stencil, _v: f64) -> Option<[f64; 3]> {
+        ColourMap::map_raw(self.kind, self.channels.each_ref().map(|c| interp.apply(s, c)))
+    }
+}
+
+/// Any colour map, decided per sample.
+pub(super) struct GeneralColour<'a> {
+    pub map: &'a ColourMap,
+    pub raw: Option<(RawColour, [ChannelReader<'a>; 3])>,
+    /// A polynomial map that reads no channel, evaluated once.
+    pub constant: Option<[f64; 3]>,
+}
+
+impl ColourFn for GeneralColour<'_> {
+    #[inline]
+    fn colour<I: Interp>(&self, interp: &I, s: &I::Stencil, v: f64) -> Option<[f64; 3]> {
+        match (&self.raw, self.constant) {
+            (Some((kind, rgb)), _) => ColourMap::map_raw(*kind, rgb.each_ref().map(|c| interp.apply(s, c))),
+            (None, Some(c)) => Some(c),
+            (None, None) => self.map.map(v),
+        }
+    }
+}
+
+/// An object's colour and opacity maps as the loop classifies a sample with them.
+pub(super) trait Maps: Send + Sync {
+    /// The sample's opacity and colour, clamped; `None` when it contributes nothing (opacity
+    /// 0, or a non-finite result). Opacity is mapped first: a sample of opacity 0 would add
+    /// nothing whatever its colour, so its colour is not evaluated.
+    fn classify<I: Interp>(&self, interp: &I, s: &I::Stencil, v: f64) -> Option<(f64, [f64; 3])>;
+}
+
+/// A colour map and an opacity map evaluated apart.
+pub(super) struct Separate<C, O> {
+    pub colour: C,
+    pub opacity: O,
+}
+
+impl<C: ColourFn, O: OpacityFn> Maps for Separate<C, O> {
+    #[inline(always)]
+    fn classify<I: Interp>(&self, interp: &I, s: &I::Stencil, v: f64) -> Option<(f64, [f64; 3])> {
+        let opacity = self.opacity.opacity(interp, s, v)?;
+        if opacity == 0.0 {
+            return None;
+        }
+        Some((opacity, self.colour.colour(interp, s, v)?))
+    }
+}
+
+/// LUT or ramp colour with LUT or ramp opacity: one segment lookup finds both.
+impl Maps for JointPiecewise {
+    #[inline(always)]
+    fn classify<I: Interp>(&self, _interp: &I, _s: &I::Stencil, v: f64) -> Option<(f64, [f64; 3])> {
+        JointPiecewise::classify(self, v)
+    }
+}
+
+/// One combination's loop and what it needs.
+pub(super) struct Kernel<'a, I, V, M> {
+    pub interp: I,
+    pub voxels: V,
+    pub maps: M,
+    pub skip: Option<Skipper<'a>>,
+    pub correction: bool,
+    pub specialised: bool,
+}
+
+impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
+    /// Classifies one sample and composites it behind `acc`; false when it contributes
+    /// nothing ([`Maps::classify`]).
+    #[inline(always)]
+    fn sample(&self, s: &I::Stencil, ell: f64, acc: &mut Rgba) -> bool {
+        let v = self.voxels.value(&self.interp, s);
+        if V::READS && !v.is_finite() {
+            return false;
+        }
+        let Some((opacity, colour)) = self.maps.classify(&self.interp, s, v) else { return false };
+        let alpha = if self.correction { corrected_opacity(opacity, ell) } else { opacity };
+        acc.add_sample(colour, alpha);
+        true
+    }
+}
+
+impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
+    fn cast(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult {
+        let mut acc = Rgba::CLEAR;
+        let mut samples = 0;
+        let done = |acc: &Rgba| alpha_in + (1.0 - alpha_in) * acc.alpha >= stop_at;
+        // The macrocell of the last sample looked at, and whether it is empty.
+        let mut cell = [u32::MAX; 3];
+        let mut empty = false;
+        if let Some(line) = walk.line() {
+            let ell = line.ell();
+            let n = line.len();
+            let jumps = self.skip.as_ref().map(|_| Jumps::new(&self.interp, &line));
+            let mut k = 0;
+            while k < n {
+                let s = self.interp.locate(line.point(k));
+                if let Some(skip) = &self.skip {
+                    let c = cell_of(self.interp.base(&s));
+                    if c != cell {
+                        cell = c;
+                        empty = skip.is_empty(&self.interp, Level::Fine, c);
+                    }
+                    if let (true, Some(jumps)) = (empty, &jumps) {
+                        k = jumps.skip(&self.interp, skip, k, c);
+                        continue;
+                    }
+                }
+                k += 1;
+                samples += 1;
+                if self.sample(&s, ell, &mut acc) && done(&acc) {
+                    break;
+                }
+            }
+        } else {
+            for (vc, ell) in walk {
+                let Some(vc) = vc else { continue };
+                let s = self.interp.locate(vc);
+                if let Some(skip) = &self.skip {
+                    let c = cell_of(self.interp.base(&s));
+                    if c != cell {
+                        cell = c;
+                        empty = skip.is_empty(&self.interp, Level::Fine, c);
+                    }
+                    if empty {
+                        continue;
+                    }
+                }
+                samples += 1;
+                if self.sample(&s, ell, &mut acc) && done(&acc) {
+                    break;
+                }
+            }
+        }
+        PieceResult { rgba: acc, samples }
+    }
+
+    fn is_specialised(&self) -> bool {
+        self.specialised
+    }
+
+    fn skips(&self) -> bool {
+        self.skip.is_some()
+    }
+}

@@ -1,0 +1,184 @@
+//! Casting one object over one piece of one ray (paper `VolumeRayCasting()`, SPEC
+//! §4.2–4.4). This is the only sampler: the per-ray and grouped algorithms (and a farm
+//! worker) all call [`ObjectCaster::cast`], and differ only in when and where they do.
+//!
+//! Binding an object ([`ObjectCaster::new`]) chooses the loop compiled for its combination
+//! of interpolation, stored channel type, colour map and opacity map (`bind`, `kernel`), and
+//! its empty-space classification (`skip`): macrocells of its dataset whose values its
+//! opacity map sends to 0 are passed over without interpolating. Neither changes a single
+//! sample's value or position, so images are the same bit for bit as the general loop
+//! without skipping, which stays available ([`CastOptions`]) and is what tests compare with.
+
+mod bind;
+mod kernel;
+mod skip;
+
+use crate::composite::Rgba;
+use crate::dataset::{ChannelName, Volume, VoxelType};
+use crate::geometry::Ray;
+use crate::mapping::{ColourMap, OpacityMap};
+use crate::scene::Object;
+
+/// Why an object cannot be bound to a volume: the volume is not the object's dataset (a
+/// worker handed the wrong dataset, or a stale one). The scene validator guarantees that an
+/// object's own dataset has every channel its maps read, so a scene renderer never sees this;
+/// a farm worker fed a bad message does, and answers with an error instead of panicking.
+#[derive(Debug, thiserror::Error, Clone, PartialEq, Eq)]
+pub enum BindError {
+    /// A channel the object's maps read is missing from the volume.
+    #[error("the volume has no `{channel}` channel, which the object's maps read")]
+    MissingChannel {
+        /// The missing channel.
+        channel: ChannelName,
+    },
+    /// The volume's dims differ from the dims the object was placed with.
+    #[error("the volume's dims {found} differ from the dims {expected} the object was placed with")]
+    DimsMismatch {
+        /// Dims the placement assumes.
+        expected: crate::dataset::Dims,
+        /// Dims of the volume handed in.
+        found: crate::dataset::Dims,
+    },
+}
+
+/// What one object contributed over one piece.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PieceResult {
+    /// Accumulated colour and opacity of this object's samples over the piece.
+    pub rgba: Rgba,
+    /// Samples evaluated (interpolated and mapped).
+    pub samples: u64,
+}
+
+/// How an object's loop is chosen. The defaults are what renderers use; the others exist so
+/// that tests (and benchmarks) can check the specialised loops and empty-space skipping
+/// against the general loop without skipping, which must render the same image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CastOptions {
+    /// Use the loop compiled for the object's combination when there is one.
+    pub specialise: bool,
+    /// Jump over macrocells where the object's opacity map is zero.
+    pub skip_empty_space: bool,
+}
+
+impl Default for CastOptions {
+    fn default() -> CastOptions {
+        CastOptions { specialise: true, skip_empty_space: true }
+    }
+}
+
+/// An object bound to its resident volume: the loop for its combination of interpolation,
+/// stored type and maps chosen once, the channel readers its maps need resolved once (a map
+/// that does not read a channel never touches it), and its empty-space classification
+/// prepared. It is `Sync`: one caster serves every thread casting that object.
+pub struct ObjectCaster<'a> {
+    object: &'a Object,
+    /// The opacity map is the constant 0: nothing to cast.
+    transparent: bool,
+    kernel: Box<dyn kernel::Cast + 'a>,
+}
+
+impl<'a> ObjectCaster<'a> {
+    /// Binds `object` to `volume`, its dataset's voxels; refuses a volume that lacks a
+    /// channel the object's maps read or has other dims than the object was placed with.
+    pub fn new(
+        object: &'a Object,
+        volume: &'a Volume,
+        opacity_correction: bool,
+    ) -> Result<ObjectCaster<'a>, BindError> {
+        ObjectCaster::with_options(object, volume, opacity_correction, CastOptions::default())
+    }
+
+    /// [`ObjectCaster::new`] with the loop chosen by `options`.
+    pub fn with_options(
+        object: &'a Object,
+        volume: &'a Volume,
+        opacity_correction: bool,
+        options: CastOptions,
+    ) -> Result<ObjectCaster<'a>, BindError> {
+        let expected = object.placement().dims();
+        if volume.dims() != expected {
+            return Err(BindError::DimsMismatch { expected, found: volume.dims() });
+        }
+        let reader = |channel: ChannelName| {
+            volume.channel(channel).map(|ch| ch.reader()).ok_or(BindError::MissingChannel { channel })
+        };
+        let needs_voxel = object.colour().reads_voxel() || object.opacity().reads_voxel();
+        let raw_rgb = match object.colour() {
+            ColourMap::Raw(kind) => {
+                let [r, g, b] = kind.channels();
+                Some((*kind, [reader(r)?, reader(g)?, reader(b)?]))
+            }
+            _ => None,
+        };
+        let parts = bind::Parts {
+            object,
+            dims: volume.dims(),
+            voxel: if needs_voxel { Some(reader(ChannelName::Voxel)?) } else { None },
+            raw_rgb,
+            alpha: if matches!(object.opacity(), OpacityMap::Raw) { Some(reader(ChannelName::Alpha)?) } else { None },
+            correction: opacity_correction,
+        };
+        let skip = if options.skip_empty_space { skipper(object, volume) } else { None };
+        let kernel = if options.specialise {
+            parts.specialised(skip).unwrap_or_else(|skip| parts.general(skip))
+        } else {
+            parts.general(skip)
+        };
+        Ok(ObjectCaster { object, transparent: object.opacity().constant() == Some(0.0), kernel })
+    }
+
+    /// Whether the object's combination has a specialised loop and it was chosen.
+    pub fn is_specialised(&self) -> bool {
+        self.kernel.is_specialised()
+    }
+
+    /// Whether the cast jumps over empty macrocells (off when the opacity map is zero
+    /// nowhere, or reads no channel).
+    pub fn skips_empty_space(&self) -> bool {
+        self.kernel.skips()
+    }
+
+    /// Composites this object's samples over [t0, t1] front to back. The ray arrives with
+    /// opacity `alpha_in`; once `alpha_in + (1 − alpha_in)·A` reaches `stop_at` the cast
+    /// stops (pass `f64::INFINITY` to sample the whole piece, as pieces shared by several
+    /// objects must, SPEC §4.5), and a ray that arrives with `alpha_in ≥ stop_at` casts
+    /// nothing. `samples` counts the samples interpolated and mapped: those skipped as
+    /// empty space are not.
+    pub fn cast(&self, ray: &Ray, t0: f64, t1: f64, alpha_in: f64, stop_at: f64) -> PieceResult {
+        if self.transparent || alpha_in >= stop_at {
+            return PieceResult::default();
+        }
+        let walk = self.object.placement().walk(ray, t0, t1, self.object.sampling_distance());
+        self.kernel.cast(walk, alpha_in, stop_at)
+    }
+}
+
+/// The object's empty-space classification over `volume`, if its opacity map reads a
+/// channel with macrocell ranges and is zero somewhere.
+fn skipper<'a>(object: &'a Object, volume: &'a Volume) -> Option<skip::Skipper<'a>> {
+    let channel = match object.opacity() {
+        OpacityMap::Raw => ChannelName::Alpha,
+        map if map.reads_voxel() => ChannelName::Voxel,
+        _ => return None,
+    };
+    let cells = volume.macrocells(channel)?;
+    let integer = volume.channel(channel)?.ty() != VoxelType::F32;
+    skip::Skipper::new(cells, object.opacity().zero_set(), integer)
+}
+
+/// α = 1 − (1 − O)^ℓ (SPEC §4.3), computed as −expm1(ℓ·ln(1 − O)) so small opacities and
+/// short steps keep their precision; O = 1 gives 1 and ℓ = 0 gives 0 without 0·∞.
+#[inline]
+pub fn corrected_opacity(opacity: f64, ell: f64) -> f64 {
+    if opacity <= 0.0 || ell <= 0.0 {
+        0.0
+    } else if opacity >= 1.0 {
+        1.0
+    } else {
+        -(ell * (-opacity).ln_1p()).exp_m1()
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,191 @@
+//! Empty-space skipping (issue 10): which macrocells an object's samples cannot contribute
+//! from, and how far a straight line of samples stays in one.
+//!
+//! A sample contributes nothing when its opacity is 0. Its value comes from voxels whose
+//! finite values lie in its macrocell's range ([`crate::dataset::macrocell`]), widened by
+//! how far the interpolation can overshoot them ([`Interp::value_bounds`]); if the opacity
+//! map is 0 over that whole interval ([`ZeroSet::covers`]) no sample based in the cell can
+//! contribute, and the cast passes over them without interpolating. A sample that reads a
+//! non-finite voxel contributes nothing either way, so the ranges ignore such voxels.
+//!
+//! Skipping never moves a sample: along a straight line the cast jumps from a sample in an
+//! empty cell over every following sample that lies in that cell or in the empty cells the
+//! line crosses next ([`Jumps::skip`], a 3-D DDA over cells), to the first sample that may be
+//! based in a non-empty one; positions are computed from the sample index alone
+//! ([`LineSamples::point`]), so the samples that are looked at are exactly those of the walk.
+//! Crossings are computed on the ideal line; a sample's base can differ from the cell its
+//! ideal position lies in only within the SPEC §4.5 snapping tolerance plus rounding of a
+//! boundary, so a jump stops that margin short of a non-empty cell, and at cell corners,
+//! where a sample may be counted in a cell the line does not cross. Images are therefore
+//! the same, bit for bit, with skipping on or off. Samples of an exact distorted walk do not
+//! lie on a line; they are tested one by one.
+
+use std::borrow::Cow;
+
+use crate::dataset::macrocell::{Level, Macrocells, COARSE_SHIFT, MACROCELL_SHIFT};
+use crate::geometry::LineSamples;
+use crate::interp::Interp;
+use crate::mapping::ZeroSet;
+
+/// One object's view of its dataset's macrocells: the ranges of the channel its opacity
+/// map reads and where that map is zero.
+#[derive(Debug)]
+pub(super) struct Skipper<'a> {
+    cells: &'a Macrocells,
+    zero: Cow<'a, ZeroSet>,
+    /// Whether the channel holds integers (bit, u8, u16, u32): convex interpolation of them
+    /// stays inside a cell's range exactly.
+    integer: bool,
+}
+
+impl<'a> Skipper<'a> {
+    /// `None` when the map is non-zero everywhere: nothing could ever be skipped, so the
+    /// cast does not even look at cells.
+    pub(super) fn new(cells: &'a Macrocells, zero: Cow<'a, ZeroSet>, integer: bool) -> Option<Skipper<'a>> {
+        (!zero.is_empty()).then_some(Skipper { cells, zero, integer })
+    }
+
+    /// Whether no sample based in cell `cell` of `level` can contribute.
+    #[inline]
+    pub(super) fn is_empty<I: Interp>(&self, interp: &I, level: Level, cell: [u32; 3]) -> bool {
+        let radius = interp.cell_radius();
+        let [lo, hi] =
+            if radius == 0 { self.cells.range(level, cell) } else { self.cells.range_around(level, cell, radius) };
+        if lo > hi {
+            // No finite voxel in reach: every sample here is non-finite.
+            return true;
+        }
+        let (lo, hi) = interp.value_bounds(lo as f64, hi as f64, self.integer);
+        self.zero.covers(lo, hi)
+    }
+}
+
+/// The macrocell a sample with base voxel `base` belongs to.
+#[inline(always)]
+pub(super) fn cell_of(base: [u32; 3]) -> [u32; 3] {
+    base.map(|b| b >> MACROCELL_SHIFT)
+}
+
+/// A straight line of samples prepared for jumps: per axis, where it starts, how many
+/// samples it takes per unit of VC, where sample bases fall, and the margin (in samples)
+/// within which a sample near a cell's bound might be based across it (computed once per
+/// piece).
+pub(super) struct Jumps {
+    n: u64,
+    start: [f64; 3],
+    /// n/δ per axis: sample index per unit of coordinate (±∞ where the line is parallel).
+    samples_per_unit: [f64; 3],
+    /// Per axis: the largest base index and the offset of base cells ([`Interp::base_grid`]).
+    grid: [(u32, f64); 3],
+    /// Per axis: how far, in samples, the base cell of a sample may be from where its ideal
+    /// position puts it — the snapping tolerance and the rounding of its coordinate, times
+    /// samples per unit, plus the rounding of the crossing index itself.
+    margin: [f64; 3],
+}
+
+/// Jumps stop at a crossing whose margin is this wide or wider (a line nearly parallel to
+/// a cell face, or a huge dataset's snapping tolerance): the samples there are looked at
+/// one by one instead.
+const MAX_MARGIN: f64 = 0.25;
+
+impl Jumps {
+    pub(super) fn new<I: Interp>(interp: &I, line: &LineSamples) -> Jumps {
+        let n = line.len() as f64;
+        let (start, delta) = (line.start(), line.delta());
+        let samples_per_unit = delta.map(|d| n / d);
+        let margin = std::array::from_fn(|a| {
+            // A coordinate is vc0 + δ·((k + ½)·(1/n)): four roundings off the ideal line.
+            let position = 8.0 * f64::EPSILON * (start[a].abs() + delta[a].abs());
+            let index = 8.0 * f64::EPSILON * (n + 1.0);
+            2.0 * ((interp.span_tolerance(a) + position) * samples_per_unit[a].abs() + index) + 1e-12
+        });
+        let grid = std::array::from_fn(|a| interp.base_grid(a));
+        Jumps { n: line.len(), start, samples_per_unit, grid, margin }
+    }
+
+    /// Given that sample `k` is based in macrocell `cell`, which `skipper` classifies empty:
+    /// the index of the next sample that may contribute. If the coarse block around the cell
+    /// is empty too, the jump runs over coarse blocks, else over macrocells.
+    pub(super) fn skip<I: Interp>(&self, interp: &I, skipper: &Skipper<'_>, k: u64, cell: [u32; 3]) -> u64 {
+        let block = cell.map(|c| c >> (COARSE_SHIFT - MACROCELL_SHIFT));
+        if skipper.is_empty(interp, Level::Coarse, block) {
+            self.walk_empty(interp, skipper, Level::Coarse, k, block)
+        } else {
+            self.walk_empty(interp, skipper, Level::Fine, k, cell)
+        }
+    }
+
+    /// Walks the cells of `level` the line crosses from `cell` (a 3-D DDA) while they are
+    /// empty, without locating samples, and stops before the first sample that may be based
+    /// in a non-empty cell: one within a crossing's margin of a non-empty cell, near two
+    /// crossings at once (a cell corner, where a sample may be based in a cell the line does
+    /// not cross), or at a crossing whose margin is too wide to trust.
+    fn walk_empty<I: Interp>(&self, interp: &I, skipper: &Skipper<'_>, level: Level, k: u64, cell: [u32; 3]) -> u64 {
+        let n = self.n;
+        let shift = level.shift();
+        let size = (1u64 << shift) as f64;
+        let mut cell = cell;
+        // Sample k itself is based in an empty cell.
+        let mut resume = k + 1;
+        loop {
+            let mut exits = [f64::INFINITY; 3];
+            for (a, exit) in exits.iter_mut().enumerate() {
+                let per_unit = self.samples_per_unit[a];
+                let (max_base, offset) = self.grid[a];
+                let c = cell[a];
+                // The bound ahead: the cell's upper face going up, its lower face going down;
+                // none beyond the last and first cells, whose samples are clamped into them.
+                let bound = if per_unit > 0.0 && per_unit.is_finite() && c < max_base >> shift {
+                    (c + 1) as f64 * size + offset
+                } else if per_unit < 0.0 && per_unit.is_finite() && c > 0 {
+                    c as f64 * size + offset
+                } else {
+                    continue;
+                };
+                // u(j) = u0 + δ·(j + ½)/n reaches the bound at j = (bound − u0)·n/δ − ½.
+                *exit = (bound - self.start[a]) * per_unit - 0.5;
+            }
+            let a = if exits[0] <= exits[1] && exits[0] <= exits[2] {
+                0
+            } else if exits[1] <= exits[2] {
+                1
+            } else {
+                2
+            };
+            let j = exits[a];
+            if j.is_nan() || j >= n as f64 {
+                // The line stays in this cell to the end of the piece (as before the
+                // comparison was spelled out: NaN, which finite bounds cannot produce, too).
+                return n;
+            }
+            // Samples before j − margin are based in this cell; the first one after it may not be.
+            let first_unsafe = ceil_index(j - self.margin[a]);
+            if first_unsafe <= resume {
+                return resume;
+            }
+            resume = first_unsafe;
+            let corner = (0..3).any(|b| b != a && (exits[b] - j).abs() <= self.margin[a] + self.margin[b]);
+            if corner || self.margin[a] >= MAX_MARGIN {
+                return resume;
+            }
+            // Samples within the margin of the crossing are based in this cell or the next.
+            let mut next = cell;
+            next[a] = if self.samples_per_unit[a] > 0.0 { cell[a] + 1 } else { cell[a] - 1 };
+            if !skipper.is_empty(interp, level, next) {
+                return resume;
+            }
+            cell = next;
+        }
+    }
+}
+
+/// The smallest sample index ≥ x (0 for x ≤ 0), without a libm call.
+#[inline]
+fn ceil_index(x: f64) -> u64 {
+    if x > 0.0 {
+        let t = x as u64;
+        t + u64::from((t as f64) < x)
+    } else {
+        0
+    }
+}

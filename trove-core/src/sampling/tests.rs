@@ -1,0 +1,524 @@
+//! The sampler's own tests: the jump logic of empty-space skipping on its own (every sample
+//! it passes over is based in an empty cell), and whole casts compared bit for bit across
+//! the ways an object can be bound (specialised or general loop, skipping on or off), over
+//! datasets of every stored type, every interpolation, map kind, extents, dataset borders
+//! and distorted boxes.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use glam::{DMat4, DVec3};
+use proptest::prelude::*;
+
+use super::skip::{cell_of, Jumps, Skipper};
+use super::*;
+use crate::dataset::macrocell::{Level, Macrocells};
+use crate::dataset::{Channel, Dims, Endian, VoxelBytes, VoxelType};
+use crate::geometry::hexahedron::Hexahedron;
+use crate::geometry::{Extent, LineSamples, Placement, Shape};
+use crate::interp::{Cubic, Identity, Interp, Interpolation, Linear, Nearest};
+use crate::mapping::{Lut, Polynomial, Ramp, RawColour};
+
+#[test]
+fn opacity_correction_is_exact_at_the_ends_and_precise_for_tiny_values() {
+    assert_eq!(corrected_opacity(0.0, 3.0), 0.0);
+    assert_eq!(corrected_opacity(1.0, 0.25), 1.0);
+    assert_eq!(corrected_opacity(1.0, 0.0), 0.0);
+    assert_eq!(corrected_opacity(0.3, 1.0), 0.3);
+    let a = corrected_opacity(0.5, 2.0);
+    assert!((a - 0.75).abs() < 1e-15);
+    // 1 − (1 − 1e-12)^1e-3 ≈ 1e-15: the naive formula loses every digit here.
+    let tiny = corrected_opacity(1e-12, 1e-3);
+    assert!((tiny / 1e-15 - 1.0).abs() < 1e-9, "{tiny}");
+}
+
+/// A sparse field: zero except in blocks of 3³ voxels (not aligned with macrocells) that a
+/// hash of the block picks, about 1 in `rarity`, holding values 1..=200.
+fn sparse(dims: Dims, seed: u64, rarity: u64) -> Vec<f32> {
+    let [nx, ny, nz] = dims.as_array().map(|n| n as u64);
+    let hash = |a: u64, b: u64, c: u64| {
+        ((a * 73_856_093) ^ (b * 19_349_663) ^ (c * 83_492_791) ^ seed).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+    };
+    let mut v = Vec::with_capacity((nx * ny * nz) as usize);
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                let block = hash(i / 3, j / 3, k / 3);
+                let voxel = hash(i, j, k);
+                v.push(if (block >> 33) % rarity == 0 { ((voxel >> 20) % 200 + 1) as f32 } else { 0.0 });
+            }
+        }
+    }
+    v
+}
+
+/// The channel `values` stored as `ty` (bit: non-zero → 1).
+fn channel(ty: VoxelType, endian: Endian, values: &[f32], dims: Dims) -> Channel {
+    let bytes: Vec<u8> = match ty {
+        VoxelType::Bit => {
+            let mut b = vec![0u8; values.len().div_ceil(8)];
+            for (i, v) in values.iter().enumerate() {
+                if *v != 0.0 {
+                    b[i >> 3] |= 1 << (i & 7);
+                }
+            }
+            b
+        }
+        VoxelType::U8 => values.iter().map(|&v| v as u8).collect(),
+        VoxelType::U16 => values
+            .iter()
+            .flat_map(|&v| if endian == Endian::Little { (v as u16).to_le_bytes() } else { (v as u16).to_be_bytes() })
+            .collect(),
+        VoxelType::U32 => values
+            .iter()
+            .flat_map(|&v| if endian == Endian::Little { (v as u32).to_le_bytes() } else { (v as u32).to_be_bytes() })
+            .collect(),
+        VoxelType::F32 => values
+            .iter()
+            .flat_map(|&v| if endian == Endian::Little { v.to_le_bytes() } else { v.to_be_bytes() })
+            .collect(),
+    };
+    Channel::new(ty, endian, VoxelBytes::Owned(Arc::new(bytes)), dims).unwrap()
+}
+
+fn volume(dims: Dims, channels: Vec<(ChannelName, Channel)>) -> Volume {
+    Volume::new(dims, channels.into_iter().collect::<BTreeMap<_, _>>())
+}
+
+/// The unit box scaled to `size` and moved by `at`.
+fn affine(size: f64, at: DVec3) -> Shape {
+    let m = DMat4::from_translation(at) * DMat4::from_scale(DVec3::splat(size));
+    Shape::Affine { world_from_box: m, box_from_world: m.inverse() }
+}
+
+fn object(
+    colour: ColourMap,
+    opacity: OpacityMap,
+    interpolation: Interpolation,
+    shape: Shape,
+    extent: Extent,
+    dims: Dims,
+) -> Object {
+    Object::for_tests(colour, opacity, interpolation, 0.0, Placement::new(shape, extent, dims))
+}
+
+/// `o` with another interpolation and sampling distance.
+fn respecified(o: &Object, interpolation: Interpolation, sampling_distance: f64) -> Object {
+    Object::for_tests(o.colour().clone(), o.opacity().clone(), interpolation, sampling_distance, o.placement().clone())
+}
+
+/// Opacity 0 below 0.5, rising after: voxels of value 0 are empty space.
+fn opacity_ramp() -> OpacityMap {
+    OpacityMap::Ramp(Ramp::new(vec![(0.5, [0.0]), (150.0, [0.4]), (200.0, [0.9])]))
+}
+
+fn colour_ramp() -> ColourMap {
+    ColourMap::Ramp(Ramp::new(vec![(0.0, [0.1, 0.2, 0.3]), (100.0, [0.9, 0.5, 0.1]), (200.0, [1.0, 1.0, 1.0])]))
+}
+
+/// A deterministic spread of rays into a box around the origin of side `size` placed at
+/// `at`: diagonal ones, ones parallel to faces, and ones through cell corners and faces
+/// (integer coordinates, where snapping decides the cell).
+fn rays(size: f64, at: DVec3, count: usize) -> Vec<Ray> {
+    let mut out = Vec::new();
+    let c = at + DVec3::splat(size / 2.0);
+    for i in 0..count {
+        let f = i as f64 / count as f64;
+        let a = f * std::f64::consts::TAU * 7.0;
+        let dir = DVec3::new(a.cos(), (a * 1.3).sin(), 0.4 + f).normalize();
+        out.push(Ray { origin: c - dir * size * 2.0 + DVec3::new(0.1 * a.sin(), 0.07 * a.cos(), 0.0) * size, dir });
+    }
+    for axis in 0..3 {
+        for i in 0..count / 4 + 1 {
+            // Along an axis, in planes on and between voxel and cell boundaries.
+            let mut o = at + DVec3::splat(size * (i as f64 + 0.5) / (count / 4 + 1) as f64);
+            o[axis] = at[axis] - size;
+            let mut dir = DVec3::ZERO;
+            dir[axis] = 1.0;
+            out.push(Ray { origin: o, dir });
+            let mut grid = at + DVec3::splat(size * 0.25);
+            grid[axis] = at[axis] - size;
+            out.push(Ray { origin: grid, dir });
+        }
+    }
+    out
+}
+
+/// Casts every piece of every ray with each binding and requires identical results;
+/// returns (samples with skipping, samples without).
+fn casts_agree(object: &Object, volume: &Volume, correction: bool, rays: &[Ray]) -> (u64, u64) {
+    let bind = |specialise, skip_empty_space| {
+        ObjectCaster::with_options(object, volume, correction, CastOptions { specialise, skip_empty_space }).unwrap()
+    };
+    let casters = [bind(true, true), bind(true, false), bind(false, true), bind(false, false)];
+    let (mut skipped, mut all) = (0, 0);
+    for ray in rays {
+        let Some((t0, t1)) = object.placement().segment(ray) else { continue };
+        if t1 <= t0 {
+            continue;
+        }
+        // Whole pieces, and a piece cut in two as a shared segment would be.
+        for (a, b, stop) in [(t0, t1, 0.99), ((t0 + t1) / 2.0, t1, f64::INFINITY), (t0, (t0 + t1) / 3.0, 0.5)] {
+            let results = casters.each_ref().map(|c| c.cast(ray, a, b, 0.0, stop));
+            for (i, r) in results.iter().enumerate() {
+                assert_eq!(r.rgba, results[3].rgba, "binding {i} differs from the general loop without skipping");
+            }
+            skipped += results[0].samples;
+            all += results[3].samples;
+            assert_eq!(results[0].samples, results[2].samples);
+            assert_eq!(results[1].samples, results[3].samples);
+        }
+    }
+    (skipped, all)
+}
+
+#[test]
+fn every_stored_type_interpolation_and_map_casts_alike_on_every_path() {
+    let dims = Dims::new([13, 11, 9]).unwrap();
+    let values = sparse(dims, 7, 9);
+    let types = [
+        (VoxelType::Bit, Endian::Little),
+        (VoxelType::U8, Endian::Little),
+        (VoxelType::U16, Endian::Little),
+        (VoxelType::U16, Endian::Big),
+        (VoxelType::U32, Endian::Little),
+        (VoxelType::F32, Endian::Little),
+        (VoxelType::F32, Endian::Big),
+    ];
+    let interps = [
+        Interpolation::Nearest,
+        Interpolation::Trilinear,
+        Interpolation::Nonlinear { omega: [0.0, 0.0, 1.0] },
+        Interpolation::Nonlinear { omega: [-0.1, 1.5, -0.3] },
+        Interpolation::Cubic,
+    ];
+    let colours = || {
+        vec![
+            colour_ramp(),
+            ColourMap::Lut(Lut::new(vec![0.5, 120.0], vec![[0.0, 0.0, 1.0], [0.3, 0.6, 0.2], [1.0, 0.9, 0.8]])),
+            ColourMap::Polynomial([
+                Polynomial(vec![0.1, 0.004]),
+                Polynomial(vec![0.2]),
+                Polynomial(vec![0.9, -0.002, 1e-5]),
+            ]),
+        ]
+    };
+    let opacities = || {
+        vec![
+            opacity_ramp(),
+            OpacityMap::Lut(Lut::new(vec![0.5, 60.0], vec![0.0, 0.05, 0.3])),
+            OpacityMap::Polynomial(Polynomial(vec![-0.05, 0.004])),
+            OpacityMap::Polynomial(Polynomial(vec![0.01, 0.0, 1e-5])),
+        ]
+    };
+    let (size, at) = (1.0, DVec3::new(-0.5, -0.5, -0.5));
+    let rays = rays(size, at, 24);
+    let mut specialised = 0;
+    for (ty, endian) in types {
+        let vol = volume(dims, vec![(ChannelName::Voxel, channel(ty, endian, &values, dims))]);
+        for interp in interps {
+            for colour in colours() {
+                for opacity in opacities() {
+                    for correction in [false, true] {
+                        let o = object(colour.clone(), opacity.clone(), interp, affine(size, at), Extent::FULL, dims);
+                        casts_agree(&o, &vol, correction, &rays);
+                        specialised += usize::from(ObjectCaster::new(&o, &vol, correction).unwrap().is_specialised());
+                    }
+                }
+            }
+        }
+    }
+    // u8, u16 le and f32 le have specialised loops for nearest and trilinear with every map
+    // pair, and for nonlinear and cubic with piecewise maps: (2·12 + 3·4)·3 types·2.
+    assert_eq!(specialised, (2 * 12 + 3 * 4) * 3 * 2);
+}
+
+#[test]
+fn raw_colour_and_alpha_cast_alike_and_skip_transparent_pixels() {
+    // A photograph as a volume one voxel deep: alpha 0 outside a disc.
+    let dims = Dims::new([40, 30, 1]).unwrap();
+    let [nx, ny, _] = dims.as_array();
+    let (mut r, mut g, mut b, mut a) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for j in 0..ny {
+        for i in 0..nx {
+            let inside = (i as f64 - 20.0).hypot(j as f64 - 15.0) < 9.0;
+            r.push((i * 6) as u8);
+            g.push((j * 8) as u8);
+            b.push(200);
+            a.push(if inside { 180 } else { 0 });
+        }
+    }
+    let vol = volume(
+        dims,
+        vec![
+            (ChannelName::Red, Channel::from_u8(r, dims).unwrap()),
+            (ChannelName::Green, Channel::from_u8(g, dims).unwrap()),
+            (ChannelName::Blue, Channel::from_u8(b, dims).unwrap()),
+            (ChannelName::Alpha, Channel::from_u8(a, dims).unwrap()),
+        ],
+    );
+    let (size, at) = (1.0, DVec3::new(-0.5, -0.5, -0.5));
+    for interp in [Interpolation::Nearest, Interpolation::Trilinear, Interpolation::Cubic] {
+        for opacity in [OpacityMap::Raw, OpacityMap::Polynomial(Polynomial(vec![0.3]))] {
+            let o = object(ColourMap::Raw(RawColour::Rgb), opacity, interp, affine(size, at), Extent::FULL, dims);
+            let (skipped, all) = casts_agree(&o, &vol, true, &rays(size, at, 40));
+            let caster = ObjectCaster::new(&o, &vol, true).unwrap();
+            if matches!(o.opacity(), OpacityMap::Raw) {
+                assert!(caster.skips_empty_space() && skipped < all, "{interp:?}: {skipped} of {all}");
+            } else {
+                assert!(!caster.skips_empty_space(), "a constant opacity above 0 never skips");
+            }
+            assert_eq!(caster.is_specialised(), interp != Interpolation::Cubic);
+        }
+    }
+}
+
+#[test]
+fn a_map_that_is_non_zero_everywhere_turns_skipping_off() {
+    let dims = Dims::new([8, 8, 8]).unwrap();
+    let vol = volume(dims, vec![(ChannelName::Voxel, Channel::from_f32(&sparse(dims, 1, 5), dims).unwrap())]);
+    let everywhere = [
+        OpacityMap::Ramp(Ramp::new(vec![(0.0, [0.01]), (100.0, [0.5])])),
+        OpacityMap::Lut(Lut::new(vec![10.0], vec![0.2, 0.1])),
+        OpacityMap::Polynomial(Polynomial(vec![0.3])),
+        // Quadratic: not monotone, so no zero set is claimed (it would be empty anyway).
+        OpacityMap::Polynomial(Polynomial(vec![0.1, 0.0, 1.0])),
+    ];
+    for opacity in everywhere {
+        let o = object(colour_ramp(), opacity, Interpolation::Trilinear, affine(1.0, DVec3::ZERO), Extent::FULL, dims);
+        assert!(!ObjectCaster::new(&o, &vol, true).unwrap().skips_empty_space(), "{:?}", o.opacity());
+    }
+    let zero_below_half =
+        object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, affine(1.0, DVec3::ZERO), Extent::FULL, dims);
+    assert!(ObjectCaster::new(&zero_below_half, &vol, true).unwrap().skips_empty_space());
+    // A constant 0 opacity casts nothing at all, skipping or not.
+    let clear = object(
+        colour_ramp(),
+        OpacityMap::Polynomial(Polynomial(vec![0.0])),
+        Interpolation::Trilinear,
+        affine(1.0, DVec3::ZERO),
+        Extent::FULL,
+        dims,
+    );
+    let ray = Ray { origin: DVec3::new(0.5, 0.5, -1.0), dir: DVec3::Z };
+    assert_eq!(ObjectCaster::new(&clear, &vol, true).unwrap().cast(&ray, 1.0, 2.0, 0.0, 1.0), PieceResult::default());
+}
+
+/// Every sample a jump passes over is based in an empty cell: checked sample by sample on
+/// lines through `object`'s box.
+fn jumps_pass_only_empty_samples<I: Interp>(interp: &I, object: &Object, volume: &Volume, rays: &[Ray]) -> (u64, u64) {
+    let cells = volume.macrocells(ChannelName::Voxel).unwrap();
+    let skipper = Skipper::new(cells, object.opacity().zero_set(), true).expect("the map is zero somewhere");
+    let (mut passed, mut looked) = (0, 0);
+    for ray in rays {
+        let Some((t0, t1)) = object.placement().segment(ray) else { continue };
+        let Some(line) = object.placement().walk(ray, t0, t1, object.sampling_distance()).line() else { continue };
+        let base_cell = |j: u64| cell_of(interp.base(&interp.locate(line.point(j))));
+        let empty = |j: u64| skipper.is_empty(interp, Level::Fine, base_cell(j));
+        let jumps = Jumps::new(interp, &line);
+        let mut k = 0;
+        while k < line.len() {
+            looked += 1;
+            if empty(k) {
+                let next = jumps.skip(interp, &skipper, k, base_cell(k));
+                assert!(next > k);
+                for j in k + 1..next.min(line.len()) {
+                    assert!(empty(j), "sample {j} of {} jumped over from {k} is based in a non-empty cell", line.len());
+                    passed += 1;
+                }
+                k = next;
+            } else {
+                k += 1;
+            }
+        }
+    }
+    (passed, looked)
+}
+
+fn jump_case(dims: [u64; 3], extent: Extent, rarity: u64, seed: u64) {
+    let dims = Dims::new(dims).unwrap();
+    let vol = volume(dims, vec![(ChannelName::Voxel, Channel::from_f32(&sparse(dims, seed, rarity), dims).unwrap())]);
+    let (size, at) = (2.0, DVec3::new(-1.0, -0.5, -1.5));
+    let rays = rays(size, at, 30);
+    let mut passed = 0;
+    for interp in [Interpolation::Nearest, Interpolation::Trilinear, Interpolation::Cubic] {
+        let o = object(colour_ramp(), opacity_ramp(), interp, affine(size, at), extent, dims);
+        passed += match interp {
+            Interpolation::Nearest => jumps_pass_only_empty_samples(&Nearest::new(dims), &o, &vol, &rays).0,
+            Interpolation::Cubic => jumps_pass_only_empty_samples(&Cubic::new(dims), &o, &vol, &rays).0,
+            _ => jumps_pass_only_empty_samples(&Linear::new(dims, Identity), &o, &vol, &rays).0,
+        };
+        let (skipped, all) = casts_agree(&o, &vol, true, &rays);
+        assert!(skipped <= all);
+    }
+    assert!(passed > 0, "the case must exercise jumps");
+}
+
+#[test]
+fn jumps_pass_only_empty_samples_at_dataset_borders() {
+    // Axes that are not multiples of the cell (a last cell of one voxel: 13 = 3·4 + 1), a
+    // single-voxel axis, and data only in the outermost voxels.
+    jump_case([13, 9, 17], Extent::FULL, 7, 3);
+    jump_case([41, 1, 6], Extent::FULL, 5, 4);
+    let dims = Dims::new([21, 14, 10]).unwrap();
+    let [nx, ny, nz] = dims.as_array().map(|n| n as usize);
+    let mut v = vec![0.0f32; nx * ny * nz];
+    for k in 0..nz {
+        for j in 0..ny {
+            v[dims.index(nx - 1, j, k)] = 180.0;
+            v[dims.index(0, j, k)] = if (j + k) % 3 == 0 { 90.0 } else { 0.0 };
+        }
+    }
+    let vol = volume(dims, vec![(ChannelName::Voxel, Channel::from_f32(&v, dims).unwrap())]);
+    let (size, at) = (1.0, DVec3::ZERO);
+    for interp in [Interpolation::Nearest, Interpolation::Trilinear, Interpolation::Cubic] {
+        let o = object(colour_ramp(), opacity_ramp(), interp, affine(size, at), Extent::FULL, dims);
+        let (skipped, all) = casts_agree(&o, &vol, false, &rays(size, at, 30));
+        assert!(skipped < all, "{interp:?}: the empty middle must be skipped");
+        // The border layers are seen: some ray is not clear.
+        let ray = Ray { origin: DVec3::new(-1.0, 0.5, 0.5), dir: DVec3::X };
+        let (t0, t1) = o.placement().segment(&ray).unwrap();
+        assert!(ObjectCaster::new(&o, &vol, false).unwrap().cast(&ray, t0, t1, 0.0, 1.0).rgba.alpha > 0.0);
+    }
+}
+
+#[test]
+fn jumps_pass_only_empty_samples_in_extent_sub_boxes() {
+    // The extent stretches part of the dataset over the box; cells outside it are never
+    // sampled, cells at its faces are read by samples just inside.
+    let extent = Extent { min: DVec3::new(0.2, 0.05, 0.5), max: DVec3::new(0.7, 0.9, 0.95) };
+    jump_case([24, 20, 16], extent, 6, 5);
+    // Data only just outside the extent: interpolation at its faces still reads it.
+    let dims = Dims::new([16, 16, 16]).unwrap();
+    let mut v = vec![0.0f32; 16 * 16 * 16];
+    for k in 0..16 {
+        for j in 0..16 {
+            v[dims.index(3, j, k)] = 200.0; // NVC x of voxel 3 = 3.5/16 ≈ 0.22
+        }
+    }
+    let vol = volume(dims, vec![(ChannelName::Voxel, Channel::from_f32(&v, dims).unwrap())]);
+    let extent = Extent { min: DVec3::new(0.25, 0.0, 0.0), max: DVec3::new(0.75, 1.0, 1.0) };
+    let o = object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, affine(1.0, DVec3::ZERO), extent, dims);
+    // Steps of 0.08 voxel, so that the first samples lie between the face (VC 3.5) and VC 4,
+    // in the cell [3, 4] whose lower corner is voxel 3.
+    let o = respecified(&o, Interpolation::Trilinear, 0.01);
+    let (size, at) = (1.0, DVec3::ZERO);
+    let (skipped, all) = casts_agree(&o, &vol, true, &rays(size, at, 30));
+    assert!(skipped < all);
+    let ray = Ray { origin: DVec3::new(-1.0, 0.5, 0.5), dir: DVec3::X };
+    let (t0, t1) = o.placement().segment(&ray).unwrap();
+    let r = ObjectCaster::new(&o, &vol, true).unwrap().cast(&ray, t0, t1, 0.0, 1.0);
+    assert!(r.rgba.alpha > 0.0, "voxel 3, outside the extent, is read by samples at its face");
+}
+
+#[test]
+fn distorted_boxes_skip_sample_by_sample_and_cast_alike() {
+    let dims = Dims::new([18, 14, 12]).unwrap();
+    let vol = volume(dims, vec![(ChannelName::Voxel, Channel::from_f32(&sparse(dims, 11, 8), dims).unwrap())]);
+    let mut corners: [DVec3; 8] =
+        std::array::from_fn(|i| DVec3::new((i & 1) as f64, (i >> 1 & 1) as f64, (i >> 2 & 1) as f64));
+    corners[7] += DVec3::new(0.3, 0.25, 0.2);
+    corners[2] += DVec3::new(-0.15, 0.1, 0.0);
+    let hex = Hexahedron::new(corners).unwrap();
+    for straight in [false, true] {
+        let shape = Shape::Distorted { hex: Box::new(hex.clone()), straight };
+        let o = object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, shape, Extent::FULL, dims);
+        let ray = Ray { origin: DVec3::new(0.5, 0.5, -2.0), dir: DVec3::Z };
+        let (t0, t1) = o.placement().segment(&ray).unwrap();
+        // Exact inversion has no straight line to jump along; the straight mode has one.
+        assert_eq!(o.placement().walk(&ray, t0, t1, 0.0).line().is_some(), straight);
+        let (skipped, all) = casts_agree(&o, &vol, true, &rays(1.3, DVec3::ZERO, 30));
+        assert!(skipped < all, "straight = {straight}: {skipped} of {all}");
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+
+    /// Random sparse volumes, extents and lines, at sample steps from far below a voxel
+    /// to several voxels.
+    #[test]
+    fn jumps_never_pass_a_sample_of_a_non_empty_cell(
+        dims in prop::array::uniform3(1u64..30),
+        seed in 0u64..1000,
+        rarity in 2u64..40,
+        lo in prop::array::uniform3(0.0f64..0.45),
+        width in prop::array::uniform3(0.3f64..0.55),
+        origin in prop::array::uniform3(-3.0f64..3.0),
+        target in prop::array::uniform3(0.0f64..1.0),
+        step in prop::sample::select(vec![0.0, 0.002, 0.013, 0.05, 0.31]),
+    ) {
+        let dims = Dims::new(dims).unwrap();
+        let vol = volume(dims, vec![(ChannelName::Voxel, Channel::from_f32(&sparse(dims, seed, rarity), dims).unwrap())]);
+        let extent = Extent { min: DVec3::from(lo), max: DVec3::from(lo) + DVec3::from(width) };
+        let o = object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, affine(1.0, DVec3::ZERO), extent, dims);
+        let o = respecified(&o, Interpolation::Trilinear, step);
+        let origin = DVec3::from(origin);
+        let ray = Ray { origin, dir: (DVec3::from(target) - origin).normalize() };
+        jumps_pass_only_empty_samples(&Linear::new(dims, Identity), &o, &vol, &[ray]);
+        let o = respecified(&o, Interpolation::Nearest, step);
+        jumps_pass_only_empty_samples(&Nearest::new(dims), &o, &vol, &[ray]);
+        casts_agree(&o, &vol, true, &[ray]);
+    }
+}
+
+#[test]
+fn lines_through_integer_planes_jump_exactly() {
+    // Rays along voxel and cell faces (coordinates exactly integral, where the snapping
+    // rule moves samples across cell bounds) and along cell edges and corners.
+    let dims = Dims::new([16, 16, 16]).unwrap();
+    let vol = volume(dims, vec![(ChannelName::Voxel, Channel::from_f32(&sparse(dims, 5, 6), dims).unwrap())]);
+    let o = object(
+        colour_ramp(),
+        opacity_ramp(),
+        Interpolation::Trilinear,
+        affine(16.0, DVec3::splat(-0.5)),
+        Extent::FULL,
+        dims,
+    );
+    // With this box, world = VC: voxel i at world i.
+    let mut rays = Vec::new();
+    for a in [0.0, 1.0, 3.0, 4.0, 3.5, 7.999_999_999_9, 8.0, 12.0] {
+        for b in [0.0, 4.0, 5.0, 3.999_999_999_99] {
+            rays.push(Ray { origin: DVec3::new(-3.0, a, b), dir: DVec3::X });
+            rays.push(Ray { origin: DVec3::new(a, -3.0, b), dir: DVec3::Y });
+            rays.push(Ray { origin: DVec3::new(-3.0, a - 3.0, b), dir: DVec3::new(1.0, 1.0, 0.0).normalize() });
+            rays.push(Ray { origin: DVec3::new(-4.0, a - 4.0, b - 4.0), dir: DVec3::ONE.normalize() });
+        }
+    }
+    let (passed, _) = jumps_pass_only_empty_samples(&Linear::new(dims, Identity), &o, &vol, &rays);
+    assert!(passed > 0);
+    casts_agree(&o, &vol, false, &rays);
+}
+
+#[test]
+fn macrocell_ranges_are_counted_in_both_byte_lengths() {
+    let dims = Dims::new([20, 9, 5]).unwrap();
+    let vol = volume(
+        dims,
+        vec![
+            (ChannelName::Voxel, Channel::from_f32(&sparse(dims, 1, 3), dims).unwrap()),
+            (ChannelName::Alpha, Channel::from_u8(vec![1; 900], dims).unwrap()),
+            (ChannelName::Red, Channel::from_u8(vec![1; 900], dims).unwrap()),
+        ],
+    );
+    // voxel and alpha have ranges; red does not.
+    assert_eq!(vol.byte_len(), 900 * 4 + 900 + 900 + 2 * Macrocells::byte_len(dims));
+    assert!(vol.macrocells(ChannelName::Red).is_none());
+}
+
+#[test]
+fn a_line_of_samples_is_the_walk_it_came_from() {
+    let dims = Dims::new([10, 10, 10]).unwrap();
+    let o =
+        object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, affine(1.0, DVec3::ZERO), Extent::FULL, dims);
+    let ray = Ray { origin: DVec3::new(0.3, 0.4, -1.0), dir: DVec3::new(0.1, 0.05, 1.0).normalize() };
+    let (t0, t1) = o.placement().segment(&ray).unwrap();
+    let walk = o.placement().walk(&ray, t0, t1, 0.0);
+    let line: LineSamples = walk.line().unwrap();
+    let points: Vec<[f64; 3]> = o.placement().walk(&ray, t0, t1, 0.0).map(|(vc, _)| vc.unwrap()).collect();
+    assert_eq!(points.len() as u64, line.len());
+    for (k, p) in points.iter().enumerate() {
+        assert_eq!(*p, line.point(k as u64));
+    }
+}
