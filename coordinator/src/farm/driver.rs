@@ -26,11 +26,10 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use prost::Message;
-use rayon::prelude::*;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Status;
-use trove_core::render::intersection::{intersect, task_sample_positions};
+use trove_core::render::intersection::intersect;
 use trove_core::render::wire::{decode_results, encode_tasks};
 use trove_core::render::{quantize, Algorithm, RenderStats, Scheduler, StoreStats};
 use trove_core::scene::Scene;
@@ -630,15 +629,10 @@ impl Driver {
         let (scene, events, want_pfm) = (self.scene().clone(), self.events.clone(), self.plan.options.want_pfm);
         tokio::task::spawn_blocking(move || {
             let started = Instant::now();
-            let background = scene.image().background;
-            let pixels: Vec<[f64; 3]> = (0..scheduler.intersections().rays())
-                .into_par_iter()
-                .map(|r| scheduler.composite_ray(r).with_background(background))
-                .collect();
+            let pixels = scheduler.composite_pixels(scene.image().background);
             let rgb8 = pixels.iter().flat_map(|p| p.map(quantize)).collect();
             let rgb32f = want_pfm.then(|| pixels.iter().flat_map(|p| p.map(|c| c as f32)).collect());
-            let culled: Vec<_> = scheduler.culled().copied().collect();
-            let samples_skipped = culled.par_iter().map(|t| task_sample_positions(&scene, t)).sum();
+            let samples_skipped = scheduler.culled_samples(&scene);
             let part = Composited { rows, rgb8, rgb32f, samples_skipped, seconds: started.elapsed().as_secs_f64() };
             let _ = events.blocking_send(Event::Composited { band, part: Box::new(part) });
         });

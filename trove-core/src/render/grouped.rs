@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
-use super::intersection::{intersect, task_sample_positions};
+use super::intersection::intersect;
 use super::schedule::{Batch, Scheduler};
 use super::workunit::{BatchCaster, PieceRgba};
 use super::{Image, Progress, RenderError, RenderStats, Rendered, VolumeStore};
@@ -73,18 +73,13 @@ pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progr
         drop(volume);
         store.unload(info);
     }
-    let culled: Vec<_> = scheduler.culled().copied().collect();
-    stats.samples_skipped = culled.par_iter().map(|t| task_sample_positions(scene, t)).sum();
+    stats.samples_skipped = scheduler.culled_samples(scene);
     stats.seconds.loading = loading.as_secs_f64();
     stats.seconds.volume_rendering = (started.elapsed() - loading).as_secs_f64();
 
     // Phase 3: composition, front to back per ray.
     let started = Instant::now();
-    let background = scene.image().background;
-    let pixels: Vec<[f64; 3]> = (0..scheduler.intersections().rays())
-        .into_par_iter()
-        .map(|r| scheduler.composite_ray(r).with_background(background))
-        .collect();
+    let pixels = scheduler.composite_pixels(scene.image().background);
     stats.seconds.composition = started.elapsed().as_secs_f64();
     if let Some(p) = progress {
         p(h as u64);

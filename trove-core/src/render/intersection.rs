@@ -161,7 +161,7 @@ pub(crate) fn sample_positions(scene: &Scene, ray: &Ray, object: usize, t0: f64,
 
 /// The sample positions of a task, its ray recomputed from the camera: what culling it
 /// saved, for statistics.
-pub fn task_sample_positions(scene: &Scene, task: &PieceTask) -> u64 {
+pub(crate) fn task_sample_positions(scene: &Scene, task: &PieceTask) -> u64 {
     let (w, h) = (scene.image().width, scene.image().height);
     let ray = scene.camera().ray(task.ray % w, task.ray / w, w, h);
     sample_positions(scene, &ray, task.object as usize, task.t0, task.t1)

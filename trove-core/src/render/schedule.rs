@@ -285,6 +285,20 @@ impl Scheduler {
         acc
     }
 
+    /// Every ray of the intersections composited over `background`, in ray order (rayon):
+    /// the pixels of the rows they cover. The one composition step of every driver.
+    pub fn composite_pixels(&self, background: [f64; 3]) -> Vec<[f64; 3]> {
+        use rayon::prelude::*;
+        (0..self.inter.rays()).into_par_iter().map(|r| self.composite_ray(r).with_background(background)).collect()
+    }
+
+    /// The sample positions of the culled tasks (`samples_skipped`: never cast).
+    pub fn culled_samples(&self, scene: &Scene) -> u64 {
+        use rayon::prelude::*;
+        let culled: Vec<&PieceTask> = self.culled().collect();
+        culled.par_iter().map(|t| super::intersection::task_sample_positions(scene, t)).sum()
+    }
+
     /// The tasks that were culled (for statistics: their sample positions were never cast).
     pub fn culled(&self) -> impl Iterator<Item = &PieceTask> {
         self.inter.tasks.iter().zip(&self.status).filter(|(_, s)| **s == Status::Culled).map(|(t, _)| t)
