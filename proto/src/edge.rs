@@ -2,9 +2,31 @@
 
 use std::io::IsTerminal;
 
+/// Why a byte count was refused; each message names the text given.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum BytesError {
+    /// A unit other than B, KiB, MiB or GiB.
+    #[error("`{text}`: unknown unit `{unit}`; expected bytes, or a number followed by KiB, MiB or GiB")]
+    UnknownUnit {
+        /// The text given.
+        text: String,
+        /// The unit in it.
+        unit: String,
+    },
+    /// No number, or not one.
+    #[error("`{0}`: expected a number of bytes, optionally followed by KiB, MiB or GiB")]
+    NotANumber(String),
+    /// More than `u64` bytes.
+    #[error("`{0}`: too large")]
+    TooLarge(String),
+    /// Zero: a budget holds at least one byte.
+    #[error("`{0}`: a memory budget must be at least one byte")]
+    Zero(String),
+}
+
 /// A byte count: a plain number of bytes, or a number (decimals allowed) followed by
 /// `B`, `KiB`, `MiB` or `GiB` (any case, optional space). Fractions of a byte round down.
-pub fn parse_bytes(text: &str) -> Result<u64, String> {
+pub fn parse_bytes(text: &str) -> Result<u64, BytesError> {
     let t = text.trim();
     let split = t.find(|c: char| !(c.is_ascii_digit() || c == '.')).unwrap_or(t.len());
     let (number, unit) = (&t[..split], t[split..].trim());
@@ -13,13 +35,10 @@ pub fn parse_bytes(text: &str) -> Result<u64, String> {
         "kib" => 1 << 10,
         "mib" => 1 << 20,
         "gib" => 1 << 30,
-        _ => {
-            return Err(format!(
-                "`{text}`: unknown unit `{unit}`; expected bytes, or a number followed by KiB, MiB or GiB"
-            ))
-        }
+        _ => return Err(BytesError::UnknownUnit { text: text.to_string(), unit: unit.to_string() }),
     };
-    let bad = || format!("`{text}`: expected a number of bytes, optionally followed by KiB, MiB or GiB");
+    let bad = || BytesError::NotANumber(text.to_string());
+    let too_large = || BytesError::TooLarge(text.to_string());
     if number.is_empty() || number.matches('.').count() > 1 {
         return Err(bad());
     }
@@ -27,15 +46,15 @@ pub fn parse_bytes(text: &str) -> Result<u64, String> {
         let v: f64 = number.parse().map_err(|_| bad())?;
         let b = v * scale as f64;
         if !b.is_finite() || b >= u64::MAX as f64 {
-            return Err(format!("`{text}`: too large"));
+            return Err(too_large());
         }
         b.floor() as u64
     } else {
-        let v: u64 = number.parse().map_err(|_| format!("`{text}`: too large"))?;
-        v.checked_mul(scale).ok_or_else(|| format!("`{text}`: too large"))?
+        let v: u64 = number.parse().map_err(|_| too_large())?;
+        v.checked_mul(scale).ok_or_else(too_large)?
     };
     if bytes == 0 {
-        return Err(format!("`{text}`: a memory budget must be at least one byte"));
+        return Err(BytesError::Zero(text.to_string()));
     }
     Ok(bytes)
 }
@@ -90,6 +109,7 @@ mod tests {
         for bad in ["", "MiB", "12 MB", "1.2.3KiB", "-5", "0", "99999999999999999999", "20000000000GiB", "1e3"] {
             assert!(parse_bytes(bad).is_err(), "{bad}");
         }
-        assert!(parse_bytes("12 MB").unwrap_err().contains("KiB, MiB or GiB"));
+        assert!(matches!(parse_bytes("12 MB"), Err(super::BytesError::UnknownUnit { .. })));
+        assert_eq!(parse_bytes("0"), Err(super::BytesError::Zero("0".into())));
     }
 }

@@ -7,7 +7,7 @@
 pub mod convert;
 pub mod edge;
 
-pub use edge::{init_logging, parse_bytes, shutdown_signal};
+pub use edge::{init_logging, parse_bytes, shutdown_signal, BytesError};
 
 /// Generated messages and services.
 #[allow(missing_docs, clippy::all)]
