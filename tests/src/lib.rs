@@ -17,12 +17,12 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
-use trove_core::composite::Rgba;
 use trove_core::geometry::{split_into_pieces, Segment};
 use trove_core::render::{render, Algorithm, Image, RenderOptions, Rendered};
-use trove_core::sampling::{CastOptions, ObjectCaster};
 use trove_core::scene::{DataRoot, Scene, SceneError, SceneErrorKind};
 use trove_core::RenderError;
+use trove_core::Rgba;
+use trove_core::{CastOptions, ObjectCaster};
 
 /// A fresh scratch folder under the system temp dir, unique to this test.
 pub fn scratch(name: &str) -> PathBuf {

@@ -51,8 +51,8 @@
 
 use glam::{DMat4, DVec3};
 use trove_core::geometry::{Camera, Ray};
-use trove_core::interp::Interpolation;
 use trove_core::scene::Scene;
+use trove_core::Interpolation;
 use trove_core::SceneError;
 
 /// One of the reference scenes (see the module documentation).

@@ -1,8 +1,8 @@
 //! Convergence against the closed-form reference scenes of `trove_tests::reference`: cheap
 //! versions of what `trove-bench accuracy` measures at full size, as tests (no timings).
 
-use trove_core::interp::Interpolation;
 use trove_core::render::{render, Algorithm, RenderOptions};
+use trove_core::Interpolation;
 use trove_tests::reference::{log_log_slope, rmse_and_max, Reference, Setup};
 
 /// The red channel (= accumulated opacity: white objects on black) of a reference render.

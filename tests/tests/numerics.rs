@@ -3,11 +3,11 @@
 
 use glam::{DMat4, DVec3};
 use proptest::prelude::*;
+use trove_core::corrected_opacity;
 use trove_core::dataset::Dims;
 use trove_core::geometry::hexahedron::{Hexahedron, HexahedronError};
 use trove_core::geometry::{Extent, Placement, Ray, Shape};
 use trove_core::render::{render, Image, RenderOptions};
-use trove_core::sampling::corrected_opacity;
 use trove_core::scene::{Scene, SceneErrorKind};
 use trove_tests::reference::unit_cube_chord;
 use trove_tests::Header;

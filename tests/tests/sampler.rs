@@ -5,9 +5,9 @@
 //! ([`trove_tests::SAMPLER_PATHS`]). The skipping logic itself is unit-tested beside it, in
 //! `trove-core/src/sampling/tests.rs`.
 
-use trove_core::interp::Interpolation;
-use trove_core::sampling::ObjectCaster;
 use trove_core::scene::{DataRoot, Scene, SceneError, SceneErrorKind};
+use trove_core::Interpolation;
+use trove_core::ObjectCaster;
 use trove_tests::reference::{Reference, Setup};
 use trove_tests::{
     assert_sampler_paths_agree, example_scenes, render_with_cast_options, repo_root, shared_data_dir, skip,

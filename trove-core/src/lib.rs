@@ -13,15 +13,20 @@
 //! names them.
 #![deny(missing_docs)]
 
-pub mod composite;
+pub(crate) mod composite;
 pub mod dataset;
 pub mod error;
 pub mod geometry;
-pub mod interp;
+pub(crate) mod interp;
 pub mod mapping;
 pub mod render;
-pub mod sampling;
+pub(crate) mod sampling;
 pub mod scene;
 
+// The sampler's and compositor's internals stay inside the crate; these are what callers
+// (the farm, the tests that hold the sampler to closed forms) need of them.
+pub use composite::Rgba;
 pub use error::{DatasetError, SceneError};
+pub use interp::Interpolation;
 pub use render::RenderError;
+pub use sampling::{corrected_opacity, CastOptions, ObjectCaster};

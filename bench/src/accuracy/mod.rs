@@ -33,7 +33,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use trove_core::interp::Interpolation;
+use trove_core::Interpolation;
 
 use summary::Summary;
 use sweep::{Config, Point, Representation};

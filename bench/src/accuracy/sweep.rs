@@ -4,8 +4,8 @@
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use trove_core::interp::Interpolation;
 use trove_core::render::{Algorithm, RenderOptions};
+use trove_core::Interpolation;
 use trove_tests::reference::{rmse_and_max, Reference, Setup};
 
 use super::{interpolations, FINE_STEPS, STEPS};

@@ -548,8 +548,10 @@ impl Interp for DynInterp {
 }
 
 /// `interp`'s value of one channel at VC point `vc` of a dataset of `dims` (SPEC §3.3):
-/// the general path, one sample at a time.
-pub fn interpolate<V: Voxels>(interp: &Interpolation, dims: Dims, vc: [f64; 3], voxels: &V) -> f64 {
+/// the general path, one sample at a time (the sampler's own loops are specialised; the
+/// interpolation tests use this).
+#[cfg(test)]
+pub(crate) fn interpolate<V: Voxels>(interp: &Interpolation, dims: Dims, vc: [f64; 3], voxels: &V) -> f64 {
     let f = DynInterp::new(interp, dims);
     f.apply(&f.locate(vc), voxels)
 }
