@@ -3,8 +3,8 @@
 //!
 //! The data flow of one render is visible in the modules, in order:
 //! [`scene`] (TOML → validated model) → [`geometry`] (camera rays → per-object segments →
-//! pieces) → [`sampling`] (interpolate a dataset's channels, map to colour and opacity,
-//! composite one object over one piece) → [`composite`] (co-located media, front to back,
+//! pieces) → `sampling` (interpolate a dataset's channels, map to colour and opacity,
+//! composite one object over one piece) → `composite` (co-located media, front to back,
 //! background) → [`render`] (Algorithm 1 per ray; Algorithm 2 as three stages —
 //! intersection into wire-shaped work units, volume rendering dataset by dataset in
 //! front-to-back waves, composition — over a volume store with a memory budget; the image

@@ -234,7 +234,7 @@ impl Axis {
 
 /// A generated channel; see the module documentation for the reference.
 ///
-/// Read from a scene through a flat [`GeneratorTable`] (`kind` plus every key any kind
+/// Read from a scene through a flat `GeneratorTable` (`kind` plus every key any kind
 /// takes) rather than a serde internally tagged enum: a tagged enum buffers its fields, and
 /// the scene's error path (SPEC §1: `datasets[0].channels.voxel.generator.radius`) would then
 /// stop at `generator`. The table is converted by `TryFrom`, outside serde, so that its

@@ -120,7 +120,7 @@ impl Volume {
         self.channels.iter().map(|(n, c)| (*n, c))
     }
 
-    /// The macrocell ranges of `name`, for the channels in [`RANGED_CHANNELS`] the dataset has.
+    /// The macrocell ranges of `name`, for the channels in `RANGED_CHANNELS` the dataset has.
     pub fn macrocells(&self, name: ChannelName) -> Option<&Macrocells> {
         self.macrocells.get(&name).map(|m| &**m)
     }

@@ -48,7 +48,7 @@ pub struct InversionPrecisionError {
 pub enum Shape {
     /// A parallelepiped (from a matrix, or eight corners that form one).
     Affine {
-        /// Box coordinates q ∈ [0,1]³ → world.
+        /// Box coordinates q ∈ \[0,1\]³ → world.
         world_from_box: DMat4,
         /// World → box coordinates.
         box_from_world: DMat4,

@@ -22,7 +22,7 @@ pub enum Interpolation {
         /// [ω0, ω1, ω2].
         omega: [f64; 3],
     },
-    /// The 20-term cubic field of eq. 4, fitted per cell (see [`cubic`]).
+    /// The 20-term cubic field of eq. 4, fitted per cell (see `interp::cubic`).
     Cubic,
 }
 

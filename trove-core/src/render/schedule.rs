@@ -2,7 +2,7 @@
 //! ready, hands them out in batches of one dataset, takes results back in any order, and
 //! composites the image once every task is cast or culled. It does no IO and knows no
 //! threads or sockets, so one copy serves every driver: the local renderer casts its batches
-//! on rayon threads while one dataset at a time is resident ([`super::grouped`]); the farm's
+//! on rayon threads while one dataset at a time is resident (`render::grouped`); the farm's
 //! coordinator sends them to the workers that hold each dataset, several datasets at once.
 //!
 //! # Waves

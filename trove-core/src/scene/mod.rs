@@ -1,7 +1,7 @@
 //! The scene: a TOML file (SPEC §1) turned into a validated model.
 //!
 //! Loading happens in two steps. [`file`] deserialises the TOML into plain structs that
-//! mirror the format, refusing unknown keys and wrong types with the key's path. [`load`]
+//! mirror the format, refusing unknown keys and wrong types with the key's path. `load`
 //! then checks everything a user can get wrong and builds the model below, in which every
 //! invariant holds: a [`Scene`] is never half-valid, so renderers do not re-check.
 
