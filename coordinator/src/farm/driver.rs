@@ -248,10 +248,12 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
             }
         }
     };
-    // Closing every stream tells the workers to drop what they still hold for this job; the
-    // workers' load counts, shared with other jobs, give back what this job still had out.
-    driver.release_in_flight();
-    driver.streams.clear();
+    // Closing every stream tells the workers to drop what they still hold for this job, and
+    // gives back to their load counts, shared with other jobs, what this job still had out.
+    let open: Vec<StreamKey> = driver.streams.keys().cloned().collect();
+    for stream in &open {
+        driver.lose_stream(stream);
+    }
     match outcome {
         Ok(()) => driver.finish(started).await,
         Err(failure) => {
@@ -577,15 +579,6 @@ impl Driver {
             }
         }
         self.unusable.insert(stream.clone());
-    }
-
-    /// Returns every batch still out to its worker's load count (the job is over).
-    fn release_in_flight(&mut self) {
-        for (_, batch) in self.in_flight.drain() {
-            if let Some(s) = self.streams.get(&batch.stream) {
-                s.worker.in_flight.fetch_sub(1, Ordering::Relaxed);
-            }
-        }
     }
 
     /// Gives up on workers that missed their heartbeats and on batches past their deadline.
