@@ -8,7 +8,6 @@
 //! Processes rather than an in-process farm so that the coordinator's memory is its own
 //! (`VmHWM` of its `/proc` entry) and the timing includes what a user waits for.
 
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -345,22 +344,6 @@ fn server_log(program: &Path) -> Result<Stdio> {
 
 /// Starts a server and reads the address it bound from its first line of stdout.
 fn spawn_server(program: &Path, args: &[&str]) -> Result<(Child, String)> {
-    let mut child = Command::new(program)
-        .args(args)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(server_log(program)?)
-        .spawn()
-        .with_context(|| format!("starting {}", program.display()))?;
-    let mut line = String::new();
-    let mut stdout = BufReader::new(child.stdout.take().context("piped stdout")?);
-    stdout.read_line(&mut line)?;
-    // Kept open: a server that writes to a closed pipe would fail.
-    child.stdout = Some(stdout.into_inner());
-    let address = line.trim().to_string();
-    if !address.starts_with("127.0.0.1:") {
-        let _ = child.kill();
-        bail!("{} printed {address:?} instead of its address", program.display());
-    }
-    Ok((child, address))
+    trove_tests::farm::spawn_server(program, args, server_log(program)?)
+        .with_context(|| format!("starting {}", program.display()))
 }

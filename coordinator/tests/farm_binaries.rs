@@ -2,11 +2,11 @@
 //! processes on loopback, each printing its bound address first, and a render through them
 //! with the real `trove render --coordinator`, compared byte for byte with local mode.
 
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use trove_tests::farm::spawn_server;
 use trove_tests::scratch;
 
 fn trove() -> &'static Path {
@@ -30,18 +30,10 @@ impl Drop for Server {
     }
 }
 
-/// Starts `program args` and reads the bound address from its first line of stdout.
+/// Starts `program args`, its log on this test's stderr; the bound address with it.
 fn start(program: &Path, args: &[&str]) -> (Server, String) {
-    let mut child = Command::new(program)
-        .args(args)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .unwrap_or_else(|e| panic!("start {}: {e}", program.display()));
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().expect("piped")).read_line(&mut line).expect("read the bound address");
-    let address = line.trim().to_string();
-    assert!(address.starts_with("127.0.0.1:"), "first line was {address:?}");
+    let (child, address) =
+        spawn_server(program, args, Stdio::inherit()).unwrap_or_else(|e| panic!("start {}: {e}", program.display()));
     (Server(child), address)
 }
 

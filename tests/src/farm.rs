@@ -171,3 +171,32 @@ pub fn data_root(dir: &Path, from: &Path, files: &[&str]) -> PathBuf {
     }
     dir.to_path_buf()
 }
+
+/// Starts a server binary (`trove coordinator`, `trove-worker`) and reads the address it
+/// bound from its first line of stdout, which must be on loopback. Its stdout stays open
+/// (a server that later wrote to a closed pipe would fail); `stderr` is where its log goes.
+pub fn spawn_server(
+    program: &Path,
+    args: &[&str],
+    stderr: std::process::Stdio,
+) -> std::io::Result<(std::process::Child, String)> {
+    use std::io::BufRead;
+    let mut child = std::process::Command::new(program)
+        .args(args)
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(stderr)
+        .spawn()?;
+    let mut line = String::new();
+    let mut stdout = std::io::BufReader::new(child.stdout.take().expect("stdout is piped"));
+    stdout.read_line(&mut line)?;
+    child.stdout = Some(stdout.into_inner());
+    let address = line.trim().to_string();
+    if !address.starts_with("127.0.0.1:") {
+        let _ = child.kill();
+        let _ = child.wait();
+        let message = format!("{} printed {address:?} instead of its address", program.display());
+        return Err(std::io::Error::other(message));
+    }
+    Ok((child, address))
+}
