@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use trove_core::render::workunit::{RESULT_BYTES, TASK_BYTES};
-use trove_core::render::{Algorithm, RenderOptions, Rendered};
+use trove_core::render::{Algorithm, RenderOptions, RenderStats, Rendered};
 use trove_core::scene::Scene;
 use trove_tests::Header;
 
@@ -34,7 +34,8 @@ pub struct Args {
     #[arg(long, default_value_t = 81)]
     dims: u32,
     /// Runs of each configuration that does not thrash; the median is reported (the
-    /// thrashing per-ray run is run once).
+    /// thrashing per-ray run is run once; the two 15/1 configurations alternate, round by
+    /// round).
     #[arg(long, default_value_t = 3)]
     repeat: u32,
     /// How the datasets are stored: `gzip` NRRD files (a load reads and inflates one, a
@@ -47,6 +48,12 @@ pub struct Args {
     /// the system temporary folder, removed afterwards).
     #[arg(long)]
     data_dir: Option<PathBuf>,
+    /// Run only the 15/1 configuration (every object on one shared dataset, which fits the
+    /// budget): per-ray and grouped alternately for `--repeat` rounds, printing every round
+    /// and the medians. Alternating spreads a shared machine's drifting load over both
+    /// algorithms, which back-to-back blocks of runs do not.
+    #[arg(long)]
+    shared_only: bool,
 }
 
 /// How the benchmark stores its datasets.
@@ -127,15 +134,18 @@ fn run_in(args: &Args, dir: &Path) -> Result<()> {
             std::fs::write(dir.join(name), text).with_context(|| format!("writing {name}"))?;
         }
     }
-    let separate = load_scene(dir, &texts[0])?;
     let shared = load_scene(dir, &texts[1])?;
     let budgeted = |algorithm| RenderOptions { algorithm, memory_budget: Some(budget), progress: None };
-    let runs = [
-        median_of("15/15", &separate, &budgeted(Algorithm::PerRay), 1)?,
-        median_of("15/15", &separate, &budgeted(Algorithm::Grouped), args.repeat)?,
-        median_of("15/1", &shared, &budgeted(Algorithm::PerRay), args.repeat)?,
-        median_of("15/1", &shared, &budgeted(Algorithm::Grouped), args.repeat)?,
-    ];
+    if args.shared_only {
+        return shared_only(&shared, &budgeted(Algorithm::PerRay), &budgeted(Algorithm::Grouped), args.repeat);
+    }
+    let separate = load_scene(dir, &texts[0])?;
+    let per_ray_separate = median_of("15/15", &separate, &budgeted(Algorithm::PerRay), 1)?;
+    let grouped_separate = median_of("15/15", &separate, &budgeted(Algorithm::Grouped), args.repeat)?;
+    // The two 15/1 columns are close, so they alternate under the same load.
+    let (per_ray_shared, grouped_shared) =
+        alternate("15/1", &shared, &budgeted(Algorithm::PerRay), &budgeted(Algorithm::Grouped), args.repeat)?;
+    let runs = [per_ray_separate, grouped_separate, median_run(per_ray_shared), median_run(grouped_shared)];
     print!("{}", table(&runs));
 
     println!(
@@ -185,6 +195,95 @@ fn median_of(label: &str, scene: &Scene, options: &RenderOptions, repeat: u32) -
             r.stats.dataset_loads
         )
     })
+}
+
+/// Renders `scene` with `a` and `b` alternately, `repeat` rounds (at least one), each run
+/// reported on standard error as it finishes: on a shared machine whose load drifts,
+/// back-to-back blocks of runs of one and then the other can differ by more than the two
+/// algorithms do, while alternating rounds see the same load.
+fn alternate(
+    label: &str,
+    scene: &Scene,
+    a: &RenderOptions,
+    b: &RenderOptions,
+    repeat: u32,
+) -> Result<(Vec<Rendered>, Vec<Rendered>)> {
+    let (mut runs_a, mut runs_b) = (Vec::new(), Vec::new());
+    for _ in 0..repeat.max(1) {
+        for (options, runs) in [(a, &mut runs_a), (b, &mut runs_b)] {
+            let r = trove_core::render::render(scene, options)?;
+            eprintln!(
+                "  {} {label}: {:.2} s, {} loads",
+                options.algorithm.name(),
+                r.stats.seconds.total,
+                r.stats.dataset_loads
+            );
+            runs.push(r);
+        }
+    }
+    Ok((runs_a, runs_b))
+}
+
+/// The run with the median total time.
+fn median_run(mut runs: Vec<Rendered>) -> Rendered {
+    runs.sort_by(|a, b| a.stats.seconds.total.total_cmp(&b.stats.seconds.total));
+    let middle = runs.len() / 2;
+    runs.swap_remove(middle)
+}
+
+/// The median of `values` (the mean of the middle two for an even count).
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    let n = values.len();
+    if n == 0 {
+        f64::NAN
+    } else if n % 2 == 1 {
+        values[n / 2]
+    } else {
+        (values[n / 2 - 1] + values[n / 2]) / 2.0
+    }
+}
+
+/// `--shared-only`: the 15/1 configuration, per-ray and grouped alternately for `repeat`
+/// rounds; prints every round, the median of each time (taken separately) and the median of
+/// the rounds' total-time ratios (each round's two runs saw the same load).
+fn shared_only(scene: &Scene, per_ray: &RenderOptions, grouped: &RenderOptions, repeat: u32) -> Result<()> {
+    let (a, b) = alternate("15/1", scene, per_ray, grouped, repeat)?;
+    println!("\n15/1, per-ray and grouped alternately, {} rounds (seconds):\n", a.len());
+    println!("| round | per-ray volume rendering | per-ray total | grouped volume rendering | grouped total | max image difference |");
+    println!("|---|---:|---:|---:|---:|---:|");
+    for (round, (pr, gr)) in a.iter().zip(&b).enumerate() {
+        let (p, g) = (&pr.stats.seconds, &gr.stats.seconds);
+        println!(
+            "| {} | {:.3} | {:.3} | {:.3} | {:.3} | {}/255 |",
+            round + 1,
+            p.volume_rendering,
+            p.total,
+            g.volume_rendering,
+            g.total,
+            pr.image.max_byte_difference(&gr.image)
+        );
+    }
+    println!("\n| median (s) | per-ray | grouped | grouped / per-ray |");
+    println!("|---|---:|---:|---:|");
+    type Time = fn(&RenderStats) -> f64;
+    let rows: [(&str, Time); 5] = [
+        ("Volume rendering", |s| s.seconds.volume_rendering),
+        ("Intersection computation", |s| s.seconds.intersection),
+        ("Image composition", |s| s.seconds.composition),
+        ("Data loading and swapping", |s| s.seconds.loading),
+        ("Total time", |s| s.seconds.total),
+    ];
+    for (name, f) in rows {
+        let x = median(a.iter().map(|r| f(&r.stats)).collect());
+        let y = median(b.iter().map(|r| f(&r.stats)).collect());
+        let ratio = if x > 0.0 { format!("{:.2}", y / x) } else { "–".to_string() };
+        println!("| {name} | {x:.3} | {y:.3} | {ratio} |");
+    }
+    let ratios = a.iter().zip(&b).map(|(p, g)| g.stats.seconds.total / p.stats.seconds.total).collect();
+    println!("| Total time, median of the rounds' ratios | | | {:.2} |", median(ratios));
+    println!("| Samples | {} | {} | |", a[0].stats.samples, b[0].stats.samples);
+    Ok(())
 }
 
 /// The paper's table with our seconds and, in brackets, the paper's.
