@@ -178,14 +178,45 @@ impl JointPiecewise {
     /// opacity is not 0.
     #[inline(always)]
     pub(crate) fn classify(&self, v: f64) -> Option<(f64, [f64; 3])> {
-        let (opacity, colour) = &self.segments[self.index.find(&self.breaks, v)];
+        let (opacity, colour) = &self.segments[self.find(v)];
         let opacity = clamp1(opacity.eval(v)[0])?;
         if opacity == 0.0 {
             return None;
         }
         Some((opacity, clamp3(colour.eval(v))?))
     }
+
+    /// [`JointPiecewise::classify`] with (0, black) for `None`, and no branch on `v`: both
+    /// segments are evaluated and the result selected.
+    #[inline(always)]
+    pub(crate) fn classify_or_clear(&self, v: f64) -> (f64, [f64; 3]) {
+        let (opacity, colour) = &self.segments[self.find(v)];
+        let opacity = opacity.eval(v)[0];
+        let colour = colour.eval(v);
+        // Finite and positive opacity (clamping maps the rest to 0 or drops it), finite
+        // colour.
+        let ok = colour.iter().fold((opacity > 0.0) & (opacity < f64::INFINITY), |ok, c| ok & c.is_finite());
+        if ok {
+            (opacity.min(1.0), colour.map(|c| c.clamp(0.0, 1.0)))
+        } else {
+            (0.0, [0.0; 3])
+        }
+    }
+
+    /// The joint segment of `v`: a count of break points ≤ v where there are few (no
+    /// branch on `v`), else the index.
+    #[inline(always)]
+    fn find(&self, v: f64) -> usize {
+        if self.breaks.len() <= SMALL_MAP {
+            self.breaks.iter().map(|&b| usize::from(b <= v)).sum()
+        } else {
+            self.index.find(&self.breaks, v)
+        }
+    }
 }
+
+/// Maps with at most this many break points find a value's segment by counting.
+const SMALL_MAP: usize = 16;
 
 /// What a LUT stores per domain: an opacity or an RGB colour.
 pub trait LutValue: Copy + std::fmt::Debug + PartialEq {
@@ -774,6 +805,7 @@ mod tests {
             .chain(
                 [3.0, 7.0, 10.0, 12.25, 31.5, 2.0, 40.0].into_iter().flat_map(|b: f64| [b.next_down(), b, b.next_up()]),
             )
+            .chain([f64::NAN, f64::INFINITY, f64::NEG_INFINITY, 1e300, -1e300])
             .collect();
         for colour in [colour_ramp.piecewise(), colour_lut.piecewise()] {
             for opacity in [opacity_ramp.piecewise(), opacity_lut.piecewise()] {
@@ -783,7 +815,25 @@ mod tests {
                         .filter(|&a| a != 0.0)
                         .and_then(|a| clamp3(colour.eval(v)).map(|c| (a, c)));
                     assert_eq!(joint.classify(v), apart, "{v}");
+                    assert_eq!(joint.classify_or_clear(v), apart.unwrap_or((0.0, [0.0; 3])), "{v}");
                 }
+            }
+        }
+    }
+
+    /// Maps with more break points than are counted find segments through the index; both
+    /// ways give the segment a binary search gives.
+    #[test]
+    fn joint_segments_are_found_alike_by_counting_and_by_the_index() {
+        for points in [3usize, SMALL_MAP / 2, SMALL_MAP + 1, 4 * SMALL_MAP] {
+            let opacity = Ramp::new((0..points).map(|i| (i as f64 * 3.0, [(i % 3) as f64 * 0.4])).collect());
+            let colour = Ramp::new((0..points).map(|i| (i as f64 * 2.0 + 1.0, [0.2, (i % 2) as f64, 0.5])).collect());
+            let joint = JointPiecewise::new(colour.piecewise(), opacity.piecewise());
+            for i in -20..(points as i32 * 40) {
+                let v = f64::from(i) * 0.125;
+                assert_eq!(joint.find(v), joint.breaks.partition_point(|&b| b <= v), "{points} points, {v}");
+                let expected = joint.classify(v).unwrap_or((0.0, [0.0; 3]));
+                assert_eq!(joint.classify_or_clear(v), expected, "{points} points, {v}");
             }
         }
     }

@@ -11,7 +11,11 @@ use super::{corrected_opacity, PieceResult};
 use crate::composite::Rgba;
 use crate::dataset::macrocell::Level;
 use crate::dataset::{ChannelReader, Voxels};
-use crate::geometry::SampleWalk;
+use crate::geometry::{LineSamples, SampleWalk};
+
+/// Samples of a straight line computed together ([`Kernel::cast_line`]).
+const LANES: usize = 4;
+
 use crate::interp::Interp;
 use crate::mapping::{clamp1, clamp3, ColourMap, JointPiecewise, OpacityMap, Piecewise, Polynomial, RawColour};
 
@@ -169,6 +173,13 @@ pub(super) trait Maps: Send + Sync {
     /// 0, or a non-finite result). Opacity is mapped first: a sample of opacity 0 would add
     /// nothing whatever its colour, so its colour is not evaluated.
     fn classify<I: Interp>(&self, interp: &I, s: &I::Stencil, v: f64) -> Option<(f64, [f64; 3])>;
+
+    /// [`Maps::classify`] with (0, black) for `None`; maps that can, answer without branching
+    /// on `v`.
+    #[inline(always)]
+    fn classify_or_clear<I: Interp>(&self, interp: &I, s: &I::Stencil, v: f64) -> (f64, [f64; 3]) {
+        self.classify(interp, s, v).unwrap_or((0.0, [0.0; 3]))
+    }
 }
 
 /// A colour map and an opacity map evaluated apart.
@@ -193,6 +204,11 @@ impl Maps for JointPiecewise {
     #[inline(always)]
     fn classify<I: Interp>(&self, _interp: &I, _s: &I::Stencil, v: f64) -> Option<(f64, [f64; 3])> {
         JointPiecewise::classify(self, v)
+    }
+
+    #[inline(always)]
+    fn classify_or_clear<I: Interp>(&self, _interp: &I, _s: &I::Stencil, v: f64) -> (f64, [f64; 3]) {
+        JointPiecewise::classify_or_clear(self, v)
     }
 }
 
@@ -222,6 +238,88 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
     }
 }
 
+impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
+    /// The opacity and colour of one sample, or (0, black) when it contributes nothing,
+    /// computed without branching on the data: the samples of a group then overlap in the
+    /// processor instead of each waiting on a mispredicted branch (opacity 0 in haze is
+    /// common and unpredictable). Compositing (0, black) leaves a ray's colour and opacity
+    /// unchanged bit for bit, so this is [`Kernel::sample`] in another form.
+    #[inline(always)]
+    fn mapped(&self, s: &I::Stencil) -> (f64, [f64; 3]) {
+        let v = self.voxels.value(&self.interp, s);
+        let (opacity, colour) = self.maps.classify_or_clear(&self.interp, s, v);
+        // A non-finite value contributes nothing (SPEC §4.5).
+        let ok = !V::READS || v.is_finite();
+        (if ok { opacity } else { 0.0 }, if ok { colour } else { [0.0; 3] })
+    }
+
+    /// The samples of a straight line, [`LANES`] at a time: positions, stencils, values and
+    /// classification of a group are independent of each other, and only compositing, which
+    /// is sequential, goes sample by sample (stopping at the same sample as one at a time
+    /// would). A group whose first sample lies in an empty macrocell jumps instead; later
+    /// samples of a group that lie in empty cells are not composited (nor counted).
+    fn cast_line(&self, line: &LineSamples, alpha_in: f64, stop_at: f64) -> PieceResult {
+        let mut acc = Rgba::CLEAR;
+        let mut samples = 0;
+        let done = |acc: &Rgba| alpha_in + (1.0 - alpha_in) * acc.alpha >= stop_at;
+        // The macrocell of the last sample looked at, and whether it is empty.
+        let mut cell = [u32::MAX; 3];
+        let mut empty = false;
+        let ell = line.ell();
+        let n = line.len();
+        let jumps = self.skip.as_ref().map(|_| Jumps::new(&self.interp, line));
+        let mut k = 0;
+        'groups: while k < n {
+            let m = (n - k).min(LANES as u64) as usize;
+            // Lanes past the line's end repeat its last sample and are never composited.
+            // (Plain loops: `array::from_fn` is not inlined here, and costs more than the work.)
+            let mut stencils = [self.interp.locate(line.point(k)); LANES];
+            for (l, s) in stencils.iter_mut().enumerate().skip(1) {
+                *s = self.interp.locate(line.point(k + l.min(m - 1) as u64));
+            }
+            let mut live = [true; LANES];
+            for live in live.iter_mut().skip(m) {
+                *live = false;
+            }
+            if let (Some(skip), Some(jumps)) = (&self.skip, &jumps) {
+                for (l, (s, live)) in stencils.iter().zip(&mut live).enumerate().take(m) {
+                    let c = cell_of(self.interp.base(s));
+                    if c != cell {
+                        cell = c;
+                        empty = skip.is_empty(&self.interp, Level::Fine, c);
+                    }
+                    if empty {
+                        if l == 0 {
+                            k = jumps.skip(&self.interp, skip, k, c);
+                            continue 'groups;
+                        }
+                        *live = false;
+                    }
+                }
+            }
+            let mut mapped = [(0.0, [0.0; 3]); LANES];
+            for (mapped, s) in mapped.iter_mut().zip(&stencils) {
+                *mapped = self.mapped(s);
+            }
+            for (&(opacity, colour), live) in mapped.iter().zip(live) {
+                if !live {
+                    continue;
+                }
+                samples += 1;
+                let alpha = if self.correction { corrected_opacity(opacity, ell) } else { opacity };
+                acc.add_sample(colour, alpha);
+                // Only a sample that added opacity can end the cast (`&`, not `&&`: no branch
+                // on the data).
+                if (alpha != 0.0) & done(&acc) {
+                    break 'groups;
+                }
+            }
+            k += m as u64;
+        }
+        PieceResult { rgba: acc, samples }
+    }
+}
+
 impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
     fn cast(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult {
         let mut acc = Rgba::CLEAR;
@@ -231,29 +329,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
         let mut cell = [u32::MAX; 3];
         let mut empty = false;
         if let Some(line) = walk.line() {
-            let ell = line.ell();
-            let n = line.len();
-            let jumps = self.skip.as_ref().map(|_| Jumps::new(&self.interp, &line));
-            let mut k = 0;
-            while k < n {
-                let s = self.interp.locate(line.point(k));
-                if let Some(skip) = &self.skip {
-                    let c = cell_of(self.interp.base(&s));
-                    if c != cell {
-                        cell = c;
-                        empty = skip.is_empty(&self.interp, Level::Fine, c);
-                    }
-                    if let (true, Some(jumps)) = (empty, &jumps) {
-                        k = jumps.skip(&self.interp, skip, k, c);
-                        continue;
-                    }
-                }
-                k += 1;
-                samples += 1;
-                if self.sample(&s, ell, &mut acc) && done(&acc) {
-                    break;
-                }
-            }
+            return self.cast_line(&line, alpha_in, stop_at);
         } else {
             for (vc, ell) in walk {
                 let Some(vc) = vc else { continue };
