@@ -203,6 +203,28 @@ impl JointPiecewise {
         }
     }
 
+    /// The break points, and per joint segment the opacity segment's x0, 1/w, y0, dy and
+    /// the colour segment's x0, 1/w, y0 (3), dy (3), field by field: what a sampler that
+    /// classifies several values at once gathers from.
+    pub(crate) fn tables(&self) -> (&[f64], [Vec<f64>; 12]) {
+        let field = |f: &dyn Fn(&(Segment<1>, Segment<3>)) -> f64| self.segments.iter().map(f).collect::<Vec<f64>>();
+        let tables = [
+            field(&|(o, _)| o.x0),
+            field(&|(o, _)| o.inv_w),
+            field(&|(o, _)| o.y0[0]),
+            field(&|(o, _)| o.dy[0]),
+            field(&|(_, c)| c.x0),
+            field(&|(_, c)| c.inv_w),
+            field(&|(_, c)| c.y0[0]),
+            field(&|(_, c)| c.y0[1]),
+            field(&|(_, c)| c.y0[2]),
+            field(&|(_, c)| c.dy[0]),
+            field(&|(_, c)| c.dy[1]),
+            field(&|(_, c)| c.dy[2]),
+        ];
+        (&self.breaks, tables)
+    }
+
     /// The joint segment of `v`: a count of break points ≤ v where there are few (no
     /// branch on `v`), else the index.
     #[inline(always)]
@@ -216,7 +238,7 @@ impl JointPiecewise {
 }
 
 /// Maps with at most this many break points find a value's segment by counting.
-const SMALL_MAP: usize = 16;
+pub(crate) const SMALL_MAP: usize = 16;
 
 /// What a LUT stores per domain: an opacity or an RGB colour.
 pub trait LutValue: Copy + std::fmt::Debug + PartialEq {

@@ -377,6 +377,13 @@ macro_rules! typed_voxels {
                 }
             }
 
+            /// The stored bytes (little-endian numbers, `size_of::<$ty>()` each), which the
+            /// AVX2 loop gathers from (it has none for f32).
+            #[allow(dead_code)]
+            pub(crate) fn bytes(&self) -> &'a [u8] {
+                self.0
+            }
+
             #[inline(always)]
             fn number(&self, i: usize) -> $ty {
                 <$ty>::$from(self.0[$bytes * i..$bytes * i + $bytes].try_into().expect("one voxel"))

@@ -313,6 +313,13 @@ impl LineSamples {
         (self.vc0 + self.delta * ((k as f64 + 0.5) * self.inv_n)).to_array()
     }
 
+    /// What [`LineSamples::point`] computes from: VC at the start, the change over the
+    /// piece, and 1/n (for samplers that compute several points at once, the same way).
+    #[inline]
+    pub(crate) fn parts(&self) -> ([f64; 3], [f64; 3], f64) {
+        (self.vc0.to_array(), self.delta.to_array(), self.inv_n)
+    }
+
     /// ℓ, the VC length of each sample's sub-interval.
     #[inline]
     pub fn ell(&self) -> f64 {

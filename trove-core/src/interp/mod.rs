@@ -93,7 +93,7 @@ impl Axis {
 /// as truncating casts, without their saturation checks and without a libm call where SSE4.1
 /// is not assumed.
 #[inline(always)]
-fn floor_small(x: f64) -> f64 {
+pub(crate) fn floor_small(x: f64) -> f64 {
     const ROUND: f64 = (1u64 << 52) as f64;
     let r = (x + ROUND) - ROUND;
     r - f64::from(u8::from(r > x))
@@ -284,6 +284,20 @@ impl<W: Weight> Linear<W> {
         let offsets = [usize::from(nx > 1), if ny > 1 { nx } else { 0 }, if nz > 1 { nx * ny } else { 0 }];
         let (h_lo, h_hi) = weight.range();
         Linear { dims, axes: axes(dims), offsets, weight, h_excess: (-h_lo).max(h_hi - 1.0).max(0.0) }
+    }
+}
+
+impl Linear<Identity> {
+    /// Per axis, what [`Axis`]'s cell rule reads: the largest coordinate, the snapping
+    /// tolerance and the largest lower corner; and the index offsets of the upper corner
+    /// (for samplers that locate several samples at once by the same rule).
+    pub(crate) fn rule(&self) -> ([[f64; 3]; 3], [usize; 3]) {
+        (self.axes.map(|a| [a.last, a.tol, a.x0_max]), self.offsets)
+    }
+
+    /// The dataset's dims.
+    pub(crate) fn dims(&self) -> Dims {
+        self.dims
     }
 }
 

@@ -15,6 +15,7 @@ use super::kernel::{
     Cast, ColourFn, GeneralColour, GeneralOpacity, Kernel, Maps, MaybeVoxel, NoVoxel, OpacityFn, RawAlpha, RawRgb,
     Read, Separate,
 };
+use super::lanes::{Stored, Trilinear4};
 use super::skip::Skipper;
 use crate::dataset::{ChannelReader, F32LeVoxels, U16LeVoxels, U8Voxels};
 use crate::interp::{Cubic, DynInterp, Identity, Interp, Interpolation, Linear, Nearest, NoInterp, Omega};
@@ -44,7 +45,7 @@ impl<'a> Parts<'a> {
         V: super::kernel::VoxelSource + 'a,
         M: Maps + 'a,
     {
-        Box::new(Kernel { interp, voxels, maps, skip, correction: self.correction, specialised: true })
+        Box::new(Kernel { interp, voxels, maps, skip, correction: self.correction, specialised: true, lanes: None })
     }
 
     /// The general loop.
@@ -63,6 +64,7 @@ impl<'a> Parts<'a> {
             skip,
             correction: self.correction,
             specialised: false,
+            lanes: None,
         })
     }
 
@@ -94,7 +96,37 @@ impl<'a> Parts<'a> {
     /// LUT or ramp colour and opacity, merged into one map (one segment lookup per sample),
     /// with every interpolation.
     fn joint(&self, colour: &Piecewise<3>, opacity: &Piecewise<1>, skip: Option<Skipper<'a>>) -> Choice<'a> {
-        self.with_maps(JointPiecewise::new(colour, opacity), true, skip)
+        let maps = JointPiecewise::new(colour, opacity);
+        if let (Interpolation::Trilinear, Some(voxel)) = (self.object.interpolation(), self.voxel) {
+            // Trilinear over u8 or u16: the AVX2 loop where the processor has it.
+            let interp = Linear::new(self.dims, Identity);
+            if let Some(v) = U8Voxels::of(voxel) {
+                if let Some(lanes) = Trilinear4::new(&interp, Stored::U8(v), &maps) {
+                    return Ok(Box::new(Kernel {
+                        interp,
+                        voxels: Read(v),
+                        maps,
+                        skip,
+                        correction: self.correction,
+                        specialised: true,
+                        lanes: Some(lanes),
+                    }));
+                }
+            } else if let Some(v) = U16LeVoxels::of(voxel) {
+                if let Some(lanes) = Trilinear4::new(&interp, Stored::U16(v), &maps) {
+                    return Ok(Box::new(Kernel {
+                        interp,
+                        voxels: Read(v),
+                        maps,
+                        skip,
+                        correction: self.correction,
+                        specialised: true,
+                        lanes: Some(lanes),
+                    }));
+                }
+            }
+        }
+        self.with_maps(maps, true, skip)
     }
 
     /// Maps of which at least one is a polynomial, evaluated apart, with nearest and trilinear.

@@ -11,6 +11,7 @@
 
 mod bind;
 mod kernel;
+mod lanes;
 mod skip;
 
 use crate::composite::Rgba;
@@ -131,6 +132,12 @@ impl<'a> ObjectCaster<'a> {
     /// Whether the object's combination has a specialised loop and it was chosen.
     pub fn is_specialised(&self) -> bool {
         self.kernel.is_specialised()
+    }
+
+    /// Whether straight lines are cast four samples at a time in AVX2 registers (trilinear
+    /// over u8 or u16 with LUT or ramp maps, where the processor has AVX2).
+    pub fn uses_avx2(&self) -> bool {
+        self.kernel.uses_avx2()
     }
 
     /// Whether the cast jumps over empty macrocells (off when the opacity map is zero

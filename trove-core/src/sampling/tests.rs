@@ -213,7 +213,7 @@ fn every_stored_type_interpolation_and_map_casts_alike_on_every_path() {
     };
     let (size, at) = (1.0, DVec3::new(-0.5, -0.5, -0.5));
     let rays = rays(size, at, 24);
-    let mut specialised = 0;
+    let (mut specialised, mut avx2) = (0, 0);
     for (ty, endian) in types {
         let vol = volume(dims, vec![(ChannelName::Voxel, channel(ty, endian, &values, dims))]);
         for interp in interps {
@@ -222,7 +222,9 @@ fn every_stored_type_interpolation_and_map_casts_alike_on_every_path() {
                     for correction in [false, true] {
                         let o = object(colour.clone(), opacity.clone(), interp, affine(size, at), Extent::FULL, dims);
                         casts_agree(&o, &vol, correction, &rays);
-                        specialised += usize::from(ObjectCaster::new(&o, &vol, correction).unwrap().is_specialised());
+                        let caster = ObjectCaster::new(&o, &vol, correction).unwrap();
+                        specialised += usize::from(caster.is_specialised());
+                        avx2 += usize::from(caster.uses_avx2());
                     }
                 }
             }
@@ -231,6 +233,13 @@ fn every_stored_type_interpolation_and_map_casts_alike_on_every_path() {
     // u8, u16 le and f32 le have specialised loops for nearest and trilinear with every map
     // pair, and for nonlinear and cubic with piecewise maps: (2·12 + 3·4)·3 types·2.
     assert_eq!(specialised, (2 * 12 + 3 * 4) * 3 * 2);
+    // Trilinear over u8 and u16 le with LUT or ramp colour and opacity runs in AVX2 where the
+    // processor has it, so the comparisons above held its lanes against the general loop.
+    #[cfg(target_arch = "x86_64")]
+    let expected = if std::is_x86_feature_detected!("avx2") { 2 * 4 * 2 } else { 0 };
+    #[cfg(not(target_arch = "x86_64"))]
+    let expected = 0;
+    assert_eq!(avx2, expected);
 }
 
 #[test]
