@@ -537,6 +537,15 @@ proptest! {
 
     /// Non-convex boxes: every sampled inside point lies within [t_near, t_far], the ends are on the
     /// box, and a miss has no inside point at all.
+    ///
+    /// "Inside" is the renderer's test, `contains_q`, which keeps box coordinates up to `CONTAINS_EPS`
+    /// (10⁻⁹) outside [0,1]³ (boxes are closed). Beyond an exit through a face at a shallow angle that
+    /// sliver reaches `CONTAINS_EPS / |dq/dt|` along the ray, more than any fixed slack in t (the saved
+    /// regression case: the ray leaves the face y = 0 with dq_y/dt = −0.186, so t_far + 2.4·10⁻⁹ has
+    /// q_y = −4.4·10⁻¹⁰ and is accepted, while q_y at t_far is −1.3·10⁻¹⁶: the end is exact). So a point
+    /// beyond the bracket by more than 10⁻⁹ must be one of those: outside the exact box [0,1]³. A point
+    /// genuinely in the box that the segment cut off still fails. The renderer places no sample outside
+    /// [t_near, t_far], so the sliver never reaches an image.
     #[test]
     fn segment_brackets_inside_points(c in perturbed(), twist in 0.0f64..110.0,
                                       o in prop::array::uniform3(-1.5f64..2.5),
@@ -550,16 +559,19 @@ proptest! {
         let d = (h.world(DVec3::from_array(target)) - o).normalize_or_zero();
         prop_assume!(d != DVec3::ZERO);
         let seg = h.segment(o, d);
-        let inside = |t: f64| h.invert(o + t * d, None, 1e-12).is_some_and(Hexahedron::contains_q);
+        let q_at = |t: f64| h.invert(o + t * d, None, 1e-12);
         let n = 600;
         let t_max = 6.0;
         let mut any = false;
         for k in 0..=n {
             let t = t_max * k as f64 / n as f64;
-            if inside(t) {
+            if let Some(q) = q_at(t).filter(|q| Hexahedron::contains_q(*q)) {
                 any = true;
                 let (a, b) = seg.ok_or_else(|| TestCaseError::fail(format!("miss, but t = {t} is inside")))?;
-                prop_assert!(a - 1e-9 <= t && t <= b + 1e-9, "t = {t} inside, outside {seg:?}");
+                // > 0: outside [0,1]³, accepted only by `contains_q`'s tolerance.
+                let outside_by = (-q).max(q - DVec3::ONE).max_element();
+                prop_assert!(a - 1e-9 <= t && t <= b + 1e-9 || outside_by > 0.0,
+                    "t = {t} inside (q = {q:?}), outside {seg:?}");
             }
         }
         // The ray aims at an interior point, so it must hit.
