@@ -103,12 +103,15 @@ pub fn render_in(dir: &Path, toml: &str, algorithm: Algorithm) -> Rendered {
 }
 
 /// The ways an object can be bound to its volume: the default (specialised loop, empty
-/// space skipped) first, the general loop without skipping last.
-pub const SAMPLER_PATHS: [CastOptions; 4] = [
-    CastOptions { specialise: true, skip_empty_space: true },
-    CastOptions { specialise: true, skip_empty_space: false },
-    CastOptions { specialise: false, skip_empty_space: true },
-    CastOptions { specialise: false, skip_empty_space: false },
+/// space skipped) first, the general loop without skipping last; skipping with the cells
+/// classified at bind (as Algorithm 2 and the farm bind) in between.
+pub const SAMPLER_PATHS: [CastOptions; 6] = [
+    CastOptions { specialise: true, skip_empty_space: true, classify_upfront: false },
+    CastOptions { specialise: true, skip_empty_space: true, classify_upfront: true },
+    CastOptions { specialise: true, skip_empty_space: false, classify_upfront: false },
+    CastOptions { specialise: false, skip_empty_space: true, classify_upfront: true },
+    CastOptions { specialise: false, skip_empty_space: true, classify_upfront: false },
+    CastOptions { specialise: false, skip_empty_space: false, classify_upfront: false },
 ];
 
 /// Renders `scene` ray by ray as Algorithm 1 does (f64 throughout), binding every object

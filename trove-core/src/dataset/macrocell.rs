@@ -39,9 +39,9 @@ pub const COARSE_SHIFT: u32 = 5;
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Level {
     /// Macrocells of [`MACROCELL`]³ voxels.
-    Fine,
+    Fine = 0,
     /// Blocks of 2^[`COARSE_SHIFT`] voxels a side, each the union of its macrocells.
-    Coarse,
+    Coarse = 1,
 }
 
 impl Level {

@@ -46,7 +46,7 @@ pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progr
         let load_started = Instant::now();
         let volume = store.get(info)?;
         loading += load_started.elapsed();
-        let caster = BatchCaster::new(scene, dataset, &volume)?;
+        let caster = BatchCaster::for_dataset_turn(scene, dataset, &volume)?;
         loop {
             let wave: Vec<Batch> = std::iter::from_fn(|| scheduler.next_batch(dataset)).collect();
             if wave.is_empty() {

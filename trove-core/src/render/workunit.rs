@@ -140,6 +140,26 @@ pub struct BatchCaster<'a> {
 impl<'a> BatchCaster<'a> {
     /// Binds every object of `dataset` to `volume`, that dataset's voxels.
     pub fn new(scene: &'a Scene, dataset: usize, volume: &'a Volume) -> Result<BatchCaster<'a>, CastError> {
+        BatchCaster::bind(scene, dataset, volume, ObjectCaster::new)
+    }
+
+    /// [`BatchCaster::new`] for a dataset's whole turn (Algorithm 2 binds once per
+    /// dataset): every macrocell is classified for each object now
+    /// ([`ObjectCaster::for_many_pieces`]), which pays back over many batches, not over one.
+    pub fn for_dataset_turn(
+        scene: &'a Scene,
+        dataset: usize,
+        volume: &'a Volume,
+    ) -> Result<BatchCaster<'a>, CastError> {
+        BatchCaster::bind(scene, dataset, volume, ObjectCaster::for_many_pieces)
+    }
+
+    fn bind(
+        scene: &'a Scene,
+        dataset: usize,
+        volume: &'a Volume,
+        bind: fn(&'a crate::scene::Object, &'a Volume, bool) -> Result<ObjectCaster<'a>, crate::sampling::BindError>,
+    ) -> Result<BatchCaster<'a>, CastError> {
         if dataset >= scene.datasets().len() {
             return Err(CastError::DatasetOutOfRange { dataset, datasets: scene.datasets().len() });
         }
@@ -151,7 +171,7 @@ impl<'a> BatchCaster<'a> {
                 if object.dataset() != dataset {
                     return Ok(None);
                 }
-                let caster = ObjectCaster::new(object, volume, correction)
+                let caster = bind(object, volume, correction)
                     .map_err(|source| CastError::Bind { object: object.name().to_string(), source })?;
                 Ok(Some((caster, longest_piece(object))))
             })

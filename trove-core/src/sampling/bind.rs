@@ -36,15 +36,26 @@ pub(super) struct Parts<'a> {
     pub raw_rgb: Option<(RawColour, [ChannelReader<'a>; 3])>,
     pub alpha: Option<ChannelReader<'a>>,
     pub correction: bool,
+    /// Classify every macrocell now ([`Skipper::classified`]).
+    pub classify_upfront: bool,
 }
 
 impl<'a> Parts<'a> {
+    /// `skip` as the loop over `interp` will use it.
+    fn prepared<I: Interp>(&self, interp: &I, skip: Option<Skipper<'a>>) -> Option<Skipper<'a>> {
+        match skip {
+            Some(skip) if self.classify_upfront => Some(skip.classified(interp)),
+            skip => skip,
+        }
+    }
+
     fn kernel<I, V, M>(&self, interp: I, voxels: V, maps: M, skip: Option<Skipper<'a>>) -> Bound<'a>
     where
         I: Interp + 'a,
         V: super::kernel::VoxelSource + 'a,
         M: Maps + 'a,
     {
+        let skip = self.prepared(&interp, skip);
         Box::new(Kernel { interp, voxels, maps, skip, correction: self.correction, specialised: true, lanes: None })
     }
 
@@ -54,8 +65,10 @@ impl<'a> Parts<'a> {
             ColourMap::Polynomial(_) if !self.object.colour().reads_voxel() => self.object.colour().map(0.0),
             _ => None,
         };
+        let interp = DynInterp::new(&self.object.interpolation(), self.dims);
+        let skip = self.prepared(&interp, skip);
         Box::new(Kernel {
-            interp: DynInterp::new(&self.object.interpolation(), self.dims),
+            interp,
             voxels: MaybeVoxel(self.voxel),
             maps: Separate {
                 colour: GeneralColour { map: self.object.colour(), raw: self.raw_rgb, constant: constant_colour },
@@ -100,8 +113,10 @@ impl<'a> Parts<'a> {
         if let (Interpolation::Trilinear, Some(voxel)) = (self.object.interpolation(), self.voxel) {
             // Trilinear over u8 or u16: the AVX2 loop where the processor has it.
             let interp = Linear::new(self.dims, Identity);
+            let lanes = |stored| Trilinear4::new(&interp, stored, &maps);
             if let Some(v) = U8Voxels::of(voxel) {
-                if let Some(lanes) = Trilinear4::new(&interp, Stored::U8(v), &maps) {
+                if let Some(lanes) = lanes(Stored::U8(v)) {
+                    let skip = self.prepared(&interp, skip);
                     return Ok(Box::new(Kernel {
                         interp,
                         voxels: Read(v),
@@ -113,7 +128,8 @@ impl<'a> Parts<'a> {
                     }));
                 }
             } else if let Some(v) = U16LeVoxels::of(voxel) {
-                if let Some(lanes) = Trilinear4::new(&interp, Stored::U16(v), &maps) {
+                if let Some(lanes) = lanes(Stored::U16(v)) {
+                    let skip = self.prepared(&interp, skip);
                     return Ok(Box::new(Kernel {
                         interp,
                         voxels: Read(v),

@@ -36,18 +36,57 @@ pub(super) struct Skipper<'a> {
     /// Whether the channel holds integers (bit, u8, u16, u32): convex interpolation of them
     /// stays inside a cell's range exactly.
     integer: bool,
+    /// Every cell's answer, one bit each, when the caster will serve many pieces
+    /// ([`Skipper::classified`]).
+    table: Option<[Vec<u64>; 2]>,
 }
 
 impl<'a> Skipper<'a> {
     /// `None` when the map is non-zero everywhere: nothing could ever be skipped, so the
     /// cast does not even look at cells.
     pub(super) fn new(cells: &'a Macrocells, zero: Cow<'a, ZeroSet>, integer: bool) -> Option<Skipper<'a>> {
-        (!zero.is_empty()).then_some(Skipper { cells, zero, integer })
+        (!zero.is_empty()).then_some(Skipper { cells, zero, integer, table: None })
+    }
+
+    /// This classification with every cell's answer for `interp` worked out now, one bit per
+    /// cell of each level: a cast then tests a bit (in a table that stays in cache) instead
+    /// of fetching a range, bounding the interpolation and searching the zero set each time
+    /// a ray enters a cell. Worth it for a caster that serves a dataset's whole turn (about
+    /// 10 ns per cell, once); a caster bound for one piece does without.
+    pub(super) fn classified<I: Interp>(mut self, interp: &I) -> Skipper<'a> {
+        let table = [Level::Fine, Level::Coarse].map(|level| {
+            let [nx, ny, nz] = self.cells.cells(level);
+            let mut bits = vec![0u64; (nx as usize * ny as usize * nz as usize).div_ceil(64)];
+            let mut i = 0;
+            for z in 0..nz {
+                for y in 0..ny {
+                    for x in 0..nx {
+                        bits[i / 64] |= u64::from(self.compute(interp, level, [x, y, z])) << (i % 64);
+                        i += 1;
+                    }
+                }
+            }
+            bits
+        });
+        self.table = Some(table);
+        self
     }
 
     /// Whether no sample based in cell `cell` of `level` can contribute.
     #[inline]
     pub(super) fn is_empty<I: Interp>(&self, interp: &I, level: Level, cell: [u32; 3]) -> bool {
+        match &self.table {
+            Some(table) => {
+                let [nx, ny, _] = self.cells.cells(level);
+                let i = cell[0] as usize + nx as usize * (cell[1] as usize + ny as usize * cell[2] as usize);
+                table[level as usize][i / 64] >> (i % 64) & 1 == 1
+            }
+            None => self.compute(interp, level, cell),
+        }
+    }
+
+    /// [`Skipper::is_empty`] worked out from the cell's range.
+    fn compute<I: Interp>(&self, interp: &I, level: Level, cell: [u32; 3]) -> bool {
         let radius = interp.cell_radius();
         let [lo, hi] =
             if radius == 0 { self.cells.range(level, cell) } else { self.cells.range_around(level, cell, radius) };

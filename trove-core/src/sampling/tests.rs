@@ -147,10 +147,18 @@ fn rays(size: f64, at: DVec3, count: usize) -> Vec<Ray> {
 /// Casts every piece of every ray with each binding and requires identical results;
 /// returns (samples with skipping, samples without).
 fn casts_agree(object: &Object, volume: &Volume, correction: bool, rays: &[Ray]) -> (u64, u64) {
-    let bind = |specialise, skip_empty_space| {
-        ObjectCaster::with_options(object, volume, correction, CastOptions { specialise, skip_empty_space }).unwrap()
+    let bind = |specialise, skip_empty_space, classify_upfront| {
+        let options = CastOptions { specialise, skip_empty_space, classify_upfront };
+        ObjectCaster::with_options(object, volume, correction, options).unwrap()
     };
-    let casters = [bind(true, true), bind(true, false), bind(false, true), bind(false, false)];
+    let casters = [
+        bind(true, true, false),
+        bind(true, false, false),
+        bind(false, true, false),
+        bind(false, false, false),
+        bind(true, true, true),
+        bind(false, true, true),
+    ];
     let (mut skipped, mut all) = (0, 0);
     for ray in rays {
         let Some((t0, t1)) = object.placement().segment(ray) else { continue };
@@ -167,6 +175,9 @@ fn casts_agree(object: &Object, volume: &Volume, correction: bool, rays: &[Ray])
             all += results[3].samples;
             assert_eq!(results[0].samples, results[2].samples);
             assert_eq!(results[1].samples, results[3].samples);
+            // Cells classified at bind skip exactly the samples classified on entry do.
+            assert_eq!(results[4].samples, results[0].samples);
+            assert_eq!(results[5].samples, results[2].samples);
         }
     }
     (skipped, all)
