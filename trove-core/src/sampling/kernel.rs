@@ -14,8 +14,13 @@ use crate::dataset::macrocell::Level;
 use crate::dataset::{ChannelReader, Voxels};
 use crate::geometry::{LineSamples, SampleWalk};
 
-/// Samples of a straight line computed together ([`Kernel::cast_line`]).
+/// Samples of a straight line computed together ([`Kernel::cast_line`]): four f64 lanes
+/// are one AVX register, and more would compute more samples past an early termination.
 pub(super) const LANES: usize = 4;
+
+/// Samples per group in the AVX2 loop: two registers' worth, whose chains of dependent
+/// operations (cell → index → gather → lerps → segment → gather → map) interleave.
+pub(super) const AVX2_LANES: usize = 8;
 
 use crate::interp::Interp;
 use crate::mapping::{clamp1, clamp3, ColourMap, JointPiecewise, OpacityMap, Piecewise, Polynomial, RawColour};
@@ -228,9 +233,9 @@ pub(super) struct Kernel<'a, I, V, M> {
 }
 
 /// Where a group's samples are: one stencil each, or the AVX2 loop's lanes.
-enum Group<'k, 'a, S> {
-    Stencils([S; LANES]),
-    Lanes(Located, &'k Trilinear4<'a>),
+enum Group<'k, 'a, S, const L: usize> {
+    Stencils([S; L]),
+    Lanes(Located<L>, &'k Trilinear4<'a>),
 }
 
 impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
@@ -275,7 +280,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
             // SAFETY: lanes exist only where the processor has AVX2.
             return unsafe { self.cast_line_avx2(line, alpha_in, stop_at) };
         }
-        self.cast_line_any(line, alpha_in, stop_at)
+        self.cast_line_any::<LANES>(line, alpha_in, stop_at)
     }
 
     /// The same loop compiled for AVX2, so that the lanes' intrinsics inline into it (as
@@ -284,12 +289,12 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
     unsafe fn cast_line_avx2(&self, line: &LineSamples, alpha_in: f64, stop_at: f64) -> PieceResult {
-        self.cast_line_any(line, alpha_in, stop_at)
+        self.cast_line_any::<AVX2_LANES>(line, alpha_in, stop_at)
     }
 
     /// [`Kernel::cast_line`]'s loop, for any target.
     #[inline(always)]
-    fn cast_line_any(&self, line: &LineSamples, alpha_in: f64, stop_at: f64) -> PieceResult {
+    fn cast_line_any<const L: usize>(&self, line: &LineSamples, alpha_in: f64, stop_at: f64) -> PieceResult {
         let mut acc = Rgba::CLEAR;
         let mut samples = 0;
         let done = |acc: &Rgba| alpha_in + (1.0 - alpha_in) * acc.alpha >= stop_at;
@@ -301,21 +306,21 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         let jumps = self.skip.as_ref().map(|_| Jumps::new(&self.interp, line));
         let mut k = 0;
         'groups: while k < n {
-            let m = (n - k).min(LANES as u64) as usize;
+            let m = (n - k).min(L as u64) as usize;
             // Lanes past the line's end repeat its last sample and are never composited.
             let group = match &self.lanes {
                 Some(fast) => Group::Lanes(fast.locate(line, k, m), fast),
                 None => {
                     // (Plain loops: `array::from_fn` is not inlined here, and costs more than
                     // the work.)
-                    let mut stencils = [self.interp.locate(line.point(k)); LANES];
+                    let mut stencils = [self.interp.locate(line.point(k)); L];
                     for (l, s) in stencils.iter_mut().enumerate().skip(1) {
                         *s = self.interp.locate(line.point(k + l.min(m - 1) as u64));
                     }
                     Group::Stencils(stencils)
                 }
             };
-            let mut live = [true; LANES];
+            let mut live = [true; L];
             for live in live.iter_mut().skip(m) {
                 *live = false;
             }
@@ -341,7 +346,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
             }
             let mapped = match &group {
                 Group::Stencils(stencils) => {
-                    let mut mapped = [(0.0, [0.0; 3]); LANES];
+                    let mut mapped = [(0.0, [0.0; 3]); L];
                     for (mapped, s) in mapped.iter_mut().zip(stencils) {
                         *mapped = self.mapped(s);
                     }

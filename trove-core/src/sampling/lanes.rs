@@ -1,7 +1,8 @@
-//! The four samples of a group ([`super::kernel`]) in AVX2 registers, for the commonest
-//! combination: trilinear over u8 or little-endian u16 voxels, with piecewise (LUT or ramp)
-//! colour and opacity merged into one map of at most [`SMALL_MAP`] break points — the CT
-//! head, the synthetic volume and most example scenes.
+//! The samples of a group ([`super::kernel`]) in AVX2 registers, four to a register, for
+//! the commonest combination: trilinear over u8 or little-endian u16 voxels, with piecewise
+//! (LUT or ramp) colour and opacity merged into one map of at most [`SMALL_MAP`] break
+//! points — the CT head, the synthetic volume and most example scenes. Groups are two
+//! registers wide, so that the two halves' chains of dependent steps overlap.
 //!
 //! It computes what the generic loop computes for a group — positions, cells with SPEC §4.5
 //! snapping, the eight voxels, the seven lerps, the segment and the classification —
@@ -11,23 +12,22 @@
 //! depend on which path ran (tests compare the two). Without AVX2, or on other targets, the
 //! generic loop runs.
 
-use super::kernel::LANES;
 use crate::dataset::{U16LeVoxels, U8Voxels, Voxels};
 use crate::geometry::LineSamples;
 use crate::interp::{Identity, Linear};
 use crate::mapping::{JointPiecewise, SMALL_MAP};
 
-/// Where the four samples of a group are: their cells' lower corners and weights.
-pub(super) struct Located {
+/// Where the L samples of a group are: their cells' lower corners and weights.
+pub(super) struct Located<const L: usize> {
     /// Lower corner per axis, per lane.
-    base: [[u32; LANES]; 3],
+    base: [[u32; L]; 3],
     /// Linear index of each lane's lower corner.
-    index: [i32; LANES],
+    index: [i32; L],
     /// Weight (offset in the cell) per axis, per lane.
-    h: [[f64; LANES]; 3],
+    h: [[f64; L]; 3],
 }
 
-impl Located {
+impl<const L: usize> Located<L> {
     /// Lane `l`'s lower corner: the base voxel [`crate::interp::Interp::base`] gives.
     #[inline(always)]
     pub(super) fn base(&self, l: usize) -> [u32; 3] {
@@ -79,7 +79,7 @@ impl<'a> Trilinear4<'a> {
 
     /// Samples k, k + 1, … of `line` located (lanes from `m` on repeat sample k + m − 1).
     #[inline(always)]
-    pub(super) fn locate(&self, line: &LineSamples, k: u64, m: usize) -> Located {
+    pub(super) fn locate<const L: usize>(&self, line: &LineSamples, k: u64, m: usize) -> Located<L> {
         // SAFETY: a `Trilinear4` exists only where the processor has AVX2 (`new`).
         #[cfg(target_arch = "x86_64")]
         unsafe {
@@ -91,7 +91,7 @@ impl<'a> Trilinear4<'a> {
 
     /// Each lane's opacity and colour, (0, black) where it contributes nothing.
     #[inline(always)]
-    pub(super) fn classify(&self, at: &Located) -> [(f64, [f64; 3]); LANES] {
+    pub(super) fn classify<const L: usize>(&self, at: &Located<L>) -> [(f64, [f64; 3]); L] {
         // SAFETY: as in `locate`.
         #[cfg(target_arch = "x86_64")]
         unsafe {
@@ -150,7 +150,7 @@ mod avx2 {
 
     use std::arch::x86_64::*;
 
-    use super::{Located, Trilinear4, LANES};
+    use super::{Located, Trilinear4};
     use crate::geometry::LineSamples;
 
     /// ⌊x⌋ for 0 ≤ x < 2⁵¹, as [`crate::interp::floor_small`] computes it.
@@ -194,73 +194,80 @@ mod avx2 {
     impl Trilinear4<'_> {
         #[inline]
         #[target_feature(enable = "avx2")]
-        pub(super) unsafe fn locate_avx2(&self, line: &LineSamples, k: u64, m: usize) -> Located {
+        pub(super) unsafe fn locate_avx2<const L: usize>(&self, line: &LineSamples, k: u64, m: usize) -> Located<L> {
             let (vc0, delta, inv_n) = line.parts();
             let last = (m - 1) as u64;
             // `LineSamples::point`: vc0 + δ·((k + ½)·(1/n)), sample indices exact in f64.
-            let mut s = [0.0; LANES];
+            const { assert!(L.is_multiple_of(4), "lanes come in AVX registers of four") };
+            let mut s = [0.0; L];
             for (l, s) in s.iter_mut().enumerate() {
                 *s = ((k + (l as u64).min(last)) as f64 + 0.5) * inv_n;
             }
-            let s = _mm256_loadu_pd(s.as_ptr());
-            let mut at = Located { base: [[0; LANES]; 3], index: [0; LANES], h: [[0.0; LANES]; 3] };
-            let mut corner = [_mm_setzero_si128(); 3];
-            for a in 0..3 {
-                let [last, tol, x0_max] = self.rule[a];
-                let u = _mm256_add_pd(_mm256_set1_pd(vc0[a]), _mm256_mul_pd(_mm256_set1_pd(delta[a]), s));
-                // `Axis::cell`: clamp to [0, n − 1] (NaN stays NaN), snap, floor, cap.
-                let u = _mm256_min_pd(_mm256_set1_pd(last), _mm256_max_pd(_mm256_setzero_pd(), u));
-                let r = floor(_mm256_add_pd(u, _mm256_set1_pd(0.5)));
-                let near = _mm256_cmp_pd::<_CMP_LE_OQ>(abs(_mm256_sub_pd(u, r)), _mm256_set1_pd(tol));
-                let u = _mm256_blendv_pd(u, r, near);
-                // min(x0, x0_max) gives x0_max for a NaN x0, as `f64::min` does.
-                let x0 = _mm256_min_pd(floor(u), _mm256_set1_pd(x0_max));
-                _mm256_storeu_pd(at.h[a].as_mut_ptr(), _mm256_sub_pd(u, x0));
-                corner[a] = _mm256_cvttpd_epi32(x0);
-                _mm_storeu_si128(at.base[a].as_mut_ptr().cast(), corner[a]);
+            let mut at = Located { base: [[0; L]; 3], index: [0; L], h: [[0.0; L]; 3] };
+            for q in (0..L).step_by(4) {
+                let s = _mm256_loadu_pd(s.as_ptr().add(q));
+                let mut corner = [_mm256_setzero_pd(); 3];
+                for a in 0..3 {
+                    let [last, tol, x0_max] = self.rule[a];
+                    let u = _mm256_add_pd(_mm256_set1_pd(vc0[a]), _mm256_mul_pd(_mm256_set1_pd(delta[a]), s));
+                    // `Axis::cell`: clamp to [0, n − 1] (NaN stays NaN), snap, floor, cap.
+                    let u = _mm256_min_pd(_mm256_set1_pd(last), _mm256_max_pd(_mm256_setzero_pd(), u));
+                    let r = floor(_mm256_add_pd(u, _mm256_set1_pd(0.5)));
+                    let near = _mm256_cmp_pd::<_CMP_LE_OQ>(abs(_mm256_sub_pd(u, r)), _mm256_set1_pd(tol));
+                    let u = _mm256_blendv_pd(u, r, near);
+                    // min(x0, x0_max) gives x0_max for a NaN x0, as `f64::min` does.
+                    let x0 = _mm256_min_pd(floor(u), _mm256_set1_pd(x0_max));
+                    _mm256_storeu_pd(at.h[a].as_mut_ptr().add(q), _mm256_sub_pd(u, x0));
+                    _mm_storeu_si128(at.base[a].as_mut_ptr().add(q).cast(), _mm256_cvttpd_epi32(x0));
+                    corner[a] = x0;
+                }
+                // x + nx·(y + ny·z), below 2³⁰: exact in f64, whose multiplications are
+                // quicker than i32 ones.
+                let yz = _mm256_add_pd(corner[1], _mm256_mul_pd(_mm256_set1_pd(self.ny as f64), corner[2]));
+                let index = _mm256_add_pd(corner[0], _mm256_mul_pd(_mm256_set1_pd(self.nx as f64), yz));
+                _mm_storeu_si128(at.index.as_mut_ptr().add(q).cast(), _mm256_cvttpd_epi32(index));
             }
-            // x + nx·(y + ny·z), below 2³⁰.
-            let yz = _mm_add_epi32(corner[1], _mm_mullo_epi32(_mm_set1_epi32(self.ny), corner[2]));
-            let index = _mm_add_epi32(corner[0], _mm_mullo_epi32(_mm_set1_epi32(self.nx), yz));
-            _mm_storeu_si128(at.index.as_mut_ptr().cast(), index);
             at
         }
 
         #[inline]
         #[target_feature(enable = "avx2")]
-        pub(super) unsafe fn classify_avx2(&self, at: &Located) -> [(f64, [f64; 3]); LANES] {
-            let v = self.values(at);
-            // The segment: how many break points are ≤ v (a NaN counts none).
-            let mut segment = _mm256_setzero_si256();
-            for &b in &self.breaks {
-                let le = _mm256_castpd_si256(_mm256_cmp_pd::<_CMP_LE_OQ>(_mm256_set1_pd(b), v));
-                segment = _mm256_sub_epi64(segment, le);
+        pub(super) unsafe fn classify_avx2<const L: usize>(&self, at: &Located<L>) -> [(f64, [f64; 3]); L] {
+            let mut o = [0.0; L];
+            let mut rgb = [[0.0; L]; 3];
+            for q in (0..L).step_by(4) {
+                let v = self.values(at, q);
+                // The segment: how many break points are ≤ v (a NaN counts none).
+                let mut segment = _mm256_setzero_si256();
+                for &b in &self.breaks {
+                    let le = _mm256_castpd_si256(_mm256_cmp_pd::<_CMP_LE_OQ>(_mm256_set1_pd(b), v));
+                    segment = _mm256_sub_epi64(segment, le);
+                }
+                let f = &self.tables;
+                // `Segment::eval`: y0 + ((v − x0)·(1/w))·dy.
+                let t = _mm256_mul_pd(_mm256_sub_pd(v, gather(&f[0], segment)), gather(&f[1], segment));
+                let opacity = _mm256_add_pd(gather(&f[2], segment), _mm256_mul_pd(t, gather(&f[3], segment)));
+                let t = _mm256_mul_pd(_mm256_sub_pd(v, gather(&f[4], segment)), gather(&f[5], segment));
+                let mut colour = [_mm256_setzero_pd(); 3];
+                for (c, colour) in colour.iter_mut().enumerate() {
+                    *colour = _mm256_add_pd(gather(&f[6 + c], segment), _mm256_mul_pd(t, gather(&f[9 + c], segment)));
+                }
+                // `JointPiecewise::classify_or_clear`: finite positive opacity, finite colour.
+                let infinity = _mm256_set1_pd(f64::INFINITY);
+                let mut ok = _mm256_and_pd(
+                    _mm256_cmp_pd::<_CMP_GT_OQ>(opacity, _mm256_setzero_pd()),
+                    _mm256_cmp_pd::<_CMP_LT_OQ>(opacity, infinity),
+                );
+                for &c in &colour {
+                    ok = _mm256_and_pd(ok, _mm256_cmp_pd::<_CMP_LT_OQ>(abs(c), infinity));
+                }
+                let opacity = _mm256_and_pd(ok, _mm256_min_pd(opacity, _mm256_set1_pd(1.0)));
+                _mm256_storeu_pd(o.as_mut_ptr().add(q), opacity);
+                for (out, &c) in rgb.iter_mut().zip(&colour) {
+                    _mm256_storeu_pd(out.as_mut_ptr().add(q), _mm256_and_pd(ok, clamp01(c)));
+                }
             }
-            let f = &self.tables;
-            // `Segment::eval`: y0 + ((v − x0)·(1/w))·dy.
-            let t = _mm256_mul_pd(_mm256_sub_pd(v, gather(&f[0], segment)), gather(&f[1], segment));
-            let opacity = _mm256_add_pd(gather(&f[2], segment), _mm256_mul_pd(t, gather(&f[3], segment)));
-            let t = _mm256_mul_pd(_mm256_sub_pd(v, gather(&f[4], segment)), gather(&f[5], segment));
-            let mut colour = [_mm256_setzero_pd(); 3];
-            for (c, colour) in colour.iter_mut().enumerate() {
-                *colour = _mm256_add_pd(gather(&f[6 + c], segment), _mm256_mul_pd(t, gather(&f[9 + c], segment)));
-            }
-            // `JointPiecewise::classify_or_clear`: finite positive opacity, finite colour.
-            let infinity = _mm256_set1_pd(f64::INFINITY);
-            let mut ok = _mm256_and_pd(
-                _mm256_cmp_pd::<_CMP_GT_OQ>(opacity, _mm256_setzero_pd()),
-                _mm256_cmp_pd::<_CMP_LT_OQ>(opacity, infinity),
-            );
-            for &c in &colour {
-                ok = _mm256_and_pd(ok, _mm256_cmp_pd::<_CMP_LT_OQ>(abs(c), infinity));
-            }
-            let mut o = [0.0; LANES];
-            _mm256_storeu_pd(o.as_mut_ptr(), _mm256_and_pd(ok, _mm256_min_pd(opacity, _mm256_set1_pd(1.0))));
-            let mut rgb = [[0.0; LANES]; 3];
-            for (out, &c) in rgb.iter_mut().zip(&colour) {
-                _mm256_storeu_pd(out.as_mut_ptr(), _mm256_and_pd(ok, clamp01(c)));
-            }
-            let mut out = [(0.0, [0.0; 3]); LANES];
+            let mut out = [(0.0, [0.0; 3]); L];
             for (l, out) in out.iter_mut().enumerate() {
                 *out = (o[l], [rgb[0][l], rgb[1][l], rgb[2][l]]);
             }
@@ -270,17 +277,18 @@ mod avx2 {
         /// The trilinear value of each lane, as `Linear::apply` computes it.
         #[inline]
         #[target_feature(enable = "avx2")]
-        unsafe fn values(&self, at: &Located) -> __m256d {
+        unsafe fn values<const L: usize>(&self, at: &Located<L>, q: usize) -> __m256d {
             let [ox, oy, oz] = self.offsets;
             let rows = [0, oy, oz, oz + oy];
             let bytes = self.voxels.bytes();
             let wide = self.voxels.is_wide();
             let width = if wide { 2 } else { 1 };
             // A gather reads four bytes at each row's corner: all inside the channel?
-            let top = at.index.iter().max().copied().unwrap_or(0) as usize + (oz + oy) as usize;
+            let lanes = &at.index[q..q + 4];
+            let top = lanes.iter().max().copied().unwrap_or(0) as usize + (oz + oy) as usize;
             let mut pairs = [[_mm256_setzero_pd(); 2]; 4];
             if width * top + 4 <= bytes.len() {
-                let index = _mm_loadu_si128(at.index.as_ptr().cast());
+                let index = _mm_loadu_si128(lanes.as_ptr().cast());
                 let mask = _mm_set1_epi32(if wide { 0xffff } else { 0xff });
                 let shift = _mm_cvtsi32_si128(8 * width as i32 * ox);
                 let base = bytes.as_ptr().cast::<i32>();
@@ -295,8 +303,8 @@ mod avx2 {
             } else {
                 // The channel's last corners: voxel by voxel.
                 for (pair, &row) in pairs.iter_mut().zip(&rows) {
-                    let (mut v0, mut v1) = ([0.0; LANES], [0.0; LANES]);
-                    for ((v0, v1), &i) in v0.iter_mut().zip(&mut v1).zip(&at.index) {
+                    let (mut v0, mut v1) = ([0.0; 4], [0.0; 4]);
+                    for ((v0, v1), &i) in v0.iter_mut().zip(&mut v1).zip(lanes) {
                         [*v0, *v1] = self.voxels.pair((i + row) as usize, ox as usize);
                     }
                     *pair = [_mm256_loadu_pd(v0.as_ptr()), _mm256_loadu_pd(v1.as_ptr())];
@@ -304,7 +312,7 @@ mod avx2 {
             }
             let mut h = [_mm256_setzero_pd(); 3];
             for (h, w) in h.iter_mut().zip(&at.h) {
-                *h = _mm256_loadu_pd(w.as_ptr());
+                *h = _mm256_loadu_pd(w.as_ptr().add(q));
             }
             let x00 = lerp(pairs[0][0], pairs[0][1], h[0]);
             let x10 = lerp(pairs[1][0], pairs[1][1], h[0]);
