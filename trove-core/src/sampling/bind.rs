@@ -55,8 +55,25 @@ impl<'a> Parts<'a> {
         V: super::kernel::VoxelSource + 'a,
         M: Maps + 'a,
     {
+        self.kernel_with_lanes(interp, voxels, maps, skip, None)
+    }
+
+    /// [`Parts::kernel`] with the AVX2 loop for its lines, when there is one.
+    fn kernel_with_lanes<I, V, M>(
+        &self,
+        interp: I,
+        voxels: V,
+        maps: M,
+        skip: Option<Skipper<'a>>,
+        lanes: Option<Trilinear4<'a>>,
+    ) -> Bound<'a>
+    where
+        I: Interp + 'a,
+        V: super::kernel::VoxelSource + 'a,
+        M: Maps + 'a,
+    {
         let skip = self.prepared(&interp, skip);
-        Box::new(Kernel { interp, voxels, maps, skip, correction: self.correction, specialised: true, lanes: None })
+        Box::new(Kernel { interp, voxels, maps, skip, correction: self.correction, specialised: true, lanes })
     }
 
     /// The general loop.
@@ -116,29 +133,11 @@ impl<'a> Parts<'a> {
             let lanes = |stored| Trilinear4::new(&interp, stored, &maps);
             if let Some(v) = U8Voxels::of(voxel) {
                 if let Some(lanes) = lanes(Stored::U8(v)) {
-                    let skip = self.prepared(&interp, skip);
-                    return Ok(Box::new(Kernel {
-                        interp,
-                        voxels: Read(v),
-                        maps,
-                        skip,
-                        correction: self.correction,
-                        specialised: true,
-                        lanes: Some(lanes),
-                    }));
+                    return Ok(self.kernel_with_lanes(interp, Read(v), maps, skip, Some(lanes)));
                 }
             } else if let Some(v) = U16LeVoxels::of(voxel) {
                 if let Some(lanes) = lanes(Stored::U16(v)) {
-                    let skip = self.prepared(&interp, skip);
-                    return Ok(Box::new(Kernel {
-                        interp,
-                        voxels: Read(v),
-                        maps,
-                        skip,
-                        correction: self.correction,
-                        specialised: true,
-                        lanes: Some(lanes),
-                    }));
+                    return Ok(self.kernel_with_lanes(interp, Read(v), maps, skip, Some(lanes)));
                 }
             }
         }
