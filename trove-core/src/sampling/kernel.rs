@@ -13,6 +13,8 @@ use crate::composite::Rgba;
 use crate::dataset::macrocell::Level;
 use crate::dataset::{ChannelReader, Voxels};
 use crate::geometry::{LineSamples, SampleWalk};
+use crate::interp::Interp;
+use crate::mapping::{clamp1, clamp3, ColourMap, JointPiecewise, OpacityMap, Piecewise, Polynomial, RawColour};
 
 /// Samples of a straight line computed together ([`Kernel::cast_line`]): four f64 lanes
 /// are one AVX register, and more would compute more samples past an early termination.
@@ -21,9 +23,6 @@ pub(super) const LANES: usize = 4;
 /// Samples per group in the AVX2 loop: two registers' worth, whose chains of dependent
 /// operations (cell → index → gather → lerps → segment → gather → map) interleave.
 pub(super) const AVX2_LANES: usize = 8;
-
-use crate::interp::Interp;
-use crate::mapping::{clamp1, clamp3, ColourMap, JointPiecewise, OpacityMap, Piecewise, Polynomial, RawColour};
 
 /// Casting one object over one piece, whatever its combination (the only dynamic call: one
 /// per piece).
@@ -269,10 +268,10 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         (if ok { opacity } else { 0.0 }, if ok { colour } else { [0.0; 3] })
     }
 
-    /// The samples of a straight line, [`LANES`] at a time: positions, stencils, values and
-    /// classification of a group are independent of each other, and only compositing, which
-    /// is sequential, goes sample by sample (stopping at the same sample as one at a time
-    /// would). A group whose first sample lies in an empty macrocell jumps instead; later
+    /// The samples of a straight line in groups ([`LANES`], or [`AVX2_LANES`] in AVX2
+    /// registers): positions, stencils, values and classification of a group are independent
+    /// of each other, and only compositing, which is sequential, goes sample by sample
+    /// (stopping at the same sample as one at a time would). A group whose first sample lies in an empty macrocell jumps instead; later
     /// samples of a group that lie in empty cells are not composited (nor counted).
     fn cast_line(&self, line: &LineSamples, alpha_in: f64, stop_at: f64) -> PieceResult {
         #[cfg(target_arch = "x86_64")]
