@@ -22,6 +22,7 @@ pub(super) const LANES: usize = 4;
 
 /// Samples per group in the AVX2 loop: two registers' worth, whose chains of dependent
 /// operations (cell → index → gather → lerps → segment → gather → map) interleave.
+#[cfg(target_arch = "x86_64")]
 pub(super) const AVX2_LANES: usize = 8;
 
 /// Casting one object over one piece, whatever its combination (the only dynamic call: one

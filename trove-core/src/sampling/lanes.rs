@@ -12,6 +12,9 @@
 //! depend on which path ran (tests compare the two). Without AVX2, or on other targets, the
 //! generic loop runs.
 
+// Elsewhere no `Trilinear4` is ever made, and what serves the AVX2 bodies goes unused.
+#![cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+
 use crate::dataset::{U16LeVoxels, U8Voxels, Voxels};
 use crate::geometry::LineSamples;
 use crate::interp::{Identity, Linear};
