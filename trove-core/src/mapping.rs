@@ -471,21 +471,12 @@ fn last_true(a: f64, b: f64, pred: &impl Fn(f64) -> bool) -> f64 {
 }
 
 /// The smallest x in `[a, b]` with `pred` true on `[x, b]`, given `pred(b)` and that `pred`
-/// is false then true over `[a, b]`.
+/// is false then true over `[a, b]`: the value just above the last one where it is false.
 fn first_true(a: f64, b: f64, pred: &impl Fn(f64) -> bool) -> f64 {
-    let (mut lo, mut hi) = (order_key(a), order_key(b));
     if pred(a) {
         return a;
     }
-    while hi - lo > 1 {
-        let mid = lo + (hi - lo) / 2;
-        if pred(from_order_key(mid)) {
-            hi = mid;
-        } else {
-            lo = mid;
-        }
-    }
-    from_order_key(hi)
+    from_order_key(order_key(last_true(a, b, &|x| !pred(x))) + 1)
 }
 
 /// A key whose unsigned order is the order of the (non-NaN) f64 values, −0 just below +0.

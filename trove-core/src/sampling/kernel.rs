@@ -239,27 +239,11 @@ enum Group<'k, 'a, S, const L: usize> {
 }
 
 impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
-    /// Classifies one sample and composites it behind `acc`; false when it contributes
-    /// nothing ([`Maps::classify`]).
-    #[inline(always)]
-    fn sample(&self, s: &I::Stencil, ell: f64, acc: &mut Rgba) -> bool {
-        let v = self.voxels.value(&self.interp, s);
-        if V::READS && !v.is_finite() {
-            return false;
-        }
-        let Some((opacity, colour)) = self.maps.classify(&self.interp, s, v) else { return false };
-        let alpha = if self.correction { corrected_opacity(opacity, ell) } else { opacity };
-        acc.add_sample(colour, alpha);
-        true
-    }
-}
-
-impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
     /// The opacity and colour of one sample, or (0, black) when it contributes nothing,
     /// computed without branching on the data: the samples of a group then overlap in the
     /// processor instead of each waiting on a mispredicted branch (opacity 0 in haze is
     /// common and unpredictable). Compositing (0, black) leaves a ray's colour and opacity
-    /// unchanged bit for bit, so this is [`Kernel::sample`] in another form.
+    /// unchanged bit for bit, so every sample can be composited.
     #[inline(always)]
     fn mapped(&self, s: &I::Stencil) -> (f64, [f64; 3]) {
         let v = self.voxels.value(&self.interp, s);
@@ -267,6 +251,22 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         // A non-finite value contributes nothing (SPEC §4.5).
         let ok = !V::READS || v.is_finite();
         (if ok { opacity } else { 0.0 }, if ok { colour } else { [0.0; 3] })
+    }
+
+    /// Composites a mapped sample behind `acc` (opacity corrected for ℓ when the scene asks);
+    /// true when the cast may stop: only a sample that added opacity can end it (`&`, not
+    /// `&&`: no branch on the data).
+    #[inline(always)]
+    fn composite(
+        &self,
+        (opacity, colour): (f64, [f64; 3]),
+        ell: f64,
+        acc: &mut Rgba,
+        done: impl Fn(&Rgba) -> bool,
+    ) -> bool {
+        let alpha = if self.correction { corrected_opacity(opacity, ell) } else { opacity };
+        acc.add_sample(colour, alpha);
+        (alpha != 0.0) & done(acc)
     }
 
     /// The samples of a straight line in groups ([`LANES`], or [`AVX2_LANES`] in AVX2
@@ -354,16 +354,12 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
                 }
                 Group::Lanes(at, fast) => fast.classify(at),
             };
-            for (&(opacity, colour), live) in mapped.iter().zip(live) {
+            for (&mapped, live) in mapped.iter().zip(live) {
                 if !live {
                     continue;
                 }
                 samples += 1;
-                let alpha = if self.correction { corrected_opacity(opacity, ell) } else { opacity };
-                acc.add_sample(colour, alpha);
-                // Only a sample that added opacity can end the cast (`&`, not `&&`: no branch
-                // on the data).
-                if (alpha != 0.0) & done(&acc) {
+                if self.composite(mapped, ell, &mut acc, done) {
                     break 'groups;
                 }
             }
@@ -375,32 +371,32 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
 
 impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
     fn cast(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult {
+        if let Some(line) = walk.line() {
+            return self.cast_line(&line, alpha_in, stop_at);
+        }
+        // An exact distorted walk: samples one by one, each tested for empty space.
         let mut acc = Rgba::CLEAR;
         let mut samples = 0;
         let done = |acc: &Rgba| alpha_in + (1.0 - alpha_in) * acc.alpha >= stop_at;
         // The macrocell of the last sample looked at, and whether it is empty.
         let mut cell = [u32::MAX; 3];
         let mut empty = false;
-        if let Some(line) = walk.line() {
-            return self.cast_line(&line, alpha_in, stop_at);
-        } else {
-            for (vc, ell) in walk {
-                let Some(vc) = vc else { continue };
-                let s = self.interp.locate(vc);
-                if let Some(skip) = &self.skip {
-                    let c = cell_of(self.interp.base(&s));
-                    if c != cell {
-                        cell = c;
-                        empty = skip.is_empty(&self.interp, Level::Fine, c);
-                    }
-                    if empty {
-                        continue;
-                    }
+        for (vc, ell) in walk {
+            let Some(vc) = vc else { continue };
+            let s = self.interp.locate(vc);
+            if let Some(skip) = &self.skip {
+                let c = cell_of(self.interp.base(&s));
+                if c != cell {
+                    cell = c;
+                    empty = skip.is_empty(&self.interp, Level::Fine, c);
                 }
-                samples += 1;
-                if self.sample(&s, ell, &mut acc) && done(&acc) {
-                    break;
+                if empty {
+                    continue;
                 }
+            }
+            samples += 1;
+            if self.composite(self.mapped(&s), ell, &mut acc, done) {
+                break;
             }
         }
         PieceResult { rgba: acc, samples }
