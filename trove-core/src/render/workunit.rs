@@ -28,7 +28,7 @@
 use super::error::CastError;
 use crate::composite::Rgba;
 use crate::dataset::Volume;
-use crate::sampling::ObjectCaster;
+use crate::sampling::{ObjectCaster, PieceRequest, PieceResult};
 use crate::scene::Scene;
 
 /// One object over one piece of one ray: the unit of volume-rendering work (24 bytes).
@@ -199,14 +199,30 @@ impl<'a> BatchCaster<'a> {
         let (w, h) = (scene.image().width, scene.image().height);
         let termination = scene.render().termination;
         let mut samples = 0;
-        for (task, result) in tasks.iter().zip(out) {
-            let Some((caster, _)) = &self.objects[task.object as usize] else {
+        let (mut pieces, mut results) = (Vec::new(), Vec::new());
+        // Runs of consecutive tasks of one object are cast together (several at a time).
+        let mut start = 0;
+        for tasks in tasks.chunk_by(|a, b| a.object == b.object) {
+            let out = &mut out[start..start + tasks.len()];
+            start += tasks.len();
+            let Some((caster, _)) = &self.objects[tasks[0].object as usize] else {
                 unreachable!("checked above: the object belongs to this dataset")
             };
-            let ray = scene.camera().ray(task.ray % w, task.ray / w, w, h);
-            let r = caster.cast(&ray, task.t0, task.t1, task.front_alpha(), task.stop_at(termination));
-            samples += r.samples;
-            *result = r.rgba.into();
+            pieces.clear();
+            pieces.extend(tasks.iter().map(|task| PieceRequest {
+                ray: scene.camera().ray(task.ray % w, task.ray / w, w, h),
+                t0: task.t0,
+                t1: task.t1,
+                alpha_in: task.front_alpha(),
+                stop_at: task.stop_at(termination),
+            }));
+            results.clear();
+            results.resize(pieces.len(), PieceResult::default());
+            caster.cast_many(&pieces, &mut results);
+            for (r, out) in results.iter().zip(out) {
+                samples += r.samples;
+                *out = r.rgba.into();
+            }
         }
         Ok(samples)
     }

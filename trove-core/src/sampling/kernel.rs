@@ -7,6 +7,8 @@
 //! tested against.
 
 use super::lanes::{Located, Trilinear4};
+#[cfg(target_arch = "x86_64")]
+use super::packet::Line;
 use super::skip::{cell_of, Jumps, Skipper};
 use super::{corrected_opacity, PieceResult};
 use crate::composite::Rgba;
@@ -30,12 +32,18 @@ pub(super) const AVX2_LANES: usize = 8;
 pub(super) trait Cast: Send + Sync {
     /// See [`super::ObjectCaster::cast`].
     fn cast(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult;
+    /// Casts many pieces, `(slot, walk, alpha_in, stop_at)`, each result into `out[slot]`:
+    /// the same results as [`Cast::cast`] one by one, which is what this does unless the
+    /// loop can cast several pieces at once ([`Cast::casts_packets`]).
+    fn cast_many(&self, pieces: Vec<(usize, SampleWalk<'_>, f64, f64)>, out: &mut [PieceResult]);
     /// Whether this loop is a specialised one (for tests).
     fn is_specialised(&self) -> bool;
     /// Whether empty-space skipping is on (for tests).
     fn skips(&self) -> bool;
     /// Whether lines are cast in AVX2 registers (for tests).
     fn uses_avx2(&self) -> bool;
+    /// Whether [`Cast::cast_many`] casts eight pieces at a time in AVX-512 registers.
+    fn casts_packets(&self) -> bool;
 }
 
 /// The value of the `voxel` channel at a sample, if the maps read it.
@@ -402,6 +410,26 @@ impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
         PieceResult { rgba: acc, samples }
     }
 
+    fn cast_many(&self, pieces: Vec<(usize, SampleWalk<'_>, f64, f64)>, out: &mut [PieceResult]) {
+        #[cfg(target_arch = "x86_64")]
+        if let Some(fast) = self.lanes.as_ref().filter(|_| self.casts_packets()) {
+            // Straight pieces eight at a time; the others (exact distorted walks) one by one.
+            let mut lines = Vec::with_capacity(pieces.len());
+            for (slot, walk, alpha_in, stop_at) in pieces {
+                match walk.line() {
+                    Some(line) => lines.push(Line { slot, line, alpha_in, stop_at }),
+                    None => out[slot] = self.cast(walk, alpha_in, stop_at),
+                }
+            }
+            // SAFETY: `casts_packets` holds only where the processor has AVX-512.
+            unsafe { self.cast_packets(fast, &lines, out) };
+            return;
+        }
+        for (slot, walk, alpha_in, stop_at) in pieces {
+            out[slot] = self.cast(walk, alpha_in, stop_at);
+        }
+    }
+
     fn is_specialised(&self) -> bool {
         self.specialised
     }
@@ -412,5 +440,9 @@ impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
 
     fn uses_avx2(&self) -> bool {
         self.lanes.is_some()
+    }
+
+    fn casts_packets(&self) -> bool {
+        self.lanes.as_ref().is_some_and(Trilinear4::has_avx512)
     }
 }

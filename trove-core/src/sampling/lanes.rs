@@ -52,6 +52,11 @@ pub(super) struct Trilinear4<'a> {
     breaks: Vec<f64>,
     /// Per joint segment, field by field ([`JointPiecewise::tables`]).
     tables: [Vec<f64>; 12],
+    /// The same tables padded to 16 segments, where they fit, for AVX-512's two-register
+    /// permutes.
+    tables16: Option<Box<[[f64; 16]; 12]>>,
+    /// Whether the processor has AVX-512 F, DQ and VL, for [`super::packet`].
+    avx512: bool,
 }
 
 impl<'a> Trilinear4<'a> {
@@ -76,8 +81,21 @@ impl<'a> Trilinear4<'a> {
             nx: nx as i32,
             ny: ny as i32,
             breaks: breaks.to_vec(),
+            tables16: (tables[0].len() <= 16).then(|| {
+                Box::new(std::array::from_fn(|f| {
+                    let mut t = [0.0; 16];
+                    t[..tables[f].len()].copy_from_slice(&tables[f]);
+                    t
+                }))
+            }),
             tables,
+            avx512: has_avx512(),
         })
+    }
+
+    /// Whether the processor has what the eight-lane loop of [`super::packet`] needs.
+    pub(super) fn has_avx512(&self) -> bool {
+        self.avx512
     }
 
     /// Samples k, k + 1, … of `line` located (lanes from `m` on repeat sample k + m − 1).
@@ -132,6 +150,19 @@ impl<'a> Stored<'a> {
             Stored::U8(v) => v.pair(i, dx),
             Stored::U16(v) => v.pair(i, dx),
         }
+    }
+}
+
+fn has_avx512() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::is_x86_feature_detected!("avx512f")
+            && std::is_x86_feature_detected!("avx512dq")
+            && std::is_x86_feature_detected!("avx512vl")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
     }
 }
 
@@ -209,26 +240,16 @@ mod avx2 {
             let mut at = Located { base: [[0; L]; 3], index: [0; L], h: [[0.0; L]; 3] };
             for q in (0..L).step_by(4) {
                 let s = _mm256_loadu_pd(s.as_ptr().add(q));
-                let mut corner = [_mm256_setzero_pd(); 3];
-                for a in 0..3 {
-                    let [last, tol, x0_max] = self.rule[a];
-                    let u = _mm256_add_pd(_mm256_set1_pd(vc0[a]), _mm256_mul_pd(_mm256_set1_pd(delta[a]), s));
-                    // `Axis::cell`: clamp to [0, n − 1] (NaN stays NaN), snap, floor, cap.
-                    let u = _mm256_min_pd(_mm256_set1_pd(last), _mm256_max_pd(_mm256_setzero_pd(), u));
-                    let r = floor(_mm256_add_pd(u, _mm256_set1_pd(0.5)));
-                    let near = _mm256_cmp_pd::<_CMP_LE_OQ>(abs(_mm256_sub_pd(u, r)), _mm256_set1_pd(tol));
-                    let u = _mm256_blendv_pd(u, r, near);
-                    // min(x0, x0_max) gives x0_max for a NaN x0, as `f64::min` does.
-                    let x0 = _mm256_min_pd(floor(u), _mm256_set1_pd(x0_max));
-                    _mm256_storeu_pd(at.h[a].as_mut_ptr().add(q), _mm256_sub_pd(u, x0));
-                    _mm_storeu_si128(at.base[a].as_mut_ptr().add(q).cast(), _mm256_cvttpd_epi32(x0));
-                    corner[a] = x0;
+                let mut u = [s; 3];
+                for (a, u) in u.iter_mut().enumerate() {
+                    *u = _mm256_add_pd(_mm256_set1_pd(vc0[a]), _mm256_mul_pd(_mm256_set1_pd(delta[a]), s));
                 }
-                // x + nx·(y + ny·z), below 2³⁰: exact in f64, whose multiplications are
-                // quicker than i32 ones.
-                let yz = _mm256_add_pd(corner[1], _mm256_mul_pd(_mm256_set1_pd(self.ny as f64), corner[2]));
-                let index = _mm256_add_pd(corner[0], _mm256_mul_pd(_mm256_set1_pd(self.nx as f64), yz));
-                _mm_storeu_si128(at.index.as_mut_ptr().add(q).cast(), _mm256_cvttpd_epi32(index));
+                let (x0, h) = self.cells(u);
+                for a in 0..3 {
+                    _mm256_storeu_pd(at.h[a].as_mut_ptr().add(q), h[a]);
+                    _mm_storeu_si128(at.base[a].as_mut_ptr().add(q).cast(), _mm256_cvttpd_epi32(x0[a]));
+                }
+                _mm_storeu_si128(at.index.as_mut_ptr().add(q).cast(), self.index(x0));
             }
             at
         }
@@ -239,35 +260,15 @@ mod avx2 {
             let mut o = [0.0; L];
             let mut rgb = [[0.0; L]; 3];
             for q in (0..L).step_by(4) {
-                let v = self.values(at, q);
-                // The segment: how many break points are ≤ v (a NaN counts none).
-                let mut segment = _mm256_setzero_si256();
-                for &b in &self.breaks {
-                    let le = _mm256_castpd_si256(_mm256_cmp_pd::<_CMP_LE_OQ>(_mm256_set1_pd(b), v));
-                    segment = _mm256_sub_epi64(segment, le);
+                let mut h = [_mm256_setzero_pd(); 3];
+                for (h, w) in h.iter_mut().zip(&at.h) {
+                    *h = _mm256_loadu_pd(w.as_ptr().add(q));
                 }
-                let f = &self.tables;
-                // `Segment::eval`: y0 + ((v − x0)·(1/w))·dy.
-                let t = _mm256_mul_pd(_mm256_sub_pd(v, gather(&f[0], segment)), gather(&f[1], segment));
-                let opacity = _mm256_add_pd(gather(&f[2], segment), _mm256_mul_pd(t, gather(&f[3], segment)));
-                let t = _mm256_mul_pd(_mm256_sub_pd(v, gather(&f[4], segment)), gather(&f[5], segment));
-                let mut colour = [_mm256_setzero_pd(); 3];
-                for (c, colour) in colour.iter_mut().enumerate() {
-                    *colour = _mm256_add_pd(gather(&f[6 + c], segment), _mm256_mul_pd(t, gather(&f[9 + c], segment)));
-                }
-                // `JointPiecewise::classify_or_clear`: finite positive opacity, finite colour.
-                let infinity = _mm256_set1_pd(f64::INFINITY);
-                let mut ok = _mm256_and_pd(
-                    _mm256_cmp_pd::<_CMP_GT_OQ>(opacity, _mm256_setzero_pd()),
-                    _mm256_cmp_pd::<_CMP_LT_OQ>(opacity, infinity),
-                );
-                for &c in &colour {
-                    ok = _mm256_and_pd(ok, _mm256_cmp_pd::<_CMP_LT_OQ>(abs(c), infinity));
-                }
-                let opacity = _mm256_and_pd(ok, _mm256_min_pd(opacity, _mm256_set1_pd(1.0)));
+                let lanes = at.index[q..q + 4].try_into().expect("four lanes");
+                let (opacity, colour) = self.map(self.trilinear(lanes, h));
                 _mm256_storeu_pd(o.as_mut_ptr().add(q), opacity);
                 for (out, &c) in rgb.iter_mut().zip(&colour) {
-                    _mm256_storeu_pd(out.as_mut_ptr().add(q), _mm256_and_pd(ok, clamp01(c)));
+                    _mm256_storeu_pd(out.as_mut_ptr().add(q), c);
                 }
             }
             let mut out = [(0.0, [0.0; 3]); L];
@@ -277,17 +278,82 @@ mod avx2 {
             out
         }
 
-        /// The trilinear value of each lane, as `Linear::apply` computes it.
+        /// Per axis, the lower corners x0 (as f64) and weights of four positions `u`, as
+        /// `Axis::cell` computes them: clamp to [0, n − 1] (NaN stays NaN), snap, floor, cap.
         #[inline]
         #[target_feature(enable = "avx2")]
-        unsafe fn values<const L: usize>(&self, at: &Located<L>, q: usize) -> __m256d {
+        unsafe fn cells(&self, u: [__m256d; 3]) -> ([__m256d; 3], [__m256d; 3]) {
+            let mut x0 = [_mm256_setzero_pd(); 3];
+            let mut h = [_mm256_setzero_pd(); 3];
+            for a in 0..3 {
+                let [last, tol, x0_max] = self.rule[a];
+                let u = _mm256_min_pd(_mm256_set1_pd(last), _mm256_max_pd(_mm256_setzero_pd(), u[a]));
+                let r = floor(_mm256_add_pd(u, _mm256_set1_pd(0.5)));
+                let near = _mm256_cmp_pd::<_CMP_LE_OQ>(abs(_mm256_sub_pd(u, r)), _mm256_set1_pd(tol));
+                let u = _mm256_blendv_pd(u, r, near);
+                // min(x0, x0_max) gives x0_max for a NaN x0, as `f64::min` does.
+                x0[a] = _mm256_min_pd(floor(u), _mm256_set1_pd(x0_max));
+                h[a] = _mm256_sub_pd(u, x0[a]);
+            }
+            (x0, h)
+        }
+
+        /// x + nx·(y + ny·z) of four lower corners, below 2³⁰: exact in f64, whose
+        /// multiplications are quicker than i32 ones.
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        unsafe fn index(&self, x0: [__m256d; 3]) -> __m128i {
+            let yz = _mm256_add_pd(x0[1], _mm256_mul_pd(_mm256_set1_pd(self.ny as f64), x0[2]));
+            _mm256_cvttpd_epi32(_mm256_add_pd(x0[0], _mm256_mul_pd(_mm256_set1_pd(self.nx as f64), yz)))
+        }
+
+        /// The opacity and colour of four values, (0, black) where a value contributes
+        /// nothing, as `JointPiecewise::classify_or_clear` computes them.
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        unsafe fn map(&self, v: __m256d) -> (__m256d, [__m256d; 3]) {
+            // The segment: how many break points are ≤ v (a NaN counts none).
+            let mut segment = _mm256_setzero_si256();
+            for &b in &self.breaks {
+                let le = _mm256_castpd_si256(_mm256_cmp_pd::<_CMP_LE_OQ>(_mm256_set1_pd(b), v));
+                segment = _mm256_sub_epi64(segment, le);
+            }
+            let f = &self.tables;
+            // `Segment::eval`: y0 + ((v − x0)·(1/w))·dy.
+            let t = _mm256_mul_pd(_mm256_sub_pd(v, gather(&f[0], segment)), gather(&f[1], segment));
+            let opacity = _mm256_add_pd(gather(&f[2], segment), _mm256_mul_pd(t, gather(&f[3], segment)));
+            let t = _mm256_mul_pd(_mm256_sub_pd(v, gather(&f[4], segment)), gather(&f[5], segment));
+            let mut colour = [_mm256_setzero_pd(); 3];
+            for (c, colour) in colour.iter_mut().enumerate() {
+                *colour = _mm256_add_pd(gather(&f[6 + c], segment), _mm256_mul_pd(t, gather(&f[9 + c], segment)));
+            }
+            // Finite positive opacity, finite colour.
+            let infinity = _mm256_set1_pd(f64::INFINITY);
+            let mut ok = _mm256_and_pd(
+                _mm256_cmp_pd::<_CMP_GT_OQ>(opacity, _mm256_setzero_pd()),
+                _mm256_cmp_pd::<_CMP_LT_OQ>(opacity, infinity),
+            );
+            for &c in &colour {
+                ok = _mm256_and_pd(ok, _mm256_cmp_pd::<_CMP_LT_OQ>(abs(c), infinity));
+            }
+            let opacity = _mm256_and_pd(ok, _mm256_min_pd(opacity, _mm256_set1_pd(1.0)));
+            for c in &mut colour {
+                *c = _mm256_and_pd(ok, clamp01(*c));
+            }
+            (opacity, colour)
+        }
+
+        /// The trilinear value at four lower corners `lanes` (linear indices) with weights
+        /// `h`, as `Linear::apply` computes it.
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        unsafe fn trilinear(&self, lanes: &[i32; 4], h: [__m256d; 3]) -> __m256d {
             let [ox, oy, oz] = self.offsets;
             let rows = [0, oy, oz, oz + oy];
             let bytes = self.voxels.bytes();
             let wide = self.voxels.is_wide();
             let width = if wide { 2 } else { 1 };
             // A gather reads four bytes at each row's corner: all inside the channel?
-            let lanes = &at.index[q..q + 4];
             let top = lanes.iter().max().copied().unwrap_or(0) as usize + (oz + oy) as usize;
             let mut pairs = [[_mm256_setzero_pd(); 2]; 4];
             if width * top + 4 <= bytes.len() {
@@ -304,18 +370,172 @@ mod avx2 {
                     *pair = [_mm256_cvtepi32_pd(v0), _mm256_cvtepi32_pd(v1)];
                 }
             } else {
-                // The channel's last corners: voxel by voxel.
-                for (pair, &row) in pairs.iter_mut().zip(&rows) {
-                    let (mut v0, mut v1) = ([0.0; 4], [0.0; 4]);
-                    for ((v0, v1), &i) in v0.iter_mut().zip(&mut v1).zip(lanes) {
-                        [*v0, *v1] = self.voxels.pair((i + row) as usize, ox as usize);
-                    }
-                    *pair = [_mm256_loadu_pd(v0.as_ptr()), _mm256_loadu_pd(v1.as_ptr())];
-                }
+                pairs = self.last_corners(lanes, rows);
             }
-            let mut h = [_mm256_setzero_pd(); 3];
-            for (h, w) in h.iter_mut().zip(&at.h) {
-                *h = _mm256_loadu_pd(w.as_ptr().add(q));
+            let x00 = lerp(pairs[0][0], pairs[0][1], h[0]);
+            let x10 = lerp(pairs[1][0], pairs[1][1], h[0]);
+            let x01 = lerp(pairs[2][0], pairs[2][1], h[0]);
+            let x11 = lerp(pairs[3][0], pairs[3][1], h[0]);
+            lerp(lerp(x00, x10, h[1]), lerp(x01, x11, h[1]), h[2])
+        }
+
+        /// [`Trilinear4::trilinear`]'s voxels at the channel's last corners, where a
+        /// gather's four bytes could reach past its end: voxel by voxel, out of the way of
+        /// the loop (which then inlines).
+        #[cold]
+        #[inline(never)]
+        #[target_feature(enable = "avx2")]
+        pub(super) unsafe fn last_corners(&self, lanes: &[i32; 4], rows: [i32; 4]) -> [[__m256d; 2]; 4] {
+            let ox = self.offsets[0] as usize;
+            let mut pairs = [[_mm256_setzero_pd(); 2]; 4];
+            for (pair, &row) in pairs.iter_mut().zip(&rows) {
+                let (mut v0, mut v1) = ([0.0; 4], [0.0; 4]);
+                for ((v0, v1), &i) in v0.iter_mut().zip(&mut v1).zip(lanes) {
+                    [*v0, *v1] = self.voxels.pair((i + row) as usize, ox);
+                }
+                *pair = [_mm256_loadu_pd(v0.as_ptr()), _mm256_loadu_pd(v1.as_ptr())];
+            }
+            pairs
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+pub(super) mod avx512 {
+    //! The AVX-512 bodies: the AVX2 ones eight lanes wide.
+
+    use std::arch::x86_64::*;
+
+    use super::Trilinear4;
+
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+    unsafe fn floor(x: __m512d) -> __m512d {
+        let round = _mm512_set1_pd((1u64 << 52) as f64);
+        let r = _mm512_sub_pd(_mm512_add_pd(x, round), round);
+        _mm512_mask_sub_pd(r, _mm512_cmp_pd_mask::<_CMP_GT_OQ>(r, x), r, _mm512_set1_pd(1.0))
+    }
+
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+    unsafe fn abs(x: __m512d) -> __m512d {
+        _mm512_andnot_pd(_mm512_set1_pd(-0.0), x)
+    }
+
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+    unsafe fn lerp(v0: __m512d, v1: __m512d, h: __m512d) -> __m512d {
+        _mm512_sub_pd(v0, _mm512_mul_pd(h, _mm512_sub_pd(v0, v1)))
+    }
+
+    impl Trilinear4<'_> {
+        #[inline]
+        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+        pub(in crate::sampling) unsafe fn cells8(&self, u: [__m512d; 3]) -> ([__m512d; 3], [__m512d; 3]) {
+            let mut x0 = [_mm512_setzero_pd(); 3];
+            let mut h = [_mm512_setzero_pd(); 3];
+            for a in 0..3 {
+                let [last, tol, x0_max] = self.rule[a];
+                let u = _mm512_min_pd(_mm512_set1_pd(last), _mm512_max_pd(_mm512_setzero_pd(), u[a]));
+                let r = floor(_mm512_add_pd(u, _mm512_set1_pd(0.5)));
+                let near = _mm512_cmp_pd_mask::<_CMP_LE_OQ>(abs(_mm512_sub_pd(u, r)), _mm512_set1_pd(tol));
+                let u = _mm512_mask_blend_pd(near, u, r);
+                x0[a] = _mm512_min_pd(floor(u), _mm512_set1_pd(x0_max));
+                h[a] = _mm512_sub_pd(u, x0[a]);
+            }
+            (x0, h)
+        }
+
+        #[inline]
+        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+        pub(in crate::sampling) unsafe fn index8(&self, x0: [__m512d; 3]) -> __m256i {
+            let yz = _mm512_add_pd(x0[1], _mm512_mul_pd(_mm512_set1_pd(self.ny as f64), x0[2]));
+            _mm512_cvttpd_epi32(_mm512_add_pd(x0[0], _mm512_mul_pd(_mm512_set1_pd(self.nx as f64), yz)))
+        }
+
+        #[inline]
+        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+        unsafe fn lookup(&self, f: usize, segment: __m512i) -> __m512d {
+            match &self.tables16 {
+                Some(t) => {
+                    let lo = _mm512_loadu_pd(t[f].as_ptr());
+                    let hi = _mm512_loadu_pd(t[f].as_ptr().add(8));
+                    _mm512_permutex2var_pd(lo, segment, hi)
+                }
+                None => _mm512_i64gather_pd::<8>(segment, self.tables[f].as_ptr()),
+            }
+        }
+
+        #[inline]
+        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+        pub(in crate::sampling) unsafe fn map8(&self, v: __m512d) -> (__m512d, [__m512d; 3]) {
+            let mut segment = _mm512_setzero_si512();
+            let one = _mm512_set1_epi64(1);
+            for &b in &self.breaks {
+                let le = _mm512_cmp_pd_mask::<_CMP_LE_OQ>(_mm512_set1_pd(b), v);
+                segment = _mm512_mask_add_epi64(segment, le, segment, one);
+            }
+            let t = _mm512_mul_pd(_mm512_sub_pd(v, self.lookup(0, segment)), self.lookup(1, segment));
+            let opacity = _mm512_add_pd(self.lookup(2, segment), _mm512_mul_pd(t, self.lookup(3, segment)));
+            let t = _mm512_mul_pd(_mm512_sub_pd(v, self.lookup(4, segment)), self.lookup(5, segment));
+            let mut colour = [_mm512_setzero_pd(); 3];
+            for (c, colour) in colour.iter_mut().enumerate() {
+                *colour = _mm512_add_pd(self.lookup(6 + c, segment), _mm512_mul_pd(t, self.lookup(9 + c, segment)));
+            }
+            let infinity = _mm512_set1_pd(f64::INFINITY);
+            let mut ok = _mm512_cmp_pd_mask::<_CMP_GT_OQ>(opacity, _mm512_setzero_pd())
+                & _mm512_cmp_pd_mask::<_CMP_LT_OQ>(opacity, infinity);
+            for &c in &colour {
+                ok &= _mm512_cmp_pd_mask::<_CMP_LT_OQ>(abs(c), infinity);
+            }
+            let opacity = _mm512_maskz_mov_pd(ok, _mm512_min_pd(opacity, _mm512_set1_pd(1.0)));
+            for c in &mut colour {
+                let clamped = _mm512_min_pd(_mm512_set1_pd(1.0), _mm512_max_pd(_mm512_setzero_pd(), *c));
+                *c = _mm512_maskz_mov_pd(ok, clamped);
+            }
+            (opacity, colour)
+        }
+
+        #[inline]
+        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+        pub(in crate::sampling) unsafe fn trilinear8(&self, lanes: &[i32; 8], h: [__m512d; 3]) -> __m512d {
+            let [ox, oy, oz] = self.offsets;
+            let rows = [0, oy, oz, oz + oy];
+            let bytes = self.voxels.bytes();
+            let wide = self.voxels.is_wide();
+            let width = if wide { 2 } else { 1 };
+            let top = lanes.iter().max().copied().unwrap_or(0) as usize + (oz + oy) as usize;
+            let mut pairs = [[_mm512_setzero_pd(); 2]; 4];
+            if width * top + 4 <= bytes.len() {
+                let index = _mm256_loadu_si256(lanes.as_ptr().cast());
+                let mask = _mm256_set1_epi32(if wide { 0xffff } else { 0xff });
+                let shift = _mm_cvtsi32_si128(8 * width as i32 * ox);
+                let base = bytes.as_ptr().cast::<i32>();
+                for (pair, &row) in pairs.iter_mut().zip(&rows) {
+                    let at = _mm256_add_epi32(index, _mm256_set1_epi32(row));
+                    let words = if wide {
+                        _mm256_i32gather_epi32::<2>(base, at)
+                    } else {
+                        _mm256_i32gather_epi32::<1>(base, at)
+                    };
+                    let v0 = _mm256_and_si256(words, mask);
+                    let v1 = _mm256_and_si256(_mm256_srl_epi32(words, shift), mask);
+                    *pair = [_mm512_cvtepi32_pd(v0), _mm512_cvtepi32_pd(v1)];
+                }
+            } else {
+                for half in 0..2 {
+                    let quarter: &[i32; 4] = lanes[4 * half..4 * half + 4].try_into().expect("four lanes");
+                    let p = self.last_corners(quarter, rows);
+                    for (pair, p) in pairs.iter_mut().zip(p) {
+                        for (side, p) in pair.iter_mut().zip(p) {
+                            *side = if half == 0 {
+                                _mm512_insertf64x4::<0>(*side, p)
+                            } else {
+                                _mm512_insertf64x4::<1>(*side, p)
+                            };
+                        }
+                    }
+                }
             }
             let x00 = lerp(pairs[0][0], pairs[0][1], h[0]);
             let x10 = lerp(pairs[1][0], pairs[1][1], h[0]);

@@ -72,6 +72,12 @@ impl<'a> Skipper<'a> {
         self
     }
 
+    /// The macrocells' answers as one bit each, x fastest, and how many macrocells there
+    /// are along each axis, if they were worked out at bind ([`Skipper::classified`]).
+    pub(super) fn fine_bits(&self) -> Option<(&[u64], [u32; 3])> {
+        self.table.as_ref().map(|t| (t[Level::Fine as usize].as_slice(), self.cells.cells(Level::Fine)))
+    }
+
     /// Whether no sample based in cell `cell` of `level` can contribute.
     #[inline]
     pub(super) fn is_empty<I: Interp>(&self, interp: &I, level: Level, cell: [u32; 3]) -> bool {

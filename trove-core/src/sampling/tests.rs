@@ -52,6 +52,22 @@ fn sparse(dims: Dims, seed: u64, rarity: u64) -> Vec<f32> {
     v
 }
 
+fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return std::is_x86_feature_detected!("avx2");
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+fn has_avx512() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return std::is_x86_feature_detected!("avx512f")
+        && std::is_x86_feature_detected!("avx512dq")
+        && std::is_x86_feature_detected!("avx512vl");
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
 /// The channel `values` stored as `ty` (bit: non-zero → 1).
 fn channel(ty: VoxelType, endian: Endian, values: &[f32], dims: Dims) -> Channel {
     let bytes: Vec<u8> = match ty {
@@ -160,6 +176,7 @@ fn casts_agree(object: &Object, volume: &Volume, correction: bool, rays: &[Ray])
         bind(false, true, true),
     ];
     let (mut skipped, mut all) = (0, 0);
+    let mut requests = Vec::new();
     for ray in rays {
         let Some((t0, t1)) = object.placement().segment(ray) else { continue };
         if t1 <= t0 {
@@ -178,6 +195,17 @@ fn casts_agree(object: &Object, volume: &Volume, correction: bool, rays: &[Ray])
             // Cells classified at bind skip exactly the samples classified on entry do.
             assert_eq!(results[4].samples, results[0].samples);
             assert_eq!(results[5].samples, results[2].samples);
+            for alpha_in in [0.0, 0.3, 0.97] {
+                requests.push(PieceRequest { ray: *ray, t0: a, t1: b, alpha_in, stop_at: stop });
+            }
+        }
+    }
+    // Many pieces at once (eight at a time where the processor can) give each piece's result.
+    for caster in &casters {
+        let mut many = vec![PieceResult::default(); requests.len()];
+        caster.cast_many(&requests, &mut many);
+        for (r, many) in requests.iter().zip(&many) {
+            assert_eq!(*many, caster.cast(&r.ray, r.t0, r.t1, r.alpha_in, r.stop_at), "cast_many differs from cast");
         }
     }
     (skipped, all)
@@ -224,7 +252,7 @@ fn every_stored_type_interpolation_and_map_casts_alike_on_every_path() {
     };
     let (size, at) = (1.0, DVec3::new(-0.5, -0.5, -0.5));
     let rays = rays(size, at, 24);
-    let (mut specialised, mut avx2) = (0, 0);
+    let (mut specialised, mut avx2, mut packets) = (0, 0, 0);
     for (ty, endian) in types {
         let vol = volume(dims, vec![(ChannelName::Voxel, channel(ty, endian, &values, dims))]);
         for interp in interps {
@@ -236,6 +264,7 @@ fn every_stored_type_interpolation_and_map_casts_alike_on_every_path() {
                         let caster = ObjectCaster::new(&o, &vol, correction).unwrap();
                         specialised += usize::from(caster.is_specialised());
                         avx2 += usize::from(caster.uses_avx2());
+                        packets += usize::from(caster.casts_packets());
                     }
                 }
             }
@@ -246,11 +275,38 @@ fn every_stored_type_interpolation_and_map_casts_alike_on_every_path() {
     assert_eq!(specialised, (2 * 12 + 3 * 4) * 3 * 2);
     // Trilinear over u8 and u16 le with LUT or ramp colour and opacity runs in AVX2 where the
     // processor has it, so the comparisons above held its lanes against the general loop.
-    #[cfg(target_arch = "x86_64")]
-    let expected = if std::is_x86_feature_detected!("avx2") { 2 * 4 * 2 } else { 0 };
-    #[cfg(not(target_arch = "x86_64"))]
-    let expected = 0;
-    assert_eq!(avx2, expected);
+    assert_eq!(avx2, if has_avx2() { 2 * 4 * 2 } else { 0 });
+    // And where it has AVX-512 they cast many pieces eight at a time, held above against
+    // casting them one by one.
+    let expected = if has_avx512() { avx2 } else { 0 };
+    assert_eq!(packets, expected);
+}
+
+#[test]
+fn many_pieces_at_once_skip_alike_in_volumes_of_many_cells() {
+    // Hundreds of macrocells (so their bits span many words), sparse data (so lanes jump
+    // often and at different times), u8 and u16 under the vector loops' maps.
+    let dims = Dims::new([45, 38, 29]).unwrap();
+    let values = sparse(dims, 11, 40);
+    let (size, at) = (1.0, DVec3::new(-0.5, -0.5, -0.5));
+    let rays = rays(size, at, 160);
+    // LUTs of 16 break points: 17 segments, one more than two registers' permutes hold.
+    let breaks: Vec<f64> = (1..=16).map(|i| 12.0 * i as f64).collect();
+    let opacity_lut = OpacityMap::Lut(Lut::new(breaks.clone(), (0..17).map(|i| (i / 3) as f64 * 0.03).collect()));
+    let colour_lut =
+        ColourMap::Lut(Lut::new(breaks, (0..17).map(|i| [i as f64 / 16.0, 0.5, 1.0 - i as f64 / 20.0]).collect()));
+    let cases = [
+        (VoxelType::U8, false, colour_ramp(), opacity_ramp()),
+        (VoxelType::U16, true, colour_ramp(), opacity_ramp()),
+        (VoxelType::U8, false, colour_lut, opacity_lut),
+    ];
+    for (ty, correction, colour, opacity) in cases {
+        let vol = volume(dims, vec![(ChannelName::Voxel, channel(ty, Endian::Little, &values, dims))]);
+        let o = object(colour, opacity, Interpolation::Trilinear, affine(size, at), Extent::FULL, dims);
+        assert_eq!(ObjectCaster::new(&o, &vol, correction).unwrap().casts_packets(), has_avx512());
+        let (skipped, all) = casts_agree(&o, &vol, correction, &rays);
+        assert!(skipped < all / 2, "{ty:?}: most samples lie in empty cells ({skipped} of {all} looked at)");
+    }
 }
 
 #[test]

@@ -1,0 +1,286 @@
+//! Eight pieces at a time, one per AVX-512 lane, for an object with the vector loop
+//! ([`super::lanes`]) when it casts many pieces at once (a batch of Algorithm 2, a farm
+//! batch) on a processor with AVX-512.
+//!
+//! Along one ray, compositing is a chain (each sample waits for the opacity before it) and
+//! a group of samples needs a long sequence of dependent steps, so the processor cannot run
+//! far enough ahead to keep its units busy. Across rays there is no chain: each lane walks
+//! its own piece sample by sample, and each step (position, cell, voxels, map, compositing)
+//! does eight pieces' samples in one register. A lane whose piece ends (its last sample,
+//! or the opacity at which it may stop) takes the batch's next piece. Neighbouring pieces of
+//! a batch are neighbouring pixels, so the lanes read nearby voxels.
+//!
+//! Each lane runs exactly the operations the single-sample loop runs for its piece, in the
+//! same order: its sample k is at the same position, it jumps over the same empty cells
+//! (with the same [`Jumps`]) and stops at the same sample, so every result and every sample
+//! count is the one [`super::kernel::Cast::cast`] gives (tests compare them).
+
+use std::arch::x86_64::*;
+
+use super::kernel::{Kernel, Maps, VoxelSource};
+use super::lanes::Trilinear4;
+use super::skip::{cell_of, Jumps};
+use super::{corrected_opacity, PieceResult};
+use crate::composite::Rgba;
+use crate::dataset::macrocell::{Level, MACROCELL_SHIFT};
+use crate::geometry::LineSamples;
+use crate::interp::Interp;
+
+/// A straight piece waiting for a lane: its slot in the results, its samples, the opacity
+/// in front of it and where it may stop.
+pub(super) struct Line {
+    pub slot: usize,
+    pub line: LineSamples,
+    pub alpha_in: f64,
+    pub stop_at: f64,
+}
+
+/// Lanes per register.
+const W: usize = 8;
+
+/// Each lane's piece and where it has got to, lane by lane: what the registers are loaded
+/// from when a lane changes piece, and stored to when one ends.
+struct Lanes {
+    /// Index in the batch's lines of each lane's piece; `None` for an idle lane, whose
+    /// registers keep positions inside the volume and which is never composited.
+    piece: [Option<usize>; W],
+    vc0: [[f64; W]; 3],
+    delta: [[f64; W]; 3],
+    inv_n: [f64; W],
+    n: [f64; W],
+    alpha_in: [f64; W],
+    stop_at: [f64; W],
+    ell: [f64; W],
+    /// The sample each lane is at (an integer, exact in f64).
+    k: [f64; W],
+    /// Σ c·w per colour channel, then A.
+    acc: [[f64; W]; 4],
+    samples: [f64; W],
+    /// The macrocell of the lane's last sample and whether it is empty, where cells are
+    /// classified on entry.
+    cell: [[u32; 3]; W],
+    empty: [bool; W],
+    jumps: [Option<Jumps>; W],
+}
+
+impl Lanes {
+    fn idle() -> Lanes {
+        Lanes {
+            piece: [None; W],
+            vc0: [[0.0; W]; 3],
+            delta: [[0.0; W]; 3],
+            inv_n: [0.0; W],
+            n: [0.0; W],
+            alpha_in: [0.0; W],
+            stop_at: [0.0; W],
+            ell: [0.0; W],
+            k: [0.0; W],
+            acc: [[0.0; W]; 4],
+            samples: [0.0; W],
+            cell: [[u32::MAX; 3]; W],
+            empty: [false; W],
+            jumps: [const { None }; W],
+        }
+    }
+
+    /// The lanes that have a piece, one bit each.
+    fn active(&self) -> __mmask8 {
+        let mut active = 0;
+        for (l, piece) in self.piece.iter().enumerate() {
+            active |= u8::from(piece.is_some()) << l;
+        }
+        active
+    }
+}
+
+/// A lane-by-lane array as a register.
+#[inline]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+unsafe fn load(a: &[f64; W]) -> __m512d {
+    _mm512_loadu_pd(a.as_ptr())
+}
+
+/// Each lane's lower corner as integers.
+#[inline]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+unsafe fn bases(x0: [__m512d; 3]) -> [[u32; W]; 3] {
+    let mut base = [[0u32; W]; 3];
+    for (base, x0) in base.iter_mut().zip(x0) {
+        _mm256_storeu_si256(base.as_mut_ptr().cast(), _mm512_cvttpd_epi32(x0));
+    }
+    base
+}
+
+impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
+    /// Casts `lines`, writing each result to `out[line.slot]`.
+    ///
+    /// # Safety
+    /// The processor must have AVX-512 F, DQ and VL ([`Trilinear4::has_avx512`]).
+    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+    pub(super) unsafe fn cast_packets(&self, fast: &Trilinear4<'_>, lines: &[Line], out: &mut [PieceResult]) {
+        let mut lanes = Lanes::idle();
+        let mut next = 0;
+        for l in 0..W {
+            next = self.refill(&mut lanes, l, lines, next);
+        }
+        let one = _mm512_set1_pd(1.0);
+        let half = _mm512_set1_pd(0.5);
+        // Lanes change pieces only here: the registers are loaded from `lanes`, the loop runs
+        // until some lane ends, and its state goes back to `lanes`.
+        'refilled: while lanes.active() != 0 {
+            let mut vc0 = [one; 3];
+            let mut delta = [one; 3];
+            for a in 0..3 {
+                vc0[a] = load(&lanes.vc0[a]);
+                delta[a] = load(&lanes.delta[a]);
+            }
+            let (inv_n, n) = (load(&lanes.inv_n), load(&lanes.n));
+            let (alpha_in, stop_at) = (load(&lanes.alpha_in), load(&lanes.stop_at));
+            let active = lanes.active();
+            let mut k = load(&lanes.k);
+            let mut acc = [one; 4];
+            for (acc, lane) in acc.iter_mut().zip(&lanes.acc) {
+                *acc = load(lane);
+            }
+            let mut samples = load(&lanes.samples);
+            loop {
+                // `LineSamples::point`, then the cells and weights of `Axis::cell`.
+                let s = _mm512_mul_pd(_mm512_add_pd(k, half), inv_n);
+                let mut u = [s; 3];
+                for a in 0..3 {
+                    u[a] = _mm512_add_pd(vc0[a], _mm512_mul_pd(delta[a], s));
+                }
+                let (x0, h) = fast.cells8(u);
+                let mut index = [0i32; W];
+                _mm256_storeu_si256(index.as_mut_ptr().cast(), fast.index8(x0));
+                let mut live = active;
+                if self.skip.is_some() {
+                    // Lanes in empty cells jump, as the single-sample loop does, and are not
+                    // composited this time round.
+                    let empty = self.empty_lanes(&mut lanes, x0) & active;
+                    if empty != 0 {
+                        _mm512_storeu_pd(lanes.k.as_mut_ptr(), k);
+                        self.jump(&mut lanes, empty, bases(x0));
+                        k = load(&lanes.k);
+                        live &= !empty;
+                    }
+                }
+                let (opacity, colour) = fast.map8(fast.trilinear8(&index, h));
+                let alpha = if self.correction {
+                    let mut alpha = [0.0; W];
+                    _mm512_storeu_pd(alpha.as_mut_ptr(), opacity);
+                    for (alpha, &ell) in alpha.iter_mut().zip(&lanes.ell) {
+                        *alpha = corrected_opacity(*alpha, ell);
+                    }
+                    load(&alpha)
+                } else {
+                    opacity
+                };
+                // `Rgba::add_sample` in live lanes, then the stopping test of `composite`.
+                let w = _mm512_mul_pd(alpha, _mm512_sub_pd(one, acc[3]));
+                for c in 0..3 {
+                    acc[c] = _mm512_mask_add_pd(acc[c], live, acc[c], _mm512_mul_pd(colour[c], w));
+                }
+                acc[3] = _mm512_mask_add_pd(acc[3], live, acc[3], w);
+                let front = _mm512_add_pd(alpha_in, _mm512_mul_pd(_mm512_sub_pd(one, alpha_in), acc[3]));
+                let done = live
+                    & _mm512_cmp_pd_mask::<_CMP_NEQ_UQ>(alpha, _mm512_setzero_pd())
+                    & _mm512_cmp_pd_mask::<_CMP_GE_OQ>(front, stop_at);
+                samples = _mm512_mask_add_pd(samples, live, samples, one);
+                k = _mm512_mask_add_pd(k, live, k, one);
+                let ended = active & (done | _mm512_cmp_pd_mask::<_CMP_GE_OQ>(k, n));
+                if ended != 0 {
+                    _mm512_storeu_pd(lanes.k.as_mut_ptr(), k);
+                    for (lane, acc) in lanes.acc.iter_mut().zip(acc) {
+                        _mm512_storeu_pd(lane.as_mut_ptr(), acc);
+                    }
+                    _mm512_storeu_pd(lanes.samples.as_mut_ptr(), samples);
+                    for l in (0..W).filter(|l| ended >> l & 1 == 1) {
+                        let piece = lanes.piece[l].expect("an ended lane was active");
+                        let acc = &lanes.acc;
+                        out[lines[piece].slot] = PieceResult {
+                            rgba: Rgba { colour: [acc[0][l], acc[1][l], acc[2][l]], alpha: acc[3][l] },
+                            samples: lanes.samples[l] as u64,
+                        };
+                        next = self.refill(&mut lanes, l, lines, next);
+                    }
+                    continue 'refilled;
+                }
+            }
+        }
+    }
+
+    /// The lanes whose samples, with lower corners `x0`, lie in empty macrocells: one bit
+    /// per cell gathered where cells were classified at bind, else lane by lane (each
+    /// lane classifying a cell when it enters it, as the single-sample loop does).
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+    unsafe fn empty_lanes(&self, lanes: &mut Lanes, x0: [__m512d; 3]) -> __mmask8 {
+        let Some(skip) = &self.skip else { return 0 };
+        if let Some((bits, [cx, cy, _])) = skip.fine_bits() {
+            let shift = _mm_cvtsi32_si128(MACROCELL_SHIFT as i32);
+            let mut c = [_mm256_setzero_si256(); 3];
+            for (c, x0) in c.iter_mut().zip(x0) {
+                *c = _mm256_srl_epi32(_mm512_cvttpd_epi32(x0), shift);
+            }
+            // Cell indices stay below 2³⁰ (the dataset's voxels do).
+            let yz = _mm256_add_epi32(c[1], _mm256_mullo_epi32(_mm256_set1_epi32(cy as i32), c[2]));
+            let i = _mm256_add_epi32(c[0], _mm256_mullo_epi32(_mm256_set1_epi32(cx as i32), yz));
+            let words = _mm512_i32gather_epi64::<8>(_mm256_srli_epi32::<6>(i), bits.as_ptr().cast());
+            let bit = _mm512_cvtepu32_epi64(_mm256_and_si256(i, _mm256_set1_epi32(63)));
+            let set = _mm512_and_si512(_mm512_srlv_epi64(words, bit), _mm512_set1_epi64(1));
+            return _mm512_test_epi64_mask(set, set);
+        }
+        let base = bases(x0);
+        let mut empty = 0;
+        for l in (0..W).filter(|&l| lanes.piece[l].is_some()) {
+            let c = cell_of([base[0][l], base[1][l], base[2][l]]);
+            if c != lanes.cell[l] {
+                lanes.cell[l] = c;
+                lanes.empty[l] = skip.is_empty(&self.interp, Level::Fine, c);
+            }
+            empty |= u8::from(lanes.empty[l]) << l;
+        }
+        empty
+    }
+
+    /// Moves each lane of `empty`, whose sample is based at `base` in an empty cell, to the
+    /// next sample that may contribute ([`Jumps::skip`]).
+    fn jump(&self, lanes: &mut Lanes, empty: __mmask8, base: [[u32; W]; 3]) {
+        let Some(skip) = &self.skip else { return };
+        for l in (0..W).filter(|l| empty >> l & 1 == 1) {
+            let jumps = lanes.jumps[l].as_ref().expect("a lane of a skipping cast has jumps");
+            let cell = cell_of([base[0][l], base[1][l], base[2][l]]);
+            lanes.k[l] = jumps.skip(&self.interp, skip, lanes.k[l] as u64, cell) as f64;
+        }
+    }
+
+    /// Gives lane `l` the piece `lines[next]`, or leaves it idle when none is left;
+    /// returns the next piece to hand out.
+    fn refill(&self, lanes: &mut Lanes, l: usize, lines: &[Line], next: usize) -> usize {
+        let Some(piece) = lines.get(next) else {
+            lanes.piece[l] = None;
+            return next;
+        };
+        let (vc0, delta, inv_n) = piece.line.parts();
+        lanes.piece[l] = Some(next);
+        for a in 0..3 {
+            lanes.vc0[a][l] = vc0[a];
+            lanes.delta[a][l] = delta[a];
+        }
+        lanes.inv_n[l] = inv_n;
+        lanes.n[l] = piece.line.len() as f64;
+        lanes.alpha_in[l] = piece.alpha_in;
+        lanes.stop_at[l] = piece.stop_at;
+        lanes.ell[l] = piece.line.ell();
+        lanes.k[l] = 0.0;
+        for acc in &mut lanes.acc {
+            acc[l] = 0.0;
+        }
+        lanes.samples[l] = 0.0;
+        lanes.cell[l] = [u32::MAX; 3];
+        lanes.empty[l] = false;
+        lanes.jumps[l] = self.skip.as_ref().map(|_| Jumps::new(&self.interp, &piece.line));
+        next + 1
+    }
+}
