@@ -49,7 +49,11 @@ pub(super) struct Trilinear4<'a> {
     /// Voxels along x and y.
     nx: i32,
     ny: i32,
+    /// The largest lower-corner index whose four rows a gather reads (four bytes from each
+    /// row's corner) without reaching past the channel's end.
+    safe: i32,
     breaks: Vec<f64>,
+
     /// Per joint segment, field by field ([`JointPiecewise::tables`]).
     tables: [Vec<f64>; 12],
     /// The same tables padded to 16 segments, where they fit, for AVX-512's two-register
@@ -74,12 +78,15 @@ impl<'a> Trilinear4<'a> {
         }
         let (rule, offsets) = interp.rule();
         let [nx, ny, _] = dims.as_array();
+        let width = if voxels.is_wide() { 2 } else { 1 };
+        let reach = (voxels.bytes().len() as i64 - 4).div_euclid(width) - (offsets[1] + offsets[2]) as i64;
         Some(Trilinear4 {
             voxels,
             rule,
             offsets: offsets.map(|o| o as i32),
             nx: nx as i32,
             ny: ny as i32,
+            safe: reach.clamp(-1, i32::MAX as i64) as i32,
             breaks: breaks.to_vec(),
             tables16: (tables[0].len() <= 16).then(|| {
                 Box::new(std::array::from_fn(|f| {
@@ -354,12 +361,11 @@ mod avx2 {
             let wide = self.voxels.is_wide();
             let width = if wide { 2 } else { 1 };
             // A gather reads four bytes at each row's corner: all inside the channel?
-            let top = lanes.iter().max().copied().unwrap_or(0) as usize + (oz + oy) as usize;
+            let index = _mm_loadu_si128(lanes.as_ptr().cast());
             let mut pairs = [[_mm256_setzero_pd(); 2]; 4];
-            if width * top + 4 <= bytes.len() {
-                let index = _mm_loadu_si128(lanes.as_ptr().cast());
+            if _mm_movemask_epi8(_mm_cmpgt_epi32(index, _mm_set1_epi32(self.safe))) == 0 {
                 let mask = _mm_set1_epi32(if wide { 0xffff } else { 0xff });
-                let shift = _mm_cvtsi32_si128(8 * width as i32 * ox);
+                let shift = _mm_cvtsi32_si128(8 * width * ox);
                 let base = bytes.as_ptr().cast::<i32>();
                 for (pair, &row) in pairs.iter_mut().zip(&rows) {
                     let at = _mm_add_epi32(index, _mm_set1_epi32(row));
@@ -504,12 +510,11 @@ pub(super) mod avx512 {
             let bytes = self.voxels.bytes();
             let wide = self.voxels.is_wide();
             let width = if wide { 2 } else { 1 };
-            let top = lanes.iter().max().copied().unwrap_or(0) as usize + (oz + oy) as usize;
+            let index = _mm256_loadu_si256(lanes.as_ptr().cast());
             let mut pairs = [[_mm512_setzero_pd(); 2]; 4];
-            if width * top + 4 <= bytes.len() {
-                let index = _mm256_loadu_si256(lanes.as_ptr().cast());
+            if _mm256_movemask_epi8(_mm256_cmpgt_epi32(index, _mm256_set1_epi32(self.safe))) == 0 {
                 let mask = _mm256_set1_epi32(if wide { 0xffff } else { 0xff });
-                let shift = _mm_cvtsi32_si128(8 * width as i32 * ox);
+                let shift = _mm_cvtsi32_si128(8 * width * ox);
                 let base = bytes.as_ptr().cast::<i32>();
                 for (pair, &row) in pairs.iter_mut().zip(&rows) {
                     let at = _mm256_add_epi32(index, _mm256_set1_epi32(row));

@@ -35,8 +35,12 @@ pub(super) struct Line {
     pub stop_at: f64,
 }
 
-/// Lanes per register.
-const W: usize = 8;
+/// Lanes per register, and registers side by side: two halves of eight lanes, whose
+/// chains of dependent steps (position → cell → voxels → map → compositing) interleave in
+/// the processor, as two registers' groups do along a line ([`super::kernel::AVX2_LANES`]).
+const LANES: usize = 8;
+const HALVES: usize = 2;
+const W: usize = LANES * HALVES;
 
 /// Each lane's piece and where it has got to, lane by lane: what the registers are loaded
 /// from when a lane changes piece, and stored to when one ends.
@@ -84,31 +88,96 @@ impl Lanes {
     }
 
     /// The lanes that have a piece, one bit each.
-    fn active(&self) -> __mmask8 {
+    fn active(&self) -> u16 {
         let mut active = 0;
         for (l, piece) in self.piece.iter().enumerate() {
-            active |= u8::from(piece.is_some()) << l;
+            active |= u16::from(piece.is_some()) << l;
         }
         active
     }
 }
 
-/// A lane-by-lane array as a register.
+/// Half `h`'s lanes of `m`.
+fn half(m: u16, h: usize) -> __mmask8 {
+    (m >> (LANES * h)) as __mmask8
+}
+
+/// Half `h` of a lane-by-lane array as a register.
 #[inline]
 #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-unsafe fn load(a: &[f64; W]) -> __m512d {
-    _mm512_loadu_pd(a.as_ptr())
+unsafe fn load(a: &[f64; W], h: usize) -> __m512d {
+    _mm512_loadu_pd(a.as_ptr().add(LANES * h))
+}
+
+/// A register into half `h` of a lane-by-lane array.
+#[inline]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+unsafe fn store(a: &mut [f64; W], h: usize, v: __m512d) {
+    _mm512_storeu_pd(a.as_mut_ptr().add(LANES * h), v)
 }
 
 /// Each lane's lower corner as integers.
 #[inline]
 #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-unsafe fn bases(x0: [__m512d; 3]) -> [[u32; W]; 3] {
-    let mut base = [[0u32; W]; 3];
+unsafe fn bases(x0: [__m512d; 3]) -> [[u32; LANES]; 3] {
+    let mut base = [[0u32; LANES]; 3];
     for (base, x0) in base.iter_mut().zip(x0) {
         _mm256_storeu_si256(base.as_mut_ptr().cast(), _mm512_cvttpd_epi32(x0));
     }
     base
+}
+
+/// One half's registers: its lanes' pieces and where they have got to.
+#[derive(Clone, Copy)]
+struct Half {
+    vc0: [__m512d; 3],
+    delta: [__m512d; 3],
+    inv_n: __m512d,
+    n: __m512d,
+    alpha_in: __m512d,
+    stop_at: __m512d,
+    k: __m512d,
+    acc: [__m512d; 4],
+    samples: __m512d,
+}
+
+impl Half {
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+    unsafe fn load(lanes: &Lanes, h: usize) -> Half {
+        let mut vc0 = [_mm512_setzero_pd(); 3];
+        let mut delta = [_mm512_setzero_pd(); 3];
+        let mut acc = [_mm512_setzero_pd(); 4];
+        for a in 0..3 {
+            vc0[a] = load(&lanes.vc0[a], h);
+            delta[a] = load(&lanes.delta[a], h);
+        }
+        for (acc, lane) in acc.iter_mut().zip(&lanes.acc) {
+            *acc = load(lane, h);
+        }
+        Half {
+            vc0,
+            delta,
+            inv_n: load(&lanes.inv_n, h),
+            n: load(&lanes.n, h),
+            alpha_in: load(&lanes.alpha_in, h),
+            stop_at: load(&lanes.stop_at, h),
+            k: load(&lanes.k, h),
+            acc,
+            samples: load(&lanes.samples, h),
+        }
+    }
+
+    /// Puts back what changes as the lanes walk.
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+    unsafe fn store(&self, lanes: &mut Lanes, h: usize) {
+        store(&mut lanes.k, h, self.k);
+        for (lane, &acc) in lanes.acc.iter_mut().zip(&self.acc) {
+            store(lane, h, acc);
+        }
+        store(&mut lanes.samples, h, self.samples);
+    }
 }
 
 impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
@@ -124,77 +193,83 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
             next = self.refill(&mut lanes, l, lines, next);
         }
         let one = _mm512_set1_pd(1.0);
-        let half = _mm512_set1_pd(0.5);
+        let point_five = _mm512_set1_pd(0.5);
         // Lanes change pieces only here: the registers are loaded from `lanes`, the loop runs
         // until some lane ends, and its state goes back to `lanes`.
         'refilled: while lanes.active() != 0 {
-            let mut vc0 = [one; 3];
-            let mut delta = [one; 3];
-            for a in 0..3 {
-                vc0[a] = load(&lanes.vc0[a]);
-                delta[a] = load(&lanes.delta[a]);
-            }
-            let (inv_n, n) = (load(&lanes.inv_n), load(&lanes.n));
-            let (alpha_in, stop_at) = (load(&lanes.alpha_in), load(&lanes.stop_at));
             let active = lanes.active();
-            let mut k = load(&lanes.k);
-            let mut acc = [one; 4];
-            for (acc, lane) in acc.iter_mut().zip(&lanes.acc) {
-                *acc = load(lane);
-            }
-            let mut samples = load(&lanes.samples);
+            let mut regs = [Half::load(&lanes, 0), Half::load(&lanes, 1)];
             loop {
                 // `LineSamples::point`, then the cells and weights of `Axis::cell`.
-                let s = _mm512_mul_pd(_mm512_add_pd(k, half), inv_n);
-                let mut u = [s; 3];
-                for a in 0..3 {
-                    u[a] = _mm512_add_pd(vc0[a], _mm512_mul_pd(delta[a], s));
-                }
-                let (x0, h) = fast.cells8(u);
+                let mut x0 = [[one; 3]; HALVES];
+                let mut weights = [[one; 3]; HALVES];
                 let mut index = [0i32; W];
-                _mm256_storeu_si256(index.as_mut_ptr().cast(), fast.index8(x0));
+                // The next sample of each lane: k + 1, except where a lane jumps (below).
+                let mut next_k = [one; HALVES];
+                for (h, r) in regs.iter().enumerate() {
+                    let s = _mm512_mul_pd(_mm512_add_pd(r.k, point_five), r.inv_n);
+                    let mut u = [s; 3];
+                    for ((u, &vc0), &delta) in u.iter_mut().zip(&r.vc0).zip(&r.delta) {
+                        *u = _mm512_add_pd(vc0, _mm512_mul_pd(delta, s));
+                    }
+                    (x0[h], weights[h]) = fast.cells8(u);
+                    _mm256_storeu_si256(index.as_mut_ptr().add(LANES * h).cast(), fast.index8(x0[h]));
+                    next_k[h] = _mm512_mask_add_pd(r.k, half(active, h), r.k, one);
+                }
                 let mut live = active;
                 if self.skip.is_some() {
                     // Lanes in empty cells jump, as the single-sample loop does, and are not
                     // composited this time round.
-                    let empty = self.empty_lanes(&mut lanes, x0) & active;
+                    let mut empty = 0;
+                    for (h, &x0) in x0.iter().enumerate() {
+                        empty |= u16::from(self.empty_lanes(&mut lanes, h, x0)) << (LANES * h);
+                    }
+                    empty &= active;
                     if empty != 0 {
-                        _mm512_storeu_pd(lanes.k.as_mut_ptr(), k);
-                        self.jump(&mut lanes, empty, bases(x0));
-                        k = load(&lanes.k);
+                        for (h, r) in regs.iter().enumerate() {
+                            store(&mut lanes.k, h, r.k);
+                        }
+                        self.jump(&mut lanes, empty, x0.map(|x0| bases(x0)));
+                        for (h, next_k) in next_k.iter_mut().enumerate() {
+                            *next_k = _mm512_mask_blend_pd(half(empty, h), *next_k, load(&lanes.k, h));
+                        }
                         live &= !empty;
                     }
                 }
-                let (opacity, colour) = fast.map8(fast.trilinear8(&index, h));
-                let alpha = if self.correction {
-                    let mut alpha = [0.0; W];
-                    _mm512_storeu_pd(alpha.as_mut_ptr(), opacity);
-                    for (alpha, &ell) in alpha.iter_mut().zip(&lanes.ell) {
-                        *alpha = corrected_opacity(*alpha, ell);
+                let mut ended = 0;
+                for (h, r) in regs.iter_mut().enumerate() {
+                    let lanes_index = index[LANES * h..LANES * (h + 1)].try_into().expect("a half's lanes");
+                    let (opacity, colour) = fast.map8(fast.trilinear8(lanes_index, weights[h]));
+                    let alpha = if self.correction {
+                        let mut alpha = [0.0; LANES];
+                        _mm512_storeu_pd(alpha.as_mut_ptr(), opacity);
+                        for (alpha, &ell) in alpha.iter_mut().zip(&lanes.ell[LANES * h..]) {
+                            *alpha = corrected_opacity(*alpha, ell);
+                        }
+                        _mm512_loadu_pd(alpha.as_ptr())
+                    } else {
+                        opacity
+                    };
+                    // `Rgba::add_sample` in live lanes, then the stopping test of `composite`.
+                    let live = half(live, h);
+                    let w = _mm512_mul_pd(alpha, _mm512_sub_pd(one, r.acc[3]));
+                    for (acc, &c) in r.acc.iter_mut().zip(&colour) {
+                        *acc = _mm512_mask_add_pd(*acc, live, *acc, _mm512_mul_pd(c, w));
                     }
-                    load(&alpha)
-                } else {
-                    opacity
-                };
-                // `Rgba::add_sample` in live lanes, then the stopping test of `composite`.
-                let w = _mm512_mul_pd(alpha, _mm512_sub_pd(one, acc[3]));
-                for c in 0..3 {
-                    acc[c] = _mm512_mask_add_pd(acc[c], live, acc[c], _mm512_mul_pd(colour[c], w));
+                    r.acc[3] = _mm512_mask_add_pd(r.acc[3], live, r.acc[3], w);
+                    let front = _mm512_add_pd(r.alpha_in, _mm512_mul_pd(_mm512_sub_pd(one, r.alpha_in), r.acc[3]));
+                    let done = live
+                        & _mm512_cmp_pd_mask::<_CMP_NEQ_UQ>(alpha, _mm512_setzero_pd())
+                        & _mm512_cmp_pd_mask::<_CMP_GE_OQ>(front, r.stop_at);
+                    r.samples = _mm512_mask_add_pd(r.samples, live, r.samples, one);
+                    r.k = next_k[h];
+                    let end = half(active, h) & (done | _mm512_cmp_pd_mask::<_CMP_GE_OQ>(r.k, r.n));
+                    ended |= u16::from(end) << (LANES * h);
                 }
-                acc[3] = _mm512_mask_add_pd(acc[3], live, acc[3], w);
-                let front = _mm512_add_pd(alpha_in, _mm512_mul_pd(_mm512_sub_pd(one, alpha_in), acc[3]));
-                let done = live
-                    & _mm512_cmp_pd_mask::<_CMP_NEQ_UQ>(alpha, _mm512_setzero_pd())
-                    & _mm512_cmp_pd_mask::<_CMP_GE_OQ>(front, stop_at);
-                samples = _mm512_mask_add_pd(samples, live, samples, one);
-                k = _mm512_mask_add_pd(k, live, k, one);
-                let ended = active & (done | _mm512_cmp_pd_mask::<_CMP_GE_OQ>(k, n));
                 if ended != 0 {
-                    _mm512_storeu_pd(lanes.k.as_mut_ptr(), k);
-                    for (lane, acc) in lanes.acc.iter_mut().zip(acc) {
-                        _mm512_storeu_pd(lane.as_mut_ptr(), acc);
+                    for (h, r) in regs.iter().enumerate() {
+                        r.store(&mut lanes, h);
                     }
-                    _mm512_storeu_pd(lanes.samples.as_mut_ptr(), samples);
                     for l in (0..W).filter(|l| ended >> l & 1 == 1) {
                         let piece = lanes.piece[l].expect("an ended lane was active");
                         let acc = &lanes.acc;
@@ -210,12 +285,13 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         }
     }
 
-    /// The lanes whose samples, with lower corners `x0`, lie in empty macrocells: one bit
-    /// per cell gathered where cells were classified at bind, else lane by lane (each
-    /// lane classifying a cell when it enters it, as the single-sample loop does).
+    /// The lanes of half `h` whose samples, with lower corners `x0`, lie in empty
+    /// macrocells: one bit per cell gathered where cells were classified at bind, else lane
+    /// by lane (each lane classifying a cell when it enters it, as the single-sample loop
+    /// does).
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    unsafe fn empty_lanes(&self, lanes: &mut Lanes, x0: [__m512d; 3]) -> __mmask8 {
+    unsafe fn empty_lanes(&self, lanes: &mut Lanes, h: usize, x0: [__m512d; 3]) -> __mmask8 {
         let Some(skip) = &self.skip else { return 0 };
         if let Some((bits, [cx, cy, _])) = skip.fine_bits() {
             let shift = _mm_cvtsi32_si128(MACROCELL_SHIFT as i32);
@@ -233,25 +309,26 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         }
         let base = bases(x0);
         let mut empty = 0;
-        for l in (0..W).filter(|&l| lanes.piece[l].is_some()) {
+        for l in (0..LANES).filter(|&l| lanes.piece[LANES * h + l].is_some()) {
             let c = cell_of([base[0][l], base[1][l], base[2][l]]);
-            if c != lanes.cell[l] {
-                lanes.cell[l] = c;
-                lanes.empty[l] = skip.is_empty(&self.interp, Level::Fine, c);
+            let lane = LANES * h + l;
+            if c != lanes.cell[lane] {
+                lanes.cell[lane] = c;
+                lanes.empty[lane] = skip.is_empty(&self.interp, Level::Fine, c);
             }
-            empty |= u8::from(lanes.empty[l]) << l;
+            empty |= u8::from(lanes.empty[lane]) << l;
         }
         empty
     }
 
-    /// Moves each lane of `empty`, whose sample is based at `base` in an empty cell, to the
-    /// next sample that may contribute ([`Jumps::skip`]).
-    fn jump(&self, lanes: &mut Lanes, empty: __mmask8, base: [[u32; W]; 3]) {
+    /// Moves each lane of `empty`, whose sample is based at `base` (per half) in an empty
+    /// cell, to the next sample that may contribute ([`Jumps::skip`]).
+    fn jump(&self, lanes: &mut Lanes, empty: u16, base: [[[u32; LANES]; 3]; HALVES]) {
         let Some(skip) = &self.skip else { return };
         for l in (0..W).filter(|l| empty >> l & 1 == 1) {
             let jumps = lanes.jumps[l].as_ref().expect("a lane of a skipping cast has jumps");
-            let cell = cell_of([base[0][l], base[1][l], base[2][l]]);
-            lanes.k[l] = jumps.skip(&self.interp, skip, lanes.k[l] as u64, cell) as f64;
+            let [x, y, z] = base[l / LANES].map(|axis| axis[l % LANES]);
+            lanes.k[l] = jumps.skip(&self.interp, skip, lanes.k[l] as u64, cell_of([x, y, z])) as f64;
         }
     }
 
