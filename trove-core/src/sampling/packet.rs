@@ -19,7 +19,7 @@ use std::arch::x86_64::*;
 
 use super::kernel::{Kernel, Maps, VoxelSource};
 use super::lanes::Trilinear4;
-use super::skip::{cell_of, Jumps};
+use super::skip::{cell_of, Jumps, Skipper};
 use super::{corrected_opacity, PieceResult};
 use crate::composite::Rgba;
 use crate::dataset::macrocell::{Level, MACROCELL_SHIFT};
@@ -65,6 +65,8 @@ struct Lanes {
     cell: [[u32; 3]; W],
     empty: [bool; W],
     jumps: [Option<Jumps>; W],
+    /// Each lane's [`Jumps::parts`]: start, samples per unit and margin, per axis.
+    leap: [[[f64; W]; 3]; 3],
 }
 
 impl Lanes {
@@ -84,6 +86,7 @@ impl Lanes {
             cell: [[u32::MAX; 3]; W],
             empty: [false; W],
             jumps: [const { None }; W],
+            leap: [[[0.0; W]; 3]; 3],
         }
     }
 
@@ -125,6 +128,78 @@ unsafe fn bases(x0: [__m512d; 3]) -> [[u32; LANES]; 3] {
         _mm256_storeu_si256(base.as_mut_ptr().cast(), _mm512_cvttpd_epi32(x0));
     }
     base
+}
+
+/// The macrocells of eight lower corners `x0` (as f64) and their indices in a grid of
+/// `cx` × `cy` × … cells, x fastest: in f64, exact below 2³⁰ (as the dataset's voxel
+/// indices are), whose multiplications are quicker than i32 ones.
+#[inline]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+unsafe fn cells_of(x0: [__m512d; 3], cx: u32, cy: u32) -> ([__m512d; 3], __m256i) {
+    let scale = _mm512_set1_pd(1.0 / (1u32 << MACROCELL_SHIFT) as f64);
+    let mut c = [_mm512_setzero_pd(); 3];
+    for (c, x0) in c.iter_mut().zip(x0) {
+        *c = _mm512_roundscale_pd::<{ _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC }>(_mm512_mul_pd(x0, scale));
+    }
+    let yz = _mm512_add_pd(c[1], _mm512_mul_pd(_mm512_set1_pd(cy as f64), c[2]));
+    (c, _mm512_cvttpd_epi32(_mm512_add_pd(c[0], _mm512_mul_pd(_mm512_set1_pd(cx as f64), yz))))
+}
+
+/// Which of the cells `i` have their bit set in `bits`.
+#[inline]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+unsafe fn bit_set(bits: &[u64], i: __m256i) -> __mmask8 {
+    let words = _mm512_i32gather_epi64::<8>(_mm256_srli_epi32::<6>(i), bits.as_ptr().cast());
+    let bit = _mm512_cvtepu32_epi64(_mm256_and_si256(i, _mm256_set1_epi32(63)));
+    let set = _mm512_and_si512(_mm512_srlv_epi64(words, bit), _mm512_set1_epi64(1));
+    _mm512_test_epi64_mask(set, set)
+}
+
+/// [`Jumps::skip`] for the lanes of half `h`, whose samples k lie in empty cells `cells`
+/// (coordinates, index) of a skipper with distances: `Jumps::leap`, operation by operation,
+/// eight lanes at once (lanes not in empty cells get a value that is not used).
+#[inline]
+#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+unsafe fn leaps(
+    lanes: &Lanes,
+    h: usize,
+    distance: &[u8],
+    grid: &[(f64, f64); 3],
+    (cell, index): ([__m512d; 3], __m256i),
+    k: __m512d,
+    n: __m512d,
+) -> __m512d {
+    let one = _mm512_set1_pd(1.0);
+    let zero = _mm512_setzero_pd();
+    let infinity = _mm512_set1_pd(f64::INFINITY);
+    let size = _mm512_set1_pd((1u32 << MACROCELL_SHIFT) as f64);
+    // The distance table has three bytes of padding: four bytes at any cell are inside.
+    let d = _mm256_and_si256(_mm256_i32gather_epi32::<1>(distance.as_ptr().cast(), index), _mm256_set1_epi32(0xff));
+    let reach = _mm512_sub_pd(_mm512_max_pd(_mm512_cvtepi32_pd(d), one), one);
+    let after = _mm512_add_pd(k, one);
+    let mut next = n;
+    for (a, &(last, offset)) in grid.iter().enumerate() {
+        let [start, per_unit, margin] = [0, 1, 2].map(|p| load(&lanes.leap[p][a], h));
+        let c = cell[a];
+        let finite = _mm512_cmp_pd_mask::<_CMP_LT_OQ>(_mm512_andnot_pd(_mm512_set1_pd(-0.0), per_unit), infinity);
+        let up = finite
+            & _mm512_cmp_pd_mask::<_CMP_GT_OQ>(per_unit, zero)
+            & _mm512_cmp_pd_mask::<_CMP_LT_OQ>(_mm512_add_pd(c, reach), _mm512_set1_pd(last));
+        let down =
+            finite & _mm512_cmp_pd_mask::<_CMP_LT_OQ>(per_unit, zero) & _mm512_cmp_pd_mask::<_CMP_GT_OQ>(c, reach);
+        let offset = _mm512_set1_pd(offset);
+        let above = _mm512_add_pd(_mm512_mul_pd(_mm512_add_pd(_mm512_add_pd(c, reach), one), size), offset);
+        let below = _mm512_add_pd(_mm512_mul_pd(_mm512_sub_pd(c, reach), size), offset);
+        let bound = _mm512_mask_blend_pd(up, below, above);
+        let j = _mm512_sub_pd(_mm512_mul_pd(_mm512_sub_pd(bound, start), per_unit), _mm512_set1_pd(0.5));
+        // `ceil_index(j − margin)`, and k + 1 for a NaN j.
+        let x = _mm512_sub_pd(j, margin);
+        let ceil = _mm512_roundscale_pd::<{ _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC }>(x);
+        let first_unsafe = _mm512_maskz_mov_pd(_mm512_cmp_pd_mask::<_CMP_GT_OQ>(x, zero), ceil);
+        let first_unsafe = _mm512_mask_blend_pd(_mm512_cmp_pd_mask::<_CMP_UNORD_Q>(j, j), first_unsafe, after);
+        next = _mm512_mask_min_pd(next, up | down, next, first_unsafe);
+    }
+    _mm512_max_pd(next, after)
 }
 
 /// One half's registers: its lanes' pieces and where they have got to.
@@ -194,6 +269,15 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         }
         let one = _mm512_set1_pd(1.0);
         let point_five = _mm512_set1_pd(0.5);
+        let classified = self.skip.as_ref().and_then(|skip| {
+            let (bits, cells) = skip.fine_bits()?;
+            Some((bits, skip.fine_distances()?, cells))
+        });
+        // Per axis: the last macrocell a sample can be based in, and the base grid's offset.
+        let grid: [(f64, f64); 3] = std::array::from_fn(|a| {
+            let (max_base, offset) = self.interp.base_grid(a);
+            ((max_base >> MACROCELL_SHIFT) as f64, offset)
+        });
         // Lanes change pieces only here: the registers are loaded from `lanes`, the loop runs
         // until some lane ends, and its state goes back to `lanes`.
         'refilled: while lanes.active() != 0 {
@@ -217,21 +301,40 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
                     next_k[h] = _mm512_mask_add_pd(r.k, half(active, h), r.k, one);
                 }
                 let mut live = active;
-                if self.skip.is_some() {
+                if let Some(skip) = &self.skip {
                     // Lanes in empty cells jump, as the single-sample loop does, and are not
                     // composited this time round.
                     let mut empty = 0;
+                    let mut cells = [([one; 3], _mm256_setzero_si256()); HALVES];
                     for (h, &x0) in x0.iter().enumerate() {
-                        empty |= u16::from(self.empty_lanes(&mut lanes, h, x0)) << (LANES * h);
+                        let e = match classified {
+                            Some((bits, _, [cx, cy, _])) => {
+                                cells[h] = cells_of(x0, cx, cy);
+                                bit_set(bits, cells[h].1)
+                            }
+                            None => self.empty_lanes(&mut lanes, h, x0),
+                        };
+                        empty |= u16::from(e) << (LANES * h);
                     }
                     empty &= active;
                     if empty != 0 {
-                        for (h, r) in regs.iter().enumerate() {
-                            store(&mut lanes.k, h, r.k);
-                        }
-                        self.jump(&mut lanes, empty, x0.map(|x0| bases(x0)));
-                        for (h, next_k) in next_k.iter_mut().enumerate() {
-                            *next_k = _mm512_mask_blend_pd(half(empty, h), *next_k, load(&lanes.k, h));
+                        if let Some((_, distance, _)) = classified {
+                            // Leaps over cubes of empty cells, in registers.
+                            for (h, r) in regs.iter().enumerate() {
+                                let e = half(empty, h);
+                                if e != 0 {
+                                    let leap = leaps(&lanes, h, distance, &grid, cells[h], r.k, r.n);
+                                    next_k[h] = _mm512_mask_blend_pd(e, next_k[h], leap);
+                                }
+                            }
+                        } else {
+                            for (h, r) in regs.iter().enumerate() {
+                                store(&mut lanes.k, h, r.k);
+                            }
+                            self.jump(&mut lanes, skip, empty, x0.map(|x0| bases(x0)));
+                            for (h, next_k) in next_k.iter_mut().enumerate() {
+                                *next_k = _mm512_mask_blend_pd(half(empty, h), *next_k, load(&lanes.k, h));
+                            }
                         }
                         live &= !empty;
                     }
@@ -286,27 +389,12 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
     }
 
     /// The lanes of half `h` whose samples, with lower corners `x0`, lie in empty
-    /// macrocells: one bit per cell gathered where cells were classified at bind, else lane
-    /// by lane (each lane classifying a cell when it enters it, as the single-sample loop
-    /// does).
+    /// macrocells, where cells are classified on entry: lane by lane, each lane classifying
+    /// a cell when it enters it, as the single-sample loop does.
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
     unsafe fn empty_lanes(&self, lanes: &mut Lanes, h: usize, x0: [__m512d; 3]) -> __mmask8 {
         let Some(skip) = &self.skip else { return 0 };
-        if let Some((bits, [cx, cy, _])) = skip.fine_bits() {
-            let shift = _mm_cvtsi32_si128(MACROCELL_SHIFT as i32);
-            let mut c = [_mm256_setzero_si256(); 3];
-            for (c, x0) in c.iter_mut().zip(x0) {
-                *c = _mm256_srl_epi32(_mm512_cvttpd_epi32(x0), shift);
-            }
-            // Cell indices stay below 2³⁰ (the dataset's voxels do).
-            let yz = _mm256_add_epi32(c[1], _mm256_mullo_epi32(_mm256_set1_epi32(cy as i32), c[2]));
-            let i = _mm256_add_epi32(c[0], _mm256_mullo_epi32(_mm256_set1_epi32(cx as i32), yz));
-            let words = _mm512_i32gather_epi64::<8>(_mm256_srli_epi32::<6>(i), bits.as_ptr().cast());
-            let bit = _mm512_cvtepu32_epi64(_mm256_and_si256(i, _mm256_set1_epi32(63)));
-            let set = _mm512_and_si512(_mm512_srlv_epi64(words, bit), _mm512_set1_epi64(1));
-            return _mm512_test_epi64_mask(set, set);
-        }
         let base = bases(x0);
         let mut empty = 0;
         for l in (0..LANES).filter(|&l| lanes.piece[LANES * h + l].is_some()) {
@@ -323,8 +411,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
 
     /// Moves each lane of `empty`, whose sample is based at `base` (per half) in an empty
     /// cell, to the next sample that may contribute ([`Jumps::skip`]).
-    fn jump(&self, lanes: &mut Lanes, empty: u16, base: [[[u32; LANES]; 3]; HALVES]) {
-        let Some(skip) = &self.skip else { return };
+    fn jump(&self, lanes: &mut Lanes, skip: &Skipper<'_>, empty: u16, base: [[[u32; LANES]; 3]; HALVES]) {
         for l in (0..W).filter(|l| empty >> l & 1 == 1) {
             let jumps = lanes.jumps[l].as_ref().expect("a lane of a skipping cast has jumps");
             let [x, y, z] = base[l / LANES].map(|axis| axis[l % LANES]);
@@ -358,6 +445,13 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         lanes.cell[l] = [u32::MAX; 3];
         lanes.empty[l] = false;
         lanes.jumps[l] = self.skip.as_ref().map(|_| Jumps::new(&self.interp, &piece.line));
+        if let Some(jumps) = &lanes.jumps[l] {
+            for (lane, part) in lanes.leap.iter_mut().zip(jumps.parts()) {
+                for a in 0..3 {
+                    lane[a][l] = part[a];
+                }
+            }
+        }
         next + 1
     }
 }

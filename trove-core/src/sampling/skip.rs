@@ -39,13 +39,17 @@ pub(super) struct Skipper<'a> {
     /// Every cell's answer, one bit each, when the caster will serve many pieces
     /// ([`Skipper::classified`]).
     table: Option<[Vec<u64>; 2]>,
+    /// With the table: per macrocell, its chessboard distance in cells to the nearest
+    /// non-empty one (0 for a non-empty cell, at most 255), so that a jump can leave a
+    /// whole cube of empty cells at once ([`Jumps::skip`]).
+    distance: Option<Vec<u8>>,
 }
 
 impl<'a> Skipper<'a> {
     /// `None` when the map is non-zero everywhere: nothing could ever be skipped, so the
     /// cast does not even look at cells.
     pub(super) fn new(cells: &'a Macrocells, zero: Cow<'a, ZeroSet>, integer: bool) -> Option<Skipper<'a>> {
-        (!zero.is_empty()).then_some(Skipper { cells, zero, integer, table: None })
+        (!zero.is_empty()).then_some(Skipper { cells, zero, integer, table: None, distance: None })
     }
 
     /// This classification with every cell's answer for `interp` worked out now, one bit per
@@ -68,6 +72,9 @@ impl<'a> Skipper<'a> {
             }
             bits
         });
+        let mut distance = chessboard_distance(&table[Level::Fine as usize], self.cells.cells(Level::Fine));
+        distance.extend([0; 3]);
+        self.distance = Some(distance);
         self.table = Some(table);
         self
     }
@@ -76,6 +83,13 @@ impl<'a> Skipper<'a> {
     /// are along each axis, if they were worked out at bind ([`Skipper::classified`]).
     pub(super) fn fine_bits(&self) -> Option<(&[u64], [u32; 3])> {
         self.table.as_ref().map(|t| (t[Level::Fine as usize].as_slice(), self.cells.cells(Level::Fine)))
+    }
+
+    /// The macrocells' chessboard distances to the nearest non-empty one, x fastest, with
+    /// three bytes of padding after the last (so that reading four bytes at any cell stays
+    /// inside), if cells were classified at bind.
+    pub(super) fn fine_distances(&self) -> Option<&[u8]> {
+        self.distance.as_deref()
     }
 
     /// Whether no sample based in cell `cell` of `level` can contribute.
@@ -148,10 +162,21 @@ impl Jumps {
         Jumps { n: line.len(), start, samples_per_unit, grid, margin }
     }
 
+    /// Per axis: where the line starts, samples per unit of VC, and the margin of a
+    /// crossing (for loops that leap in registers as [`Jumps::skip`] does).
+    pub(super) fn parts(&self) -> [[f64; 3]; 3] {
+        [self.start, self.samples_per_unit, self.margin]
+    }
+
     /// Given that sample `k` is based in macrocell `cell`, which `skipper` classifies empty:
     /// the index of the next sample that may contribute. If the coarse block around the cell
     /// is empty too, the jump runs over coarse blocks, else over macrocells.
     pub(super) fn skip<I: Interp>(&self, interp: &I, skipper: &Skipper<'_>, k: u64, cell: [u32; 3]) -> u64 {
+        if let Some(distance) = &skipper.distance {
+            let [nx, ny, _] = skipper.cells.cells(Level::Fine);
+            let i = cell[0] as usize + nx as usize * (cell[1] as usize + ny as usize * cell[2] as usize);
+            return self.leap(k, cell, u32::from(distance[i]));
+        }
         let block = cell.map(|c| c >> (COARSE_SHIFT - MACROCELL_SHIFT));
         if skipper.is_empty(interp, Level::Coarse, block) {
             self.walk_empty(interp, skipper, Level::Coarse, k, block)
@@ -224,6 +249,95 @@ impl Jumps {
     }
 }
 
+impl Jumps {
+    /// Given that sample `k` is based in macrocell `cell`, every cell within chessboard
+    /// distance `d − 1` of which is empty (`d ≥ 1`): the first sample that may be based
+    /// outside that cube of cells, found in one step (the line is monotone along each axis,
+    /// so it stays in the cube until it crosses one of the faces ahead of it, with the same
+    /// margins as the walk's crossings). Faces at the dataset's border are no bounds: samples
+    /// beyond them are clamped into the border cells.
+    fn leap(&self, k: u64, cell: [u32; 3], d: u32) -> u64 {
+        let shift = Level::Fine.shift();
+        let size = (1u64 << shift) as f64;
+        let reach = d.max(1) - 1;
+        let mut next = self.n;
+        for (a, &c) in cell.iter().enumerate() {
+            let per_unit = self.samples_per_unit[a];
+            let (max_base, offset) = self.grid[a];
+            let bound = if per_unit > 0.0 && per_unit.is_finite() && c + reach < max_base >> shift {
+                (c + reach + 1) as f64 * size + offset
+            } else if per_unit < 0.0 && per_unit.is_finite() && c > reach {
+                (c - reach) as f64 * size + offset
+            } else {
+                continue;
+            };
+            let j = (bound - self.start[a]) * per_unit - 0.5;
+            let x = j - self.margin[a];
+            // NaN, which finite bounds cannot produce, leaps nowhere; past the piece's end (a
+            // line nearly parallel to the face), as far as the end.
+            let first_unsafe = if j.is_nan() {
+                k + 1
+            } else if x >= self.n as f64 {
+                self.n
+            } else {
+                ceil_index(x)
+            };
+            next = next.min(first_unsafe);
+        }
+        next.max(k + 1)
+    }
+}
+
+/// Per cell of a grid of `dims` cells whose empty ones are the set bits of `empty` (x
+/// fastest): the chessboard distance to the nearest non-empty cell, at most 255 (so also
+/// where there is none). Two raster passes with the 26-neighbourhood compute it exactly.
+fn chessboard_distance(empty: &[u64], dims: [u32; 3]) -> Vec<u8> {
+    let [nx, ny, nz] = dims.map(|n| n as isize);
+    let index = |x: isize, y: isize, z: isize| (x + nx * (y + ny * z)) as usize;
+    let mut d: Vec<u8> =
+        (0..(nx * ny * nz) as usize).map(|i| if empty[i / 64] >> (i % 64) & 1 == 1 { u8::MAX } else { 0 }).collect();
+    for backward in [false, true] {
+        let neighbours: Vec<(isize, isize, isize)> = neighbours_visited(backward).collect();
+        let offsets: Vec<isize> = neighbours.iter().map(|&(dz, dy, dx)| dx + nx * (dy + ny * dz)).collect();
+        let order = |n: isize, i: isize| if backward { n - 1 - i } else { i };
+        for z in (0..nz).map(|i| order(nz, i)) {
+            for y in (0..ny).map(|i| order(ny, i)) {
+                let inner_row = (1..ny - 1).contains(&y) && (1..nz - 1).contains(&z);
+                for x in (0..nx).map(|i| order(nx, i)) {
+                    let here = index(x, y, z);
+                    if d[here] == 0 {
+                        continue;
+                    }
+                    let mut best = d[here];
+                    if inner_row && (1..nx - 1).contains(&x) {
+                        // Every neighbour exists: no bounds to test.
+                        for &o in &offsets {
+                            best = best.min(d[(here as isize + o) as usize].saturating_add(1));
+                        }
+                    } else {
+                        for &(dz, dy, dx) in &neighbours {
+                            let (x1, y1, z1) = (x + dx, y + dy, z + dz);
+                            if (0..nx).contains(&x1) && (0..ny).contains(&y1) && (0..nz).contains(&z1) {
+                                best = best.min(d[index(x1, y1, z1)].saturating_add(1));
+                            }
+                        }
+                    }
+                    d[here] = best;
+                }
+            }
+        }
+    }
+    d
+}
+
+/// The 13 neighbour offsets (dz, dy, dx) a raster pass has visited before a cell: those
+/// before it in (z, y, x) order going forward, after it going backward.
+fn neighbours_visited(backward: bool) -> impl Iterator<Item = (isize, isize, isize)> {
+    let visited = if backward { std::cmp::Ordering::Greater } else { std::cmp::Ordering::Less };
+    let all = (-1..=1).flat_map(|dz| (-1..=1).flat_map(move |dy| (-1..=1).map(move |dx| (dz, dy, dx))));
+    all.filter(move |offset| offset.cmp(&(0, 0, 0)) == visited)
+}
+
 /// The smallest sample index ≥ x (0 for x ≤ 0), without a libm call.
 #[inline]
 fn ceil_index(x: f64) -> u64 {
@@ -232,5 +346,46 @@ fn ceil_index(x: f64) -> u64 {
         t + u64::from((t as f64) < x)
     } else {
         0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::chessboard_distance;
+
+    #[test]
+    fn chessboard_distances_are_those_of_a_brute_force_search() {
+        for (dims, seed) in [([7u32, 5, 6], 1u64), ([1, 9, 4], 2), ([12, 1, 1], 3), ([5, 5, 5], 4)] {
+            let n = (dims[0] * dims[1] * dims[2]) as usize;
+            // Empty everywhere but a few scattered cells (none at all for seed 4).
+            let full: Vec<bool> =
+                (0..n as u64).map(|i| seed != 4 && ((i * 2_654_435_761) ^ (seed * 97)) % 11 == 0).collect();
+            let mut empty = vec![0u64; n.div_ceil(64)];
+            for (i, &f) in full.iter().enumerate() {
+                empty[i / 64] |= u64::from(!f) << (i % 64);
+            }
+            let d = chessboard_distance(&empty, dims);
+            let at = |i: usize| {
+                let (x, y, z) = (
+                    i as i64 % dims[0] as i64,
+                    i as i64 / dims[0] as i64 % dims[1] as i64,
+                    i as i64 / (dims[0] * dims[1]) as i64,
+                );
+                (x, y, z)
+            };
+            for (i, &d) in d.iter().enumerate() {
+                let (x, y, z) = at(i);
+                let nearest = (0..n)
+                    .filter(|&j| full[j])
+                    .map(|j| {
+                        let (a, b, c) = at(j);
+                        (x - a).abs().max((y - b).abs()).max((z - c).abs())
+                    })
+                    .min()
+                    .unwrap_or(255)
+                    .min(255);
+                assert_eq!(i64::from(d), nearest, "cell {i} of {dims:?}");
+            }
+        }
     }
 }
