@@ -130,11 +130,17 @@ impl Camera {
         Ray { origin: self.eye, dir: (self.forward + x * self.right + y * self.up).normalize() }
     }
 
-    /// An upper bound on how many pixels' rays can meet the convex hull of `points`: the
-    /// pixels of its projected bounding rectangle, with a pixel of margin for rounding; the
-    /// whole image when a point is not in front of the eye (the projection would wrap).
+    /// An upper bound on how many pixels' rays can meet the convex hull of `points`
+    /// ([`Camera::pixels_reaching`]).
     pub(crate) fn pixels_covering(&self, points: &[DVec3], width: u32, height: u32) -> u64 {
-        let all = width as u64 * height as u64;
+        self.pixels_reaching(points, width, height).pixels()
+    }
+
+    /// The pixels whose rays can meet the convex hull of `points`: its projected bounding
+    /// rectangle, with a pixel of margin for rounding; the whole image when a point is not
+    /// in front of the eye (the projection would wrap).
+    pub(crate) fn pixels_reaching(&self, points: &[DVec3], width: u32, height: u32) -> PixelRect {
+        let all = PixelRect::whole(width, height);
         let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
         for &p in points {
             let d = p - self.eye;
@@ -151,16 +157,41 @@ impl Camera {
             lo = [lo[0].min(col), lo[1].min(row)];
             hi = [hi[0].max(col), hi[1].max(row)];
         }
-        let span = |lo: f64, hi: f64, n: u32| -> u64 {
-            let first = (lo.floor() - 1.0).max(0.0);
-            let last = (hi.ceil() + 1.0).min(n as f64);
-            if last > first {
-                (last - first) as u64
-            } else {
-                0
+        // Pixel c's ray passes through c + ½; NaN bounds (a NaN point) take the whole axis.
+        let span = |lo: f64, hi: f64, n: u32| -> [u32; 2] {
+            if lo.is_nan() || hi.is_nan() {
+                return [0, n];
             }
+            let first = (lo.floor() - 1.0).clamp(0.0, n as f64);
+            let last = (hi.ceil() + 1.0).clamp(0.0, n as f64);
+            [first as u32, (last as u32).max(first as u32)]
         };
-        span(lo[0], hi[0], width).saturating_mul(span(lo[1], hi[1], height)).min(all)
+        PixelRect { cols: span(lo[0], hi[0], width), rows: span(lo[1], hi[1], height) }
+    }
+}
+
+/// A rectangle of pixels, `[first, end)` per axis: where an object's rays can be.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct PixelRect {
+    cols: [u32; 2],
+    rows: [u32; 2],
+}
+
+impl PixelRect {
+    /// Every pixel of a `width` × `height` image.
+    pub(crate) fn whole(width: u32, height: u32) -> PixelRect {
+        PixelRect { cols: [0, width], rows: [0, height] }
+    }
+
+    /// Whether pixel (`col`, `row`) is inside.
+    #[inline]
+    pub(crate) fn contains(&self, col: u32, row: u32) -> bool {
+        (self.cols[0]..self.cols[1]).contains(&col) && (self.rows[0]..self.rows[1]).contains(&row)
+    }
+
+    /// How many pixels are inside.
+    pub(crate) fn pixels(&self) -> u64 {
+        u64::from(self.cols[1] - self.cols[0]) * u64::from(self.rows[1] - self.rows[0])
     }
 }
 

@@ -15,7 +15,7 @@
 use rayon::prelude::*;
 
 use super::workunit::PieceTask;
-use crate::geometry::{split_into_pieces, Piece, Ray, Segment};
+use crate::geometry::{split_into_pieces, Piece, PixelRect, Ray, Segment};
 use crate::scene::Scene;
 
 /// Rows per parallel work item.
@@ -78,11 +78,35 @@ struct Band {
     segments: u64,
 }
 
-/// The segments of every object that `ray` crosses over a non-zero length, in scene order
-/// (SPEC §4.2): the one place where rays meet objects, for both algorithms.
-pub(crate) fn segments_of(scene: &Scene, ray: &Ray, segments: &mut Vec<Segment>) {
+/// Per object of a scene, the pixels whose rays can meet it (the projected bounding
+/// rectangle of its box's corners, [`crate::geometry::Camera::pixels_reaching`]): a ray
+/// outside is not tested against the object. An object's box lies in the convex hull of its
+/// corners (trilinear points are convex combinations of them), so this never drops a hit.
+pub(crate) struct Reach(Vec<PixelRect>);
+
+impl Reach {
+    pub(crate) fn new(scene: &Scene) -> Reach {
+        let (w, h) = (scene.image().width, scene.image().height);
+        let camera = scene.camera();
+        Reach(scene.objects().iter().map(|o| camera.pixels_reaching(&o.placement().corners(), w, h)).collect())
+    }
+}
+
+/// The segments of every object that the ray of pixel `(col, row)` crosses over a non-zero
+/// length, in scene order (SPEC §4.2): the one place where rays meet objects, for both
+/// algorithms.
+pub(crate) fn segments_of(
+    scene: &Scene,
+    reach: &Reach,
+    (col, row): (u32, u32),
+    ray: &Ray,
+    segments: &mut Vec<Segment>,
+) {
     segments.clear();
-    for (i, object) in scene.objects().iter().enumerate() {
+    for (i, (object, rect)) in scene.objects().iter().zip(&reach.0).enumerate() {
+        if !rect.contains(col, row) {
+            continue;
+        }
         if let Some((t_near, t_far)) = object.placement().segment(ray) {
             if t_far > t_near {
                 segments.push(Segment { object: i as u32, t_near, t_far });
@@ -97,6 +121,7 @@ pub(crate) fn segments_of(scene: &Scene, ray: &Ray, segments: &mut Vec<Segment>)
 pub fn intersect(scene: &Scene, rows: std::ops::Range<u32>) -> Intersections {
     let (w, h) = (scene.image().width, scene.image().height);
     let rows = rows.start.min(h)..rows.end.min(h);
+    let reach = Reach::new(scene);
     let bands: Vec<Band> = (rows.start as usize..rows.end as usize)
         .into_par_iter()
         .step_by(BAND_ROWS)
@@ -108,7 +133,7 @@ pub fn intersect(scene: &Scene, rows: std::ops::Range<u32>) -> Intersections {
                 for col in 0..w {
                     let ray_index = row as u32 * w + col;
                     let ray = scene.camera().ray(col, row as u32, w, h);
-                    segments_of(scene, &ray, &mut segments);
+                    segments_of(scene, &reach, (col, row as u32), &ray, &mut segments);
                     band.segments += segments.len() as u64;
                     split_into_pieces(&segments, &mut cuts, &mut pieces, &mut cover);
                     band.pieces_per_ray.push(pieces.len() as u32);
@@ -165,4 +190,56 @@ pub(crate) fn task_sample_positions(scene: &Scene, task: &PieceTask) -> u64 {
     let (w, h) = (scene.image().width, scene.image().height);
     let ray = scene.camera().ray(task.ray % w, task.ray / w, w, h);
     sample_positions(scene, &ray, task.object as usize, task.t0, task.t1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::PixelRect;
+
+    #[test]
+    fn rays_outside_an_objects_pixels_would_have_missed_it() {
+        // Rotated, stretched, distorted (eight corners), partly behind the eye, and out of
+        // view: culling must drop only misses.
+        let objects = [
+            "transform = { matrix = [[0.5736, 0.8192, 0, -1.2964], [0, 0, -0.883, 0.9915], [0.8192, -0.5736, 0, -0.3228], [0, 0, 0, 1]] }",
+            "transform = { matrix = [[1.53, 0, 0, -0.765], [0, 0, -0.7947, -0.1527], [0, -0.9, 0, 1.05], [0, 0, 0, 1]] }",
+            "transform = { corners = [[0.85, -0.15, 1.2], [1.45, -0.15, 1.2], [0.85, -0.15, 0], [1.45, -0.15, 0], [0.95, -0.95, 1.05], [1.85, -0.95, 1.05], [0.95, -0.95, 0.15], [1.85, -0.95, 0.15]] }",
+            "transform = { matrix = [[1, 0, 0, -0.5], [0, 1, 0, -0.5], [0, 0, 6, 1.0], [0, 0, 0, 1]] }",
+            "transform = { matrix = [[1, 0, 0, 30], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]] }",
+        ];
+        let mut text = String::from(
+            "[image]\nwidth = 61\nheight = 47\nbackground = [0, 0, 0]\n[camera]\neye = [0.2, 0.3, 4.0]\ntarget = [0, 0, 0]\nup = [0, 1, 0]\n\
+             fov_y = 40.0\n[[datasets]]\nname = \"v\"\ndims = [3, 4, 5]\n[datasets.channels.voxel]\n\
+             generator = { kind = \"ramp\", axis = \"x\", from = 0.0, to = 1.0 }\n",
+        );
+        for (i, transform) in objects.iter().enumerate() {
+            text += &format!(
+                "[[objects]]\nname = \"o{i}\"\ndataset = \"v\"\n{transform}\n\
+                 colour = {{ type = \"ramp\", points = [[0, 1, 0, 0], [1, 0, 0, 1]] }}\n\
+                 opacity = {{ type = \"ramp\", points = [[0, 0.1], [1, 0.9]] }}\n"
+            );
+        }
+        let scene = Scene::parse(&text, "reach.toml").unwrap();
+        let (w, h) = (scene.image().width, scene.image().height);
+        let reach = Reach::new(&scene);
+        let everywhere = Reach(vec![PixelRect::whole(w, h); objects.len()]);
+        let (mut culled, mut hits) = (0, 0);
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        for row in 0..h {
+            for col in 0..w {
+                let ray = scene.camera().ray(col, row, w, h);
+                segments_of(&scene, &reach, (col, row), &ray, &mut a);
+                segments_of(&scene, &everywhere, (col, row), &ray, &mut b);
+                assert_eq!(a, b, "pixel ({col}, {row})");
+                hits += a.len();
+                culled += reach.0.iter().filter(|r| !r.contains(col, row)).count();
+            }
+        }
+        // The test means something: objects are hit, and many rays are never tested.
+        assert!(hits > 500 && culled > (w * h) as usize, "{hits} hits, {culled} culled");
+        // Out of view: no pixel; partly behind the eye: every pixel.
+        assert_eq!(reach.0[4].pixels(), 0);
+        assert_eq!(reach.0[3], PixelRect::whole(w, h));
+    }
 }

@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::intersection::{sample_positions, segments_of};
+use super::intersection::{sample_positions, segments_of, Reach};
 use super::{CastError, Image, Pinned, Progress, RenderError, RenderStats, Rendered, VolumeStore};
 use crate::composite::Rgba;
 use crate::geometry::{split_into_pieces, Piece, Ray, Segment};
@@ -45,6 +45,7 @@ pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progr
     let mut pixels = vec![[0.0; 3]; w as usize * h as usize];
     let rows_done = AtomicU64::new(0);
     let started = Instant::now();
+    let reach = Reach::new(scene);
     let bands: Vec<Result<Band, RenderError>> = pixels
         .par_chunks_mut(w as usize * BAND_ROWS)
         .enumerate()
@@ -54,7 +55,8 @@ pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progr
                 let row = (band_index * BAND_ROWS + i / w as usize) as u32;
                 let col = (i % w as usize) as u32;
                 let ray = scene.camera().ray(col, row, w, h);
-                *px = trace(scene, store, &ray, &mut band)?.with_background(scene.image().background);
+                *px =
+                    trace(scene, store, &reach, (col, row), &ray, &mut band)?.with_background(scene.image().background);
                 if col + 1 == w {
                     let done = rows_done.fetch_add(1, Ordering::Relaxed) + 1;
                     if let Some(p) = progress {
@@ -90,9 +92,16 @@ pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progr
 }
 
 /// One ray: segments → pieces → front-to-back casting with early termination.
-fn trace(scene: &Scene, store: &VolumeStore, ray: &Ray, band: &mut Band) -> Result<Rgba, RenderError> {
+fn trace(
+    scene: &Scene,
+    store: &VolumeStore,
+    reach: &Reach,
+    pixel: (u32, u32),
+    ray: &Ray,
+    band: &mut Band,
+) -> Result<Rgba, RenderError> {
     let t = Instant::now();
-    segments_of(scene, ray, &mut band.segments);
+    segments_of(scene, reach, pixel, ray, &mut band.segments);
     band.n_segments += band.segments.len() as u64;
     split_into_pieces(&band.segments, &mut band.cuts, &mut band.pieces, &mut band.cover);
     band.n_pieces += band.pieces.len() as u64;
