@@ -167,7 +167,7 @@ impl<'a> ObjectCaster<'a> {
         self.kernel.is_specialised()
     }
 
-    /// Whether straight lines are cast four samples at a time in AVX2 registers (trilinear
+    /// Whether straight lines are cast eight samples at a time in AVX2 registers (trilinear
     /// over u8 or u16 with LUT or ramp maps, where the processor has AVX2).
     pub fn uses_avx2(&self) -> bool {
         self.kernel.uses_avx2()

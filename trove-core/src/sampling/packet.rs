@@ -19,7 +19,7 @@ use std::arch::x86_64::*;
 
 use super::kernel::{Kernel, Maps, VoxelSource};
 use super::lanes::Trilinear4;
-use super::skip::{cell_of, Jumps, Skipper};
+use super::skip::{cell_of, FineClasses, Jumps, Skipper};
 use super::{corrected_opacity, PieceResult};
 use crate::composite::Rgba;
 use crate::dataset::macrocell::{Level, MACROCELL_SHIFT};
@@ -131,11 +131,11 @@ unsafe fn bases(x0: [__m512d; 3]) -> [[u32; LANES]; 3] {
 }
 
 /// The macrocells of eight lower corners `x0` (as f64) and their indices in a grid of
-/// `cx` × `cy` × … cells, x fastest: in f64, exact below 2³⁰ (as the dataset's voxel
+/// `dims` cells, x fastest: in f64, exact below 2³⁰ (as the dataset's voxel
 /// indices are), whose multiplications are quicker than i32 ones.
 #[inline]
 #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-unsafe fn cells_of(x0: [__m512d; 3], cx: u32, cy: u32) -> ([__m512d; 3], __m256i) {
+unsafe fn cells_of(x0: [__m512d; 3], [cx, cy, _]: [u32; 3]) -> ([__m512d; 3], __m256i) {
     let scale = _mm512_set1_pd(1.0 / (1u32 << MACROCELL_SHIFT) as f64);
     let mut c = [_mm512_setzero_pd(); 3];
     for (c, x0) in c.iter_mut().zip(x0) {
@@ -269,10 +269,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         }
         let one = _mm512_set1_pd(1.0);
         let point_five = _mm512_set1_pd(0.5);
-        let classified = self.skip.as_ref().and_then(|skip| {
-            let (bits, cells) = skip.fine_bits()?;
-            Some((bits, skip.fine_distances()?, cells))
-        });
+        let classified = self.skip.as_ref().and_then(Skipper::fine_classes);
         // Per axis: the last macrocell a sample can be based in, and the base grid's offset.
         let grid: [(f64, f64); 3] = std::array::from_fn(|a| {
             let (max_base, offset) = self.interp.base_grid(a);
@@ -307,18 +304,18 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
                     let mut empty = 0;
                     let mut cells = [([one; 3], _mm256_setzero_si256()); HALVES];
                     for (h, &x0) in x0.iter().enumerate() {
-                        let e = match classified {
-                            Some((bits, _, [cx, cy, _])) => {
-                                cells[h] = cells_of(x0, cx, cy);
-                                bit_set(bits, cells[h].1)
+                        let e = match &classified {
+                            Some(classes) => {
+                                cells[h] = cells_of(x0, classes.dims);
+                                bit_set(classes.bits, cells[h].1)
                             }
-                            None => self.empty_lanes(&mut lanes, h, x0),
+                            None => self.empty_lanes(skip, &mut lanes, h, x0),
                         };
                         empty |= u16::from(e) << (LANES * h);
                     }
                     empty &= active;
                     if empty != 0 {
-                        if let Some((_, distance, _)) = classified {
+                        if let Some(FineClasses { distance, .. }) = classified {
                             // Leaps over cubes of empty cells, in registers.
                             for (h, r) in regs.iter().enumerate() {
                                 let e = half(empty, h);
@@ -393,8 +390,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
     /// a cell when it enters it, as the single-sample loop does.
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    unsafe fn empty_lanes(&self, lanes: &mut Lanes, h: usize, x0: [__m512d; 3]) -> __mmask8 {
-        let Some(skip) = &self.skip else { return 0 };
+    unsafe fn empty_lanes(&self, skip: &Skipper<'_>, lanes: &mut Lanes, h: usize, x0: [__m512d; 3]) -> __mmask8 {
         let base = bases(x0);
         let mut empty = 0;
         for l in (0..LANES).filter(|&l| lanes.piece[LANES * h + l].is_some()) {

@@ -36,20 +36,44 @@ pub(super) struct Skipper<'a> {
     /// Whether the channel holds integers (bit, u8, u16, u32): convex interpolation of them
     /// stays inside a cell's range exactly.
     integer: bool,
-    /// Every cell's answer, one bit each, when the caster will serve many pieces
+    /// Every cell's answer, when the caster will serve many pieces
     /// ([`Skipper::classified`]).
-    table: Option<[Vec<u64>; 2]>,
-    /// With the table: per macrocell, its chessboard distance in cells to the nearest
-    /// non-empty one (0 for a non-empty cell, at most 255), so that a jump can leave a
-    /// whole cube of empty cells at once ([`Jumps::skip`]).
-    distance: Option<Vec<u8>>,
+    classes: Option<Classes>,
+}
+
+/// Every cell's answer worked out at bind.
+#[derive(Debug)]
+struct Classes {
+    /// One bit per cell of each level (set: empty), x fastest.
+    bits: [Vec<u64>; 2],
+    /// Per macrocell, its chessboard distance in cells to the nearest non-empty one (0 for
+    /// a non-empty cell, at most 255), so that a jump can leave a whole cube of empty cells
+    /// at once ([`Jumps::skip`]); three bytes of padding after the last cell, so that
+    /// reading four bytes at any cell stays inside.
+    distance: Vec<u8>,
+}
+
+/// The macrocells' answers as a vector loop reads them ([`Skipper::fine_classes`]).
+pub(super) struct FineClasses<'s> {
+    /// One bit per macrocell (set: empty), x fastest.
+    pub bits: &'s [u64],
+    /// Chessboard distances, as [`Classes::distance`].
+    pub distance: &'s [u8],
+    /// Macrocells along each axis.
+    pub dims: [u32; 3],
+}
+
+/// The index of `cell` in a grid of `dims` cells, x fastest.
+#[inline(always)]
+fn cell_index(dims: [u32; 3], cell: [u32; 3]) -> usize {
+    cell[0] as usize + dims[0] as usize * (cell[1] as usize + dims[1] as usize * cell[2] as usize)
 }
 
 impl<'a> Skipper<'a> {
     /// `None` when the map is non-zero everywhere: nothing could ever be skipped, so the
     /// cast does not even look at cells.
     pub(super) fn new(cells: &'a Macrocells, zero: Cow<'a, ZeroSet>, integer: bool) -> Option<Skipper<'a>> {
-        (!zero.is_empty()).then_some(Skipper { cells, zero, integer, table: None, distance: None })
+        (!zero.is_empty()).then_some(Skipper { cells, zero, integer, classes: None })
     }
 
     /// This classification with every cell's answer for `interp` worked out now, one bit per
@@ -58,7 +82,7 @@ impl<'a> Skipper<'a> {
     /// a ray enters a cell. Worth it for a caster that serves a dataset's whole turn (about
     /// 10 ns per cell, once); a caster bound for one piece does without.
     pub(super) fn classified<I: Interp>(mut self, interp: &I) -> Skipper<'a> {
-        let table = [Level::Fine, Level::Coarse].map(|level| {
+        let bits = [Level::Fine, Level::Coarse].map(|level| {
             let [nx, ny, nz] = self.cells.cells(level);
             let mut bits = vec![0u64; (nx as usize * ny as usize * nz as usize).div_ceil(64)];
             let mut i = 0;
@@ -72,34 +96,29 @@ impl<'a> Skipper<'a> {
             }
             bits
         });
-        let mut distance = chessboard_distance(&table[Level::Fine as usize], self.cells.cells(Level::Fine));
+        let mut distance = chessboard_distance(&bits[Level::Fine as usize], self.cells.cells(Level::Fine));
         distance.extend([0; 3]);
-        self.distance = Some(distance);
-        self.table = Some(table);
+        self.classes = Some(Classes { bits, distance });
         self
     }
 
-    /// The macrocells' answers as one bit each, x fastest, and how many macrocells there
-    /// are along each axis, if they were worked out at bind ([`Skipper::classified`]).
-    pub(super) fn fine_bits(&self) -> Option<(&[u64], [u32; 3])> {
-        self.table.as_ref().map(|t| (t[Level::Fine as usize].as_slice(), self.cells.cells(Level::Fine)))
-    }
-
-    /// The macrocells' chessboard distances to the nearest non-empty one, x fastest, with
-    /// three bytes of padding after the last (so that reading four bytes at any cell stays
-    /// inside), if cells were classified at bind.
-    pub(super) fn fine_distances(&self) -> Option<&[u8]> {
-        self.distance.as_deref()
+    /// The macrocells' answers and distances, if they were worked out at bind
+    /// ([`Skipper::classified`]).
+    pub(super) fn fine_classes(&self) -> Option<FineClasses<'_>> {
+        self.classes.as_ref().map(|c| FineClasses {
+            bits: &c.bits[Level::Fine as usize],
+            distance: &c.distance,
+            dims: self.cells.cells(Level::Fine),
+        })
     }
 
     /// Whether no sample based in cell `cell` of `level` can contribute.
     #[inline]
     pub(super) fn is_empty<I: Interp>(&self, interp: &I, level: Level, cell: [u32; 3]) -> bool {
-        match &self.table {
-            Some(table) => {
-                let [nx, ny, _] = self.cells.cells(level);
-                let i = cell[0] as usize + nx as usize * (cell[1] as usize + ny as usize * cell[2] as usize);
-                table[level as usize][i / 64] >> (i % 64) & 1 == 1
+        match &self.classes {
+            Some(classes) => {
+                let i = cell_index(self.cells.cells(level), cell);
+                classes.bits[level as usize][i / 64] >> (i % 64) & 1 == 1
             }
             None => self.compute(interp, level, cell),
         }
@@ -172,10 +191,9 @@ impl Jumps {
     /// the index of the next sample that may contribute. If the coarse block around the cell
     /// is empty too, the jump runs over coarse blocks, else over macrocells.
     pub(super) fn skip<I: Interp>(&self, interp: &I, skipper: &Skipper<'_>, k: u64, cell: [u32; 3]) -> u64 {
-        if let Some(distance) = &skipper.distance {
-            let [nx, ny, _] = skipper.cells.cells(Level::Fine);
-            let i = cell[0] as usize + nx as usize * (cell[1] as usize + ny as usize * cell[2] as usize);
-            return self.leap(k, cell, u32::from(distance[i]));
+        if let Some(classes) = &skipper.classes {
+            let d = classes.distance[cell_index(skipper.cells.cells(Level::Fine), cell)];
+            return self.leap(k, cell, u32::from(d));
         }
         let block = cell.map(|c| c >> (COARSE_SHIFT - MACROCELL_SHIFT));
         if skipper.is_empty(interp, Level::Coarse, block) {
@@ -247,9 +265,7 @@ impl Jumps {
             cell = next;
         }
     }
-}
 
-impl Jumps {
     /// Given that sample `k` is based in macrocell `cell`, every cell within chessboard
     /// distance `d − 1` of which is empty (`d ≥ 1`): the first sample that may be based
     /// outside that cube of cells, found in one step (the line is monotone along each axis,
@@ -293,7 +309,7 @@ impl Jumps {
 /// where there is none). Two raster passes with the 26-neighbourhood compute it exactly.
 fn chessboard_distance(empty: &[u64], dims: [u32; 3]) -> Vec<u8> {
     let [nx, ny, nz] = dims.map(|n| n as isize);
-    let index = |x: isize, y: isize, z: isize| (x + nx * (y + ny * z)) as usize;
+    let index = |x: isize, y: isize, z: isize| cell_index(dims, [x, y, z].map(|c| c as u32));
     let mut d: Vec<u8> =
         (0..(nx * ny * nz) as usize).map(|i| if empty[i / 64] >> (i % 64) & 1 == 1 { u8::MAX } else { 0 }).collect();
     for backward in [false, true] {
