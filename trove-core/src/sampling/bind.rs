@@ -130,7 +130,8 @@ impl<'a> Parts<'a> {
         if let (Interpolation::Trilinear, Some(voxel)) = (self.object.interpolation(), self.voxel) {
             // Trilinear over u8 or u16: the AVX2 loop where the processor has it.
             let interp = Linear::new(self.dims, Identity);
-            let lanes = |stored| Trilinear4::new(&interp, stored, &maps);
+            let range = skip.as_ref().and_then(Skipper::value_range);
+            let lanes = |stored| Trilinear4::new(&interp, stored, &maps, range);
             if let Some(v) = U8Voxels::of(voxel) {
                 if let Some(lanes) = lanes(Stored::U8(v)) {
                     return Ok(self.kernel_with_lanes(interp, Read(v), maps, skip, Some(lanes)));

@@ -42,7 +42,7 @@ pub(super) trait Cast: Send + Sync {
     fn skips(&self) -> bool;
     /// Whether lines are cast in AVX2 registers (for tests).
     fn uses_avx2(&self) -> bool;
-    /// Whether [`Cast::cast_many`] casts eight pieces at a time in AVX-512 registers.
+    /// Whether [`Cast::cast_many`] casts sixteen pieces at a time in AVX-512 registers.
     fn casts_packets(&self) -> bool;
 }
 
@@ -412,17 +412,18 @@ impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
 
     fn cast_many(&self, pieces: Vec<(usize, SampleWalk<'_>, f64, f64)>, out: &mut [PieceResult]) {
         #[cfg(target_arch = "x86_64")]
-        if let Some(fast) = self.lanes.as_ref().filter(|_| self.casts_packets()) {
-            // Straight pieces eight at a time; the others (exact distorted walks) one by one.
+        if let Some((fast, packed)) = self.lanes.as_ref().and_then(|fast| Some((fast, fast.packed()?))) {
+            // Straight pieces sixteen at a time; the others (exact distorted walks, lines
+            // too long for f32 indices) one by one.
             let mut lines = Vec::with_capacity(pieces.len());
             for (slot, walk, alpha_in, stop_at) in pieces {
-                match walk.line() {
+                match walk.line().filter(Line::fits) {
                     Some(line) => lines.push(Line { slot, line, alpha_in, stop_at }),
                     None => out[slot] = self.cast(walk, alpha_in, stop_at),
                 }
             }
-            // SAFETY: `casts_packets` holds only where the processor has AVX-512.
-            unsafe { self.cast_packets(fast, &lines, out) };
+            // SAFETY: `packed` exists only where the processor has AVX-512.
+            unsafe { self.cast_packets(fast, packed, &lines, out) };
             return;
         }
         for (slot, walk, alpha_in, stop_at) in pieces {
@@ -443,6 +444,6 @@ impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
     }
 
     fn casts_packets(&self) -> bool {
-        self.lanes.as_ref().is_some_and(Trilinear4::has_avx512)
+        self.lanes.as_ref().is_some_and(|fast| fast.packed().is_some())
     }
 }

@@ -15,6 +15,8 @@
 // Elsewhere no `Trilinear4` is ever made, and what serves the AVX2 bodies goes unused.
 #![cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
 
+use std::cmp::Ordering;
+
 use crate::dataset::{U16LeVoxels, U8Voxels, Voxels};
 use crate::geometry::LineSamples;
 use crate::interp::{Identity, Linear};
@@ -56,18 +58,111 @@ pub(super) struct Trilinear4<'a> {
 
     /// Per joint segment, field by field ([`JointPiecewise::tables`]).
     tables: [Vec<f64>; 12],
-    /// The same tables padded to 16 segments, where they fit, for AVX-512's two-register
-    /// permutes.
-    tables16: Option<Box<[[f64; 16]; 12]>>,
-    /// Whether the processor has AVX-512 F, DQ and VL, for [`super::packet`].
-    avx512: bool,
+    /// The f32 forms [`super::packet`] casts with, where the processor has AVX-512 F, DQ
+    /// and VL and the map's numbers are finite in f32.
+    packed: Option<Box<Packed>>,
 }
+
+/// What the packet loop ([`super::packet`]) reads, in f32: sixteen lanes to a register
+/// halve the instructions per sample. Positions, voxels and classification then differ
+/// from the f64 loops by rounding only (about 1e-7 relatively); the one place where that
+/// could matter more is a break point where the map jumps (a LUT bound): a value within
+/// rounding of one takes its segment from the f64 value instead ([`Packed::jumps`]).
+pub(super) struct Packed {
+    /// Per axis: largest coordinate, snapping tolerance, largest lower corner.
+    pub rule: [[f32; 3]; 3],
+    /// The break points, rounded to f32.
+    pub breaks: Vec<f32>,
+    /// The f64 break points (a value near a jump counts them itself).
+    pub breaks64: Vec<f64>,
+    /// [`JointPiecewise::tables`] in f32, padded to 32 segments (at most
+    /// [`SMALL_MAP`] + 1 are used): two registers a two-register permute selects from.
+    pub tables: Box<[[f32; 32]; 12]>,
+    /// The break points at which the map jumps (LUT bounds): a value whose f32 and f64
+    /// forms could lie on either side of one must be classified from the f64 form.
+    pub jumps: Vec<f32>,
+    /// How far the channel's values can differ (its range, or its type's), and their
+    /// largest magnitude: what bounds the difference between a sample's f32 and f64 value.
+    pub spread: f64,
+    pub magnitude: f64,
+    /// Per axis: the snapping tolerance (f64).
+    pub tol: [f64; 3],
+}
+
+impl Packed {
+    /// `None` where a number of the map does not fit f32.
+    fn new(rule: &[[f64; 3]; 3], breaks: &[f64], tables: &[Vec<f64>; 12], range: [f64; 2]) -> Option<Packed> {
+        let fits = |x: f64| (x as f32).is_finite();
+        if tables.iter().flatten().chain(breaks).any(|&x| !fits(x)) || breaks.len() >= 32 {
+            return None;
+        }
+        let eval = |f: usize, s: usize, v: f64| -> f64 {
+            // Output 0 is the opacity (fields 0–3), 1–3 the colour's channels (fields 4–11).
+            let (x0, inv_w) = if f == 0 { (tables[0][s], tables[1][s]) } else { (tables[4][s], tables[5][s]) };
+            let (y0, dy) = match f {
+                0 => (tables[2][s], tables[3][s]),
+                c => (tables[6 + c - 1][s], tables[9 + c - 1][s]),
+            };
+            y0 + ((v - x0) * inv_w) * dy
+        };
+        let jumps = breaks
+            .iter()
+            .enumerate()
+            .filter(|&(i, &b)| {
+                // A NaN difference counts as a jump.
+                (0..4).any(|f| (eval(f, i, b) - eval(f, i + 1, b)).abs().partial_cmp(&JUMP) != Some(Ordering::Less))
+            })
+            .map(|(_, &b)| b as f32)
+            .collect();
+        Some(Packed {
+            rule: rule.map(|r| r.map(|x| x as f32)),
+            breaks: breaks.iter().map(|&b| b as f32).collect(),
+            breaks64: breaks.to_vec(),
+            tables: Box::new(std::array::from_fn(|f| {
+                let mut t = [0.0; 32];
+                for (t, &x) in t.iter_mut().zip(&tables[f]) {
+                    *t = x as f32;
+                }
+                t
+            })),
+            jumps,
+            spread: range[1] - range[0],
+            magnitude: range[0].abs().max(range[1].abs()),
+            tol: rule.map(|r| r[1]),
+        })
+    }
+
+    /// How far the f32 value of a sample of `line` can be from its f64 value: its position
+    /// is off the f64 one by a few f32 roundings of its coordinates (and either may snap),
+    /// the trilinear value moves by at most the channel's spread per unit of position, and
+    /// the f32 lerps round; plus the rounding of the jumps to f32.
+    pub fn slack(&self, line: &LineSamples) -> f32 {
+        let (start, delta) = (line.start(), line.delta());
+        let moved: f64 = (0..3).map(|a| 8.0 * EPS32 * (start[a].abs() + delta[a].abs()) + 2.0 * self.tol[a]).sum();
+        let jumps = self.jumps.iter().fold(0.0f64, |m, &j| m.max(f64::from(j).abs()));
+        let slack = self.spread * moved + 8.0 * EPS32 * (self.magnitude + jumps);
+        (slack * 1.01) as f32
+    }
+}
+
+/// f32's machine epsilon, as f64.
+pub(super) const EPS32: f64 = f32::EPSILON as f64;
+
+/// A map whose sides of a break point differ by more than this jumps there.
+const JUMP: f64 = 1e-9;
 
 impl<'a> Trilinear4<'a> {
     /// The loop for `interp` over `voxels` with `maps`, where the processor has AVX2, the
     /// map at most [`SMALL_MAP`] break points and the dataset fewer than 2³⁰ voxels (so
     /// indices and their neighbours' fit in i32 lanes).
-    pub(super) fn new(interp: &Linear<Identity>, voxels: Stored<'a>, maps: &JointPiecewise) -> Option<Self> {
+    ///
+    /// `range` is the channel's range of values where it is known (else its type's).
+    pub(super) fn new(
+        interp: &Linear<Identity>,
+        voxels: Stored<'a>,
+        maps: &JointPiecewise,
+        range: Option<[f64; 2]>,
+    ) -> Option<Self> {
         if !has_avx2() {
             return None;
         }
@@ -88,21 +183,20 @@ impl<'a> Trilinear4<'a> {
             ny: ny as i32,
             safe: reach.clamp(-1, i32::MAX as i64) as i32,
             breaks: breaks.to_vec(),
-            tables16: (tables[0].len() <= 16).then(|| {
-                Box::new(std::array::from_fn(|f| {
-                    let mut t = [0.0; 16];
-                    t[..tables[f].len()].copy_from_slice(&tables[f]);
-                    t
-                }))
-            }),
+            packed: has_avx512()
+                .then(|| {
+                    let type_range = [0.0, if voxels.is_wide() { f64::from(u16::MAX) } else { f64::from(u8::MAX) }];
+                    Packed::new(&rule, breaks, &tables, range.unwrap_or(type_range))
+                })
+                .flatten()
+                .map(Box::new),
             tables,
-            avx512: has_avx512(),
         })
     }
 
-    /// Whether the processor has what the eight-lane loop of [`super::packet`] needs.
-    pub(super) fn has_avx512(&self) -> bool {
-        self.avx512
+    /// What the sixteen-lane loop of [`super::packet`] needs, where the processor has it.
+    pub(super) fn packed(&self) -> Option<&Packed> {
+        self.packed.as_deref()
     }
 
     /// Samples k, k + 1, … of `line` located (lanes from `m` on repeat sample k + m − 1).
@@ -152,7 +246,7 @@ impl<'a> Stored<'a> {
 
     /// Voxels `i` and `i + dx` ([`Voxels::pair`]).
     #[inline]
-    fn pair(&self, i: usize, dx: usize) -> [f64; 2] {
+    pub(super) fn pair(&self, i: usize, dx: usize) -> [f64; 2] {
         match self {
             Stored::U8(v) => v.pair(i, dx),
             Stored::U16(v) => v.pair(i, dx),
@@ -408,145 +502,173 @@ mod avx2 {
 
 #[cfg(target_arch = "x86_64")]
 pub(super) mod avx512 {
-    //! The AVX-512 bodies: the AVX2 ones eight lanes wide.
+    //! The packet loop's bodies: the AVX2 ones' steps, sixteen f32 lanes wide
+    //! ([`super::Packed`]).
 
     use std::arch::x86_64::*;
 
-    use super::Trilinear4;
+    use super::{Packed, Trilinear4};
 
+    /// ⌊x⌋, exactly (the lower corner of a cell).
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    unsafe fn floor(x: __m512d) -> __m512d {
-        let round = _mm512_set1_pd((1u64 << 52) as f64);
-        let r = _mm512_sub_pd(_mm512_add_pd(x, round), round);
-        _mm512_mask_sub_pd(r, _mm512_cmp_pd_mask::<_CMP_GT_OQ>(r, x), r, _mm512_set1_pd(1.0))
+    pub(in crate::sampling) unsafe fn floor(x: __m512) -> __m512 {
+        _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC }>(x)
     }
 
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    unsafe fn abs(x: __m512d) -> __m512d {
-        _mm512_andnot_pd(_mm512_set1_pd(-0.0), x)
+    unsafe fn abs(x: __m512) -> __m512 {
+        _mm512_andnot_ps(_mm512_set1_ps(-0.0), x)
     }
 
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    unsafe fn lerp(v0: __m512d, v1: __m512d, h: __m512d) -> __m512d {
-        _mm512_sub_pd(v0, _mm512_mul_pd(h, _mm512_sub_pd(v0, v1)))
+    unsafe fn lerp(v0: __m512, v1: __m512, h: __m512) -> __m512 {
+        _mm512_sub_ps(v0, _mm512_mul_ps(h, _mm512_sub_ps(v0, v1)))
     }
 
-    impl Trilinear4<'_> {
+    impl Packed {
+        /// Per axis, the lower corners x0 (as f32) and weights of sixteen positions `u`:
+        /// `Axis::cell`'s clamp, snap, floor and cap.
         #[inline]
         #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-        pub(in crate::sampling) unsafe fn cells8(&self, u: [__m512d; 3]) -> ([__m512d; 3], [__m512d; 3]) {
-            let mut x0 = [_mm512_setzero_pd(); 3];
-            let mut h = [_mm512_setzero_pd(); 3];
+        pub(in crate::sampling) unsafe fn cells16(&self, u: [__m512; 3]) -> ([__m512; 3], [__m512; 3]) {
+            let mut x0 = [_mm512_setzero_ps(); 3];
+            let mut h = [_mm512_setzero_ps(); 3];
             for a in 0..3 {
                 let [last, tol, x0_max] = self.rule[a];
-                let u = _mm512_min_pd(_mm512_set1_pd(last), _mm512_max_pd(_mm512_setzero_pd(), u[a]));
-                let r = floor(_mm512_add_pd(u, _mm512_set1_pd(0.5)));
-                let near = _mm512_cmp_pd_mask::<_CMP_LE_OQ>(abs(_mm512_sub_pd(u, r)), _mm512_set1_pd(tol));
-                let u = _mm512_mask_blend_pd(near, u, r);
-                x0[a] = _mm512_min_pd(floor(u), _mm512_set1_pd(x0_max));
-                h[a] = _mm512_sub_pd(u, x0[a]);
+                let u = _mm512_min_ps(_mm512_set1_ps(last), _mm512_max_ps(_mm512_setzero_ps(), u[a]));
+                let r = floor(_mm512_add_ps(u, _mm512_set1_ps(0.5)));
+                let near = _mm512_cmp_ps_mask::<_CMP_LE_OQ>(abs(_mm512_sub_ps(u, r)), _mm512_set1_ps(tol));
+                let u = _mm512_mask_blend_ps(near, u, r);
+                x0[a] = _mm512_min_ps(floor(u), _mm512_set1_ps(x0_max));
+                h[a] = _mm512_sub_ps(u, x0[a]);
             }
             (x0, h)
         }
 
+        /// The segment of each value: how many break points are ≤ it.
         #[inline]
         #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-        pub(in crate::sampling) unsafe fn index8(&self, x0: [__m512d; 3]) -> __m256i {
-            let yz = _mm512_add_pd(x0[1], _mm512_mul_pd(_mm512_set1_pd(self.ny as f64), x0[2]));
-            _mm512_cvttpd_epi32(_mm512_add_pd(x0[0], _mm512_mul_pd(_mm512_set1_pd(self.nx as f64), yz)))
-        }
-
-        #[inline]
-        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-        unsafe fn lookup(&self, f: usize, segment: __m512i) -> __m512d {
-            match &self.tables16 {
-                Some(t) => {
-                    let lo = _mm512_loadu_pd(t[f].as_ptr());
-                    let hi = _mm512_loadu_pd(t[f].as_ptr().add(8));
-                    _mm512_permutex2var_pd(lo, segment, hi)
-                }
-                None => _mm512_i64gather_pd::<8>(segment, self.tables[f].as_ptr()),
-            }
-        }
-
-        #[inline]
-        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-        pub(in crate::sampling) unsafe fn map8(&self, v: __m512d) -> (__m512d, [__m512d; 3]) {
+        pub(in crate::sampling) unsafe fn segments16(&self, v: __m512) -> __m512i {
             let mut segment = _mm512_setzero_si512();
-            let one = _mm512_set1_epi64(1);
+            let one = _mm512_set1_epi32(1);
             for &b in &self.breaks {
-                let le = _mm512_cmp_pd_mask::<_CMP_LE_OQ>(_mm512_set1_pd(b), v);
-                segment = _mm512_mask_add_epi64(segment, le, segment, one);
+                let le = _mm512_cmp_ps_mask::<_CMP_LE_OQ>(_mm512_set1_ps(b), v);
+                segment = _mm512_mask_add_epi32(segment, le, segment, one);
             }
-            let t = _mm512_mul_pd(_mm512_sub_pd(v, self.lookup(0, segment)), self.lookup(1, segment));
-            let opacity = _mm512_add_pd(self.lookup(2, segment), _mm512_mul_pd(t, self.lookup(3, segment)));
-            let t = _mm512_mul_pd(_mm512_sub_pd(v, self.lookup(4, segment)), self.lookup(5, segment));
-            let mut colour = [_mm512_setzero_pd(); 3];
+            segment
+        }
+
+        /// The lanes whose value lies within `slack` of a break point where the map jumps.
+        #[inline]
+        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+        pub(in crate::sampling) unsafe fn near_jumps16(&self, v: __m512, slack: __m512) -> __mmask16 {
+            let mut near = 0;
+            for &j in &self.jumps {
+                near |= _mm512_cmp_ps_mask::<_CMP_LE_OQ>(abs(_mm512_sub_ps(v, _mm512_set1_ps(j))), slack);
+            }
+            near
+        }
+
+        #[inline]
+        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+        unsafe fn lookup(&self, f: usize, segment: __m512i) -> __m512 {
+            let t = &self.tables[f];
+            _mm512_permutex2var_ps(_mm512_loadu_ps(t.as_ptr()), segment, _mm512_loadu_ps(t.as_ptr().add(16)))
+        }
+
+        /// The opacity and colour of sixteen values in their segments, (0, black) where a
+        /// value contributes nothing: `JointPiecewise::classify_or_clear`.
+        #[inline]
+        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+        pub(in crate::sampling) unsafe fn map16(&self, v: __m512, segment: __m512i) -> (__m512, [__m512; 3]) {
+            let t = _mm512_mul_ps(_mm512_sub_ps(v, self.lookup(0, segment)), self.lookup(1, segment));
+            let opacity = _mm512_add_ps(self.lookup(2, segment), _mm512_mul_ps(t, self.lookup(3, segment)));
+            let t = _mm512_mul_ps(_mm512_sub_ps(v, self.lookup(4, segment)), self.lookup(5, segment));
+            let mut colour = [_mm512_setzero_ps(); 3];
             for (c, colour) in colour.iter_mut().enumerate() {
-                *colour = _mm512_add_pd(self.lookup(6 + c, segment), _mm512_mul_pd(t, self.lookup(9 + c, segment)));
+                *colour = _mm512_add_ps(self.lookup(6 + c, segment), _mm512_mul_ps(t, self.lookup(9 + c, segment)));
             }
-            let infinity = _mm512_set1_pd(f64::INFINITY);
-            let mut ok = _mm512_cmp_pd_mask::<_CMP_GT_OQ>(opacity, _mm512_setzero_pd())
-                & _mm512_cmp_pd_mask::<_CMP_LT_OQ>(opacity, infinity);
+            let infinity = _mm512_set1_ps(f32::INFINITY);
+            let mut ok = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(opacity, _mm512_setzero_ps())
+                & _mm512_cmp_ps_mask::<_CMP_LT_OQ>(opacity, infinity);
             for &c in &colour {
-                ok &= _mm512_cmp_pd_mask::<_CMP_LT_OQ>(abs(c), infinity);
+                ok &= _mm512_cmp_ps_mask::<_CMP_LT_OQ>(abs(c), infinity);
             }
-            let opacity = _mm512_maskz_mov_pd(ok, _mm512_min_pd(opacity, _mm512_set1_pd(1.0)));
+            let opacity = _mm512_maskz_mov_ps(ok, _mm512_min_ps(opacity, _mm512_set1_ps(1.0)));
             for c in &mut colour {
-                let clamped = _mm512_min_pd(_mm512_set1_pd(1.0), _mm512_max_pd(_mm512_setzero_pd(), *c));
-                *c = _mm512_maskz_mov_pd(ok, clamped);
+                let clamped = _mm512_min_ps(_mm512_set1_ps(1.0), _mm512_max_ps(_mm512_setzero_ps(), *c));
+                *c = _mm512_maskz_mov_ps(ok, clamped);
             }
             (opacity, colour)
         }
+    }
 
+    impl Trilinear4<'_> {
+        /// x + nx·(y + ny·z) of sixteen lower corners, in i32 (below 2³⁰).
         #[inline]
         #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-        pub(in crate::sampling) unsafe fn trilinear8(&self, lanes: &[i32; 8], h: [__m512d; 3]) -> __m512d {
+        pub(in crate::sampling) unsafe fn index16(&self, [x, y, z]: [__m512i; 3]) -> __m512i {
+            let yz = _mm512_add_epi32(y, _mm512_mullo_epi32(_mm512_set1_epi32(self.ny), z));
+            _mm512_add_epi32(x, _mm512_mullo_epi32(_mm512_set1_epi32(self.nx), yz))
+        }
+
+        /// The trilinear value at sixteen lower corners `index` with weights `h`, in f32:
+        /// `Linear::apply`'s lerps in its order.
+        #[inline]
+        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+        pub(in crate::sampling) unsafe fn trilinear16(&self, index: __m512i, h: [__m512; 3]) -> __m512 {
             let [ox, oy, oz] = self.offsets;
             let rows = [0, oy, oz, oz + oy];
-            let bytes = self.voxels.bytes();
             let wide = self.voxels.is_wide();
             let width = if wide { 2 } else { 1 };
-            let index = _mm256_loadu_si256(lanes.as_ptr().cast());
-            let mut pairs = [[_mm512_setzero_pd(); 2]; 4];
-            if _mm256_movemask_epi8(_mm256_cmpgt_epi32(index, _mm256_set1_epi32(self.safe))) == 0 {
-                let mask = _mm256_set1_epi32(if wide { 0xffff } else { 0xff });
+            let mut pairs = [[_mm512_setzero_ps(); 2]; 4];
+            if _mm512_cmpgt_epi32_mask(index, _mm512_set1_epi32(self.safe)) == 0 {
+                let mask = _mm512_set1_epi32(if wide { 0xffff } else { 0xff });
                 let shift = _mm_cvtsi32_si128(8 * width * ox);
-                let base = bytes.as_ptr().cast::<i32>();
+                let base = self.voxels.bytes().as_ptr().cast::<i32>();
                 for (pair, &row) in pairs.iter_mut().zip(&rows) {
-                    let at = _mm256_add_epi32(index, _mm256_set1_epi32(row));
+                    let at = _mm512_add_epi32(index, _mm512_set1_epi32(row));
                     let words = if wide {
-                        _mm256_i32gather_epi32::<2>(base, at)
+                        _mm512_i32gather_epi32::<2>(at, base.cast())
                     } else {
-                        _mm256_i32gather_epi32::<1>(base, at)
+                        _mm512_i32gather_epi32::<1>(at, base.cast())
                     };
-                    let v0 = _mm256_and_si256(words, mask);
-                    let v1 = _mm256_and_si256(_mm256_srl_epi32(words, shift), mask);
-                    *pair = [_mm512_cvtepi32_pd(v0), _mm512_cvtepi32_pd(v1)];
+                    let v0 = _mm512_and_si512(words, mask);
+                    let v1 = _mm512_and_si512(_mm512_srl_epi32(words, shift), mask);
+                    *pair = [_mm512_cvtepi32_ps(v0), _mm512_cvtepi32_ps(v1)];
                 }
             } else {
-                for half in 0..2 {
-                    let quarter: &[i32; 4] = lanes[4 * half..4 * half + 4].try_into().expect("four lanes");
-                    let p = self.last_corners(quarter, rows);
-                    for (pair, p) in pairs.iter_mut().zip(p) {
-                        for (side, p) in pair.iter_mut().zip(p) {
-                            *side = if half == 0 {
-                                _mm512_insertf64x4::<0>(*side, p)
-                            } else {
-                                _mm512_insertf64x4::<1>(*side, p)
-                            };
-                        }
-                    }
-                }
+                pairs = self.last_corners16(index, rows);
             }
             let x00 = lerp(pairs[0][0], pairs[0][1], h[0]);
             let x10 = lerp(pairs[1][0], pairs[1][1], h[0]);
             let x01 = lerp(pairs[2][0], pairs[2][1], h[0]);
             let x11 = lerp(pairs[3][0], pairs[3][1], h[0]);
             lerp(lerp(x00, x10, h[1]), lerp(x01, x11, h[1]), h[2])
+        }
+
+        /// [`Trilinear4::trilinear16`]'s voxels where a gather's four bytes could reach
+        /// past the channel's end: voxel by voxel, out of the loop's way.
+        #[cold]
+        #[inline(never)]
+        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+        unsafe fn last_corners16(&self, index: __m512i, rows: [i32; 4]) -> [[__m512; 2]; 4] {
+            let mut lanes = [0i32; 16];
+            _mm512_storeu_si512(lanes.as_mut_ptr().cast(), index);
+            let ox = self.offsets[0] as usize;
+            let mut pairs = [[_mm512_setzero_ps(); 2]; 4];
+            for (pair, &row) in pairs.iter_mut().zip(&rows) {
+                let (mut v0, mut v1) = ([0.0f32; 16], [0.0f32; 16]);
+                for ((v0, v1), &i) in v0.iter_mut().zip(&mut v1).zip(&lanes) {
+                    let [a, b] = self.voxels.pair((i + row) as usize, ox);
+                    (*v0, *v1) = (a as f32, b as f32);
+                }
+                *pair = [_mm512_loadu_ps(v0.as_ptr()), _mm512_loadu_ps(v1.as_ptr())];
+            }
+            pairs
         }
     }
 }

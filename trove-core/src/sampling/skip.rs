@@ -112,6 +112,21 @@ impl<'a> Skipper<'a> {
         })
     }
 
+    /// The range of the channel's finite values (`None` if it has none).
+    pub(super) fn value_range(&self) -> Option<[f64; 2]> {
+        let [nx, ny, nz] = self.cells.cells(Level::Coarse);
+        let [mut lo, mut hi] = [f32::INFINITY, f32::NEG_INFINITY];
+        for z in 0..nz {
+            for y in 0..ny {
+                for x in 0..nx {
+                    let [l, h] = self.cells.range(Level::Coarse, [x, y, z]);
+                    (lo, hi) = (lo.min(l), hi.max(h));
+                }
+            }
+        }
+        (lo <= hi).then_some([f64::from(lo), f64::from(hi)])
+    }
+
     /// Whether no sample based in cell `cell` of `level` can contribute.
     #[inline]
     pub(super) fn is_empty<I: Interp>(&self, interp: &I, level: Level, cell: [u32; 3]) -> bool {
@@ -168,12 +183,25 @@ const MAX_MARGIN: f64 = 0.25;
 
 impl Jumps {
     pub(super) fn new<I: Interp>(interp: &I, line: &LineSamples) -> Jumps {
+        Jumps::with_rounding(interp, line, f64::EPSILON)
+    }
+
+    /// For samples whose positions are computed in f32 ([`super::packet`]): the margins
+    /// cover f32's rounding of their coordinates.
+    #[cfg(target_arch = "x86_64")]
+    pub(super) fn for_f32<I: Interp>(interp: &I, line: &LineSamples) -> Jumps {
+        Jumps::with_rounding(interp, line, f64::from(f32::EPSILON))
+    }
+
+    /// Jumps for samples whose coordinates are computed with machine epsilon `epsilon`.
+    fn with_rounding<I: Interp>(interp: &I, line: &LineSamples, epsilon: f64) -> Jumps {
         let n = line.len() as f64;
         let (start, delta) = (line.start(), line.delta());
         let samples_per_unit = delta.map(|d| n / d);
         let margin = std::array::from_fn(|a| {
-            // A coordinate is vc0 + δ·((k + ½)·(1/n)): four roundings off the ideal line.
-            let position = 8.0 * f64::EPSILON * (start[a].abs() + delta[a].abs());
+            // A coordinate is vc0 + δ·((k + ½)·(1/n)): a few roundings off the ideal line
+            // (five in f32, where vc0, δ and 1/n are rounded too).
+            let position = 8.0 * epsilon * (start[a].abs() + delta[a].abs());
             let index = 8.0 * f64::EPSILON * (n + 1.0);
             2.0 * ((interp.span_tolerance(a) + position) * samples_per_unit[a].abs() + index) + 1e-12
         });
