@@ -69,15 +69,20 @@ pub(super) struct Trilinear4<'a> {
 /// could matter more is a break point where the map jumps (a LUT bound): a value within
 /// rounding of one takes its segment from the f64 value instead ([`Packed::jumps`]).
 pub(super) struct Packed {
-    /// Per axis: largest coordinate, snapping tolerance, largest lower corner.
-    pub rule: [[f32; 3]; 3],
+    /// Per axis: largest coordinate and largest lower corner.
+    pub rule: [[f32; 2]; 3],
+    /// Whether the dataset has at most 2²⁴ voxels, so that voxel and macrocell indices
+    /// are exact in f32 (else they are computed in i32).
+    pub small: bool,
     /// The break points, rounded to f32.
     pub breaks: Vec<f32>,
     /// The f64 break points (a value near a jump counts them itself).
     pub breaks64: Vec<f64>,
-    /// [`JointPiecewise::tables`] in f32, padded to 32 segments (at most
-    /// [`SMALL_MAP`] + 1 are used): two registers a two-register permute selects from.
-    pub tables: Box<[[f32; 32]; 12]>,
+    /// Per joint segment ([`Packed::REFERENCE`] and the others): a value in it, and the
+    /// opacity and each colour channel there and their slopes, so that one subtraction
+    /// serves all four (each is linear over a joint segment). Padded to 32 segments (at
+    /// most [`SMALL_MAP`] + 1 are used): the two registers of a two-register permute.
+    pub tables: Box<[[f32; 32]; 9]>,
     /// The break points at which the map jumps (LUT bounds): a value whose f32 and f64
     /// forms could lie on either side of one must be classified from the f64 form.
     pub jumps: Vec<f32>,
@@ -85,24 +90,35 @@ pub(super) struct Packed {
     /// largest magnitude: what bounds the difference between a sample's f32 and f64 value.
     pub spread: f64,
     pub magnitude: f64,
-    /// Per axis: the snapping tolerance (f64).
+    /// Per axis: the snapping tolerance of the f64 loops.
     pub tol: [f64; 3],
 }
 
 impl Packed {
-    /// `None` where a number of the map does not fit f32.
-    fn new(rule: &[[f64; 3]; 3], breaks: &[f64], tables: &[Vec<f64>; 12], range: [f64; 2]) -> Option<Packed> {
-        let fits = |x: f64| (x as f32).is_finite();
-        if tables.iter().flatten().chain(breaks).any(|&x| !fits(x)) || breaks.len() >= 32 {
-            return None;
-        }
-        let eval = |f: usize, s: usize, v: f64| -> f64 {
-            // Output 0 is the opacity (fields 0–3), 1–3 the colour's channels (fields 4–11).
+    /// Fields of [`Packed::tables`]: the reference value, opacity and its slope there, the
+    /// colour's three channels there and their three slopes.
+    pub const REFERENCE: usize = 0;
+    pub const OPACITY: usize = 1;
+    pub const OPACITY_SLOPE: usize = 2;
+    pub const COLOUR: usize = 3;
+    pub const COLOUR_SLOPE: usize = 6;
+
+    /// `None` where a number of the map does not fit f32, or could overflow it.
+    fn new(
+        rule: &[[f64; 3]; 3],
+        voxels: u64,
+        breaks: &[f64],
+        tables: &[Vec<f64>; 12],
+        range: [f64; 2],
+    ) -> Option<Packed> {
+        // Output 0 is the opacity (fields 0–3), 1–3 the colour's channels (fields 4–11).
+        let parts = |f: usize, s: usize| -> [f64; 4] {
             let (x0, inv_w) = if f == 0 { (tables[0][s], tables[1][s]) } else { (tables[4][s], tables[5][s]) };
-            let (y0, dy) = match f {
-                0 => (tables[2][s], tables[3][s]),
-                c => (tables[6 + c - 1][s], tables[9 + c - 1][s]),
-            };
+            let (y0, dy) = if f == 0 { (tables[2][s], tables[3][s]) } else { (tables[5 + f][s], tables[8 + f][s]) };
+            [x0, inv_w, y0, dy]
+        };
+        let eval = |f: usize, s: usize, v: f64| -> f64 {
+            let [x0, inv_w, y0, dy] = parts(f, s);
             y0 + ((v - x0) * inv_w) * dy
         };
         let jumps = breaks
@@ -114,20 +130,46 @@ impl Packed {
             })
             .map(|(_, &b)| b as f32)
             .collect();
+        let magnitude = range[0].abs().max(range[1].abs());
+        let mut packed = Box::new([[0.0f32; 32]; 9]);
+        for s in 0..breaks.len() + 1 {
+            // Segment s holds the values with s break points ≤ them: its lower break, or the
+            // first break for the segment below all of them.
+            let reference = breaks.get(s.max(1) - 1).copied().unwrap_or(0.0);
+            let mut fields = [reference, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+            for f in 0..4 {
+                let [_, inv_w, _, dy] = parts(f, s);
+                let (at, slope) = (eval(f, s, reference), inv_w * dy);
+                let (value, slope_field) = if f == 0 {
+                    (Packed::OPACITY, Packed::OPACITY_SLOPE)
+                } else {
+                    (Packed::COLOUR + f - 1, Packed::COLOUR_SLOPE + f - 1)
+                };
+                fields[value] = at;
+                fields[slope_field] = slope;
+                // The largest |v − reference| times the slope, plus the value there, must
+                // stay far inside f32's range.
+                let largest = (magnitude + reference.abs()) * slope.abs() + at.abs();
+                if largest.partial_cmp(&1e30) != Some(Ordering::Less) {
+                    return None;
+                }
+            }
+            for (table, x) in packed.iter_mut().zip(fields) {
+                table[s] = x as f32;
+            }
+        }
+        if breaks.len() >= 32 || breaks.iter().any(|&b| !(b as f32).is_finite()) {
+            return None;
+        }
         Some(Packed {
-            rule: rule.map(|r| r.map(|x| x as f32)),
+            rule: rule.map(|[last, _, x0_max]| [last as f32, x0_max as f32]),
+            small: voxels <= 1 << 24,
             breaks: breaks.iter().map(|&b| b as f32).collect(),
             breaks64: breaks.to_vec(),
-            tables: Box::new(std::array::from_fn(|f| {
-                let mut t = [0.0; 32];
-                for (t, &x) in t.iter_mut().zip(&tables[f]) {
-                    *t = x as f32;
-                }
-                t
-            })),
+            tables: packed,
             jumps,
             spread: range[1] - range[0],
-            magnitude: range[0].abs().max(range[1].abs()),
+            magnitude,
             tol: rule.map(|r| r[1]),
         })
     }
@@ -186,7 +228,7 @@ impl<'a> Trilinear4<'a> {
             packed: has_avx512()
                 .then(|| {
                     let type_range = [0.0, if voxels.is_wide() { f64::from(u16::MAX) } else { f64::from(u8::MAX) }];
-                    Packed::new(&rule, breaks, &tables, range.unwrap_or(type_range))
+                    Packed::new(&rule, dims.voxel_count(), breaks, &tables, range.unwrap_or(type_range))
                 })
                 .flatten()
                 .map(Box::new),
@@ -509,6 +551,13 @@ pub(super) mod avx512 {
 
     use super::{Packed, Trilinear4};
 
+    impl Trilinear4<'_> {
+        /// Voxels along x and y.
+        pub(in crate::sampling) fn nx_ny(&self) -> (u32, u32) {
+            (self.nx as u32, self.ny as u32)
+        }
+    }
+
     /// ⌊x⌋, exactly (the lower corner of a cell).
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
@@ -525,27 +574,41 @@ pub(super) mod avx512 {
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
     unsafe fn lerp(v0: __m512, v1: __m512, h: __m512) -> __m512 {
-        _mm512_sub_ps(v0, _mm512_mul_ps(h, _mm512_sub_ps(v0, v1)))
+        _mm512_fnmadd_ps(h, _mm512_sub_ps(v0, v1), v0)
     }
 
     impl Packed {
         /// Per axis, the lower corners x0 (as f32) and weights of sixteen positions `u`:
-        /// `Axis::cell`'s clamp, snap, floor and cap.
+        /// `Axis::cell`'s clamp, floor and cap. (No snapping: the f64 loops snap within
+        /// 1e-9 per voxel, far below f32's own rounding of a position, and a snap moves a
+        /// weight by no more than that.)
         #[inline]
         #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
         pub(in crate::sampling) unsafe fn cells16(&self, u: [__m512; 3]) -> ([__m512; 3], [__m512; 3]) {
             let mut x0 = [_mm512_setzero_ps(); 3];
             let mut h = [_mm512_setzero_ps(); 3];
             for a in 0..3 {
-                let [last, tol, x0_max] = self.rule[a];
+                let [last, x0_max] = self.rule[a];
                 let u = _mm512_min_ps(_mm512_set1_ps(last), _mm512_max_ps(_mm512_setzero_ps(), u[a]));
-                let r = floor(_mm512_add_ps(u, _mm512_set1_ps(0.5)));
-                let near = _mm512_cmp_ps_mask::<_CMP_LE_OQ>(abs(_mm512_sub_ps(u, r)), _mm512_set1_ps(tol));
-                let u = _mm512_mask_blend_ps(near, u, r);
                 x0[a] = _mm512_min_ps(floor(u), _mm512_set1_ps(x0_max));
                 h[a] = _mm512_sub_ps(u, x0[a]);
             }
             (x0, h)
+        }
+
+        /// x + nx·(y + ny·z) for sixteen (x, y, z) of integers (as f32) in a grid of `dims`:
+        /// in f32 where the grid is small enough for it to be exact, else in i32.
+        #[inline]
+        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+        pub(in crate::sampling) unsafe fn index16(&self, [x, y, z]: [__m512; 3], nx: u32, ny: u32) -> __m512i {
+            if self.small {
+                let yz = _mm512_fmadd_ps(_mm512_set1_ps(ny as f32), z, y);
+                _mm512_cvttps_epi32(_mm512_fmadd_ps(_mm512_set1_ps(nx as f32), yz, x))
+            } else {
+                let [x, y, z] = [x, y, z].map(|c| _mm512_cvttps_epi32(c));
+                let yz = _mm512_add_epi32(y, _mm512_mullo_epi32(_mm512_set1_epi32(ny as i32), z));
+                _mm512_add_epi32(x, _mm512_mullo_epi32(_mm512_set1_epi32(nx as i32), yz))
+            }
         }
 
         /// The segment of each value: how many break points are ≤ it.
@@ -580,43 +643,34 @@ pub(super) mod avx512 {
         }
 
         /// The opacity and colour of sixteen values in their segments, (0, black) where a
-        /// value contributes nothing: `JointPiecewise::classify_or_clear`.
+        /// value contributes nothing: `JointPiecewise::classify_or_clear`, each output as
+        /// its value at the segment's reference plus slope times the distance from it.
+        /// (Every result is finite: `Packed::new` admits no map that could overflow.)
         #[inline]
         #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
         pub(in crate::sampling) unsafe fn map16(&self, v: __m512, segment: __m512i) -> (__m512, [__m512; 3]) {
-            let t = _mm512_mul_ps(_mm512_sub_ps(v, self.lookup(0, segment)), self.lookup(1, segment));
-            let opacity = _mm512_add_ps(self.lookup(2, segment), _mm512_mul_ps(t, self.lookup(3, segment)));
-            let t = _mm512_mul_ps(_mm512_sub_ps(v, self.lookup(4, segment)), self.lookup(5, segment));
-            let mut colour = [_mm512_setzero_ps(); 3];
+            let one = _mm512_set1_ps(1.0);
+            let zero = _mm512_setzero_ps();
+            let dv = _mm512_sub_ps(v, self.lookup(Packed::REFERENCE, segment));
+            let opacity =
+                _mm512_fmadd_ps(dv, self.lookup(Packed::OPACITY_SLOPE, segment), self.lookup(Packed::OPACITY, segment));
+            let ok = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(opacity, zero);
+            let mut colour = [zero; 3];
             for (c, colour) in colour.iter_mut().enumerate() {
-                *colour = _mm512_add_ps(self.lookup(6 + c, segment), _mm512_mul_ps(t, self.lookup(9 + c, segment)));
+                let at = _mm512_fmadd_ps(
+                    dv,
+                    self.lookup(Packed::COLOUR_SLOPE + c, segment),
+                    self.lookup(Packed::COLOUR + c, segment),
+                );
+                *colour = _mm512_maskz_max_ps(ok, zero, _mm512_min_ps(one, at));
             }
-            let infinity = _mm512_set1_ps(f32::INFINITY);
-            let mut ok = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(opacity, _mm512_setzero_ps())
-                & _mm512_cmp_ps_mask::<_CMP_LT_OQ>(opacity, infinity);
-            for &c in &colour {
-                ok &= _mm512_cmp_ps_mask::<_CMP_LT_OQ>(abs(c), infinity);
-            }
-            let opacity = _mm512_maskz_mov_ps(ok, _mm512_min_ps(opacity, _mm512_set1_ps(1.0)));
-            for c in &mut colour {
-                let clamped = _mm512_min_ps(_mm512_set1_ps(1.0), _mm512_max_ps(_mm512_setzero_ps(), *c));
-                *c = _mm512_maskz_mov_ps(ok, clamped);
-            }
-            (opacity, colour)
+            (_mm512_maskz_min_ps(ok, opacity, one), colour)
         }
     }
 
     impl Trilinear4<'_> {
-        /// x + nx·(y + ny·z) of sixteen lower corners, in i32 (below 2³⁰).
-        #[inline]
-        #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-        pub(in crate::sampling) unsafe fn index16(&self, [x, y, z]: [__m512i; 3]) -> __m512i {
-            let yz = _mm512_add_epi32(y, _mm512_mullo_epi32(_mm512_set1_epi32(self.ny), z));
-            _mm512_add_epi32(x, _mm512_mullo_epi32(_mm512_set1_epi32(self.nx), yz))
-        }
-
         /// The trilinear value at sixteen lower corners `index` with weights `h`, in f32:
-        /// `Linear::apply`'s lerps in its order.
+        /// `Linear::apply`'s lerps in its order, each v0 − h·(v0 − v1) rounded once.
         #[inline]
         #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
         pub(in crate::sampling) unsafe fn trilinear16(&self, index: __m512i, h: [__m512; 3]) -> __m512 {

@@ -23,6 +23,7 @@
 use std::arch::x86_64::*;
 
 use super::kernel::{Kernel, Maps, VoxelSource};
+use super::lanes::avx512::floor;
 use super::lanes::{Packed, Trilinear4};
 use super::skip::{cell_of, FineClasses, Jumps, Skipper};
 use super::{corrected_opacity, PieceResult};
@@ -60,12 +61,12 @@ struct Lanes {
     /// Index in the batch's lines of each lane's piece; `None` for an idle lane, whose
     /// registers keep positions inside the volume and which is never composited.
     piece: [Option<usize>; W],
-    vc0: [[f32; W]; 3],
-    delta: [[f32; W]; 3],
-    inv_n: [f32; W],
+    /// Sample k is at `origin + step·k` ([`Lanes::refill`]).
+    origin: [[f32; W]; 3],
+    step: [[f32; W]; 3],
     n: [f32; W],
-    alpha_in: [f32; W],
-    stop_at: [f32; W],
+    /// The piece's own opacity at which it may stop ([`stop_alpha`]).
+    stop_alpha: [f32; W],
     /// How far a sample's f32 value may be from its f64 value ([`Packed::slack`]).
     slack: [f32; W],
     ell: [f64; W],
@@ -88,12 +89,10 @@ impl Lanes {
     fn idle() -> Lanes {
         Lanes {
             piece: [None; W],
-            vc0: [[0.0; W]; 3],
-            delta: [[0.0; W]; 3],
-            inv_n: [0.0; W],
+            origin: [[0.0; W]; 3],
+            step: [[0.0; W]; 3],
             n: [0.0; W],
-            alpha_in: [0.0; W],
-            stop_at: [0.0; W],
+            stop_alpha: [0.0; W],
             slack: [0.0; W],
             ell: [0.0; W],
             k: [0.0; W],
@@ -113,6 +112,22 @@ impl Lanes {
             active |= u32::from(piece.is_some()) << l;
         }
         active
+    }
+}
+
+/// The piece's own opacity A at which `composite`'s test, α_in + (1 − α_in)·A ≥ stop_at,
+/// holds: one comparison per sample instead of three operations and one.
+fn stop_alpha(alpha_in: f64, stop_at: f64) -> f32 {
+    if stop_at == f64::INFINITY {
+        f32::INFINITY
+    } else if alpha_in >= 1.0 {
+        if stop_at <= 1.0 {
+            f32::NEG_INFINITY
+        } else {
+            f32::INFINITY
+        }
+    } else {
+        ((stop_at - alpha_in) / (1.0 - alpha_in)) as f32
     }
 }
 
@@ -152,21 +167,13 @@ unsafe fn octet_i(x: __m512i, o: usize) -> __m512d {
     _mm512_cvtepi32_pd(part)
 }
 
-/// Each lane's lower corner as integers.
+/// Sixteen integer lanes of `v` (integers as f32), lane by lane.
 #[inline]
 #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-unsafe fn bases(x0: [__m512; 3]) -> [__m512i; 3] {
-    x0.map(|x| _mm512_cvttps_epi32(x))
-}
-
-/// The macrocells of sixteen lower corners `base` and their indices in a grid of `dims`
-/// cells, x fastest.
-#[inline]
-#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-unsafe fn cells_of(base: [__m512i; 3], [cx, cy, _]: [u32; 3]) -> ([__m512i; 3], __m512i) {
-    let c = base.map(|b| _mm512_srli_epi32::<MACROCELL_SHIFT>(b));
-    let yz = _mm512_add_epi32(c[1], _mm512_mullo_epi32(_mm512_set1_epi32(cy as i32), c[2]));
-    (c, _mm512_add_epi32(c[0], _mm512_mullo_epi32(_mm512_set1_epi32(cx as i32), yz)))
+unsafe fn integers(v: __m512) -> [u32; LANES] {
+    let mut a = [0u32; LANES];
+    _mm512_storeu_si512(a.as_mut_ptr().cast(), _mm512_cvttps_epi32(v));
+    a
 }
 
 /// Which of the cells `i` have their bit set in `bits` (read as 32-bit words: x86 is
@@ -181,8 +188,9 @@ unsafe fn bit_set(bits: &[u64], i: __m512i) -> __mmask16 {
 }
 
 /// [`Jumps::skip`] for the lanes of half `h`, whose samples k lie in empty cells `cells`
-/// (coordinates, index) of a skipper with distances: `Jumps::leap`, operation by operation
-/// in f64, eight lanes at a time (lanes not in empty cells get a value that is not used).
+/// (coordinates as f32, index) of a skipper with distances: `Jumps::leap`, operation by
+/// operation in f64, eight lanes at a time (lanes not in empty cells get a value that is
+/// not used).
 #[inline]
 #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
 unsafe fn leaps(
@@ -190,7 +198,7 @@ unsafe fn leaps(
     h: usize,
     distance: &[u8],
     grid: &[(f64, f64); 3],
-    (cell, index): ([__m512i; 3], __m512i),
+    (cell, index): ([__m512; 3], __m512i),
     k: __m512,
     n: __m512,
 ) -> __m512 {
@@ -209,7 +217,7 @@ unsafe fn leaps(
         let mut leap = n;
         for (a, &(last, offset)) in grid.iter().enumerate() {
             let [start, per_unit, margin] = [0, 1, 2].map(|p| _mm512_loadu_pd(lanes.leap[p][a].as_ptr().add(at)));
-            let c = octet_i(cell[a], o);
+            let c = octet(cell[a], o);
             let finite = _mm512_cmp_pd_mask::<_CMP_LT_OQ>(_mm512_andnot_pd(_mm512_set1_pd(-0.0), per_unit), infinity);
             let up = finite
                 & _mm512_cmp_pd_mask::<_CMP_GT_OQ>(per_unit, zero)
@@ -237,12 +245,10 @@ unsafe fn leaps(
 /// One half's registers: its lanes' pieces and where they have got to.
 #[derive(Clone, Copy)]
 struct Half {
-    vc0: [__m512; 3],
-    delta: [__m512; 3],
-    inv_n: __m512,
+    origin: [__m512; 3],
+    step: [__m512; 3],
     n: __m512,
-    alpha_in: __m512,
-    stop_at: __m512,
+    stop_alpha: __m512,
     k: __m512,
     acc: [__m512; 4],
     samples: __m512,
@@ -252,23 +258,21 @@ impl Half {
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
     unsafe fn load(lanes: &Lanes, h: usize) -> Half {
-        let mut vc0 = [_mm512_setzero_ps(); 3];
-        let mut delta = [_mm512_setzero_ps(); 3];
+        let mut origin = [_mm512_setzero_ps(); 3];
+        let mut step = [_mm512_setzero_ps(); 3];
         let mut acc = [_mm512_setzero_ps(); 4];
         for a in 0..3 {
-            vc0[a] = load(&lanes.vc0[a], h);
-            delta[a] = load(&lanes.delta[a], h);
+            origin[a] = load(&lanes.origin[a], h);
+            step[a] = load(&lanes.step[a], h);
         }
         for (acc, lane) in acc.iter_mut().zip(&lanes.acc) {
             *acc = load(lane, h);
         }
         Half {
-            vc0,
-            delta,
-            inv_n: load(&lanes.inv_n, h),
+            origin,
+            step,
             n: load(&lanes.n, h),
-            alpha_in: load(&lanes.alpha_in, h),
-            stop_at: load(&lanes.stop_at, h),
+            stop_alpha: load(&lanes.stop_alpha, h),
             k: load(&lanes.k, h),
             acc,
             samples: load(&lanes.samples, h),
@@ -287,8 +291,31 @@ impl Half {
     }
 }
 
+/// The samples at each lane's k, looked up ahead of compositing them (so that their
+/// voxels are fetched while the samples before are composited): per half, their values,
+/// which lanes composite them (not those in empty cells), and the k each lane goes on to.
+struct Looked {
+    value: [__m512; HALVES],
+    live: u32,
+    next_k: [__m512; HALVES],
+}
+
+/// What stays fixed over a batch.
+struct Batch<'c> {
+    fast: &'c Trilinear4<'c>,
+    packed: &'c Packed,
+    classified: Option<FineClasses<'c>>,
+    /// Per axis: the last macrocell a sample can be based in, and the base grid's offset.
+    grid: [(f64, f64); 3],
+}
+
 impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
     /// Casts `lines` (each [`Line::fits`]), writing each result to `out[line.slot]`.
+    ///
+    /// The loop is pipelined by one sample: the samples at k + 1 (or where a lane jumps to)
+    /// are located, tested for empty space and interpolated before the samples at k are
+    /// mapped and composited, so the voxel gathers of the one overlap the other's chain of
+    /// dependent steps.
     ///
     /// # Safety
     /// The processor must have AVX-512 F, DQ and VL ([`Trilinear4::packed`] is `Some`).
@@ -300,87 +327,34 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         lines: &[Line],
         out: &mut [PieceResult],
     ) {
+        let batch = Batch {
+            fast,
+            packed,
+            classified: self.skip.as_ref().and_then(Skipper::fine_classes),
+            grid: std::array::from_fn(|a| {
+                let (max_base, offset) = self.interp.base_grid(a);
+                ((max_base >> MACROCELL_SHIFT) as f64, offset)
+            }),
+        };
         let mut lanes = Lanes::idle();
         let mut next = 0;
         for l in 0..W {
             next = self.refill(packed, &mut lanes, l, lines, next);
         }
         let one = _mm512_set1_ps(1.0);
-        let point_five = _mm512_set1_ps(0.5);
-        let classified = self.skip.as_ref().and_then(Skipper::fine_classes);
         let jumps = !packed.jumps.is_empty();
-        // Per axis: the last macrocell a sample can be based in, and the base grid's offset.
-        let grid: [(f64, f64); 3] = std::array::from_fn(|a| {
-            let (max_base, offset) = self.interp.base_grid(a);
-            ((max_base >> MACROCELL_SHIFT) as f64, offset)
-        });
         // Lanes change pieces only here: the registers are loaded from `lanes`, the loop runs
         // until some lane ends, and its state goes back to `lanes`.
         'refilled: while lanes.active() != 0 {
             let active = lanes.active();
             let mut regs = [Half::load(&lanes, 0), Half::load(&lanes, 1)];
+            let mut looked = self.look(&batch, &mut lanes, &regs, [regs[0].k, regs[1].k], active);
             loop {
-                // `LineSamples::point`, then the cells and weights of `Axis::cell`.
-                let mut base = [[_mm512_setzero_si512(); 3]; HALVES];
-                let mut weights = [[one; 3]; HALVES];
-                let mut index = [_mm512_setzero_si512(); HALVES];
-                // The next sample of each lane: k + 1, except where a lane jumps (below).
-                let mut next_k = [one; HALVES];
-                for (h, r) in regs.iter().enumerate() {
-                    let s = _mm512_mul_ps(_mm512_add_ps(r.k, point_five), r.inv_n);
-                    let mut u = [s; 3];
-                    for ((u, &vc0), &delta) in u.iter_mut().zip(&r.vc0).zip(&r.delta) {
-                        *u = _mm512_add_ps(vc0, _mm512_mul_ps(delta, s));
-                    }
-                    let x0;
-                    (x0, weights[h]) = packed.cells16(u);
-                    base[h] = bases(x0);
-                    index[h] = fast.index16(base[h]);
-                    next_k[h] = _mm512_mask_add_ps(r.k, half(active, h), r.k, one);
-                }
-                let mut live = active;
-                if let Some(skip) = &self.skip {
-                    // Lanes in empty cells jump, as the single-sample loop does, and are not
-                    // composited this time round.
-                    let mut empty = 0;
-                    let mut cells = [([_mm512_setzero_si512(); 3], _mm512_setzero_si512()); HALVES];
-                    for (h, &base) in base.iter().enumerate() {
-                        let e = match &classified {
-                            Some(classes) => {
-                                cells[h] = cells_of(base, classes.dims);
-                                bit_set(classes.bits, cells[h].1)
-                            }
-                            None => self.empty_lanes(skip, &mut lanes, h, base),
-                        };
-                        empty |= u32::from(e) << (LANES * h);
-                    }
-                    empty &= active;
-                    if empty != 0 {
-                        if let Some(FineClasses { distance, .. }) = classified {
-                            // Leaps over cubes of empty cells, in registers.
-                            for (h, r) in regs.iter().enumerate() {
-                                let e = half(empty, h);
-                                if e != 0 {
-                                    let leap = leaps(&lanes, h, distance, &grid, cells[h], r.k, r.n);
-                                    next_k[h] = _mm512_mask_blend_ps(e, next_k[h], leap);
-                                }
-                            }
-                        } else {
-                            for (h, r) in regs.iter().enumerate() {
-                                store(&mut lanes.k, h, r.k);
-                            }
-                            self.jump(&mut lanes, skip, empty, base);
-                            for (h, next_k) in next_k.iter_mut().enumerate() {
-                                *next_k = _mm512_mask_blend_ps(half(empty, h), *next_k, load(&lanes.k, h));
-                            }
-                        }
-                        live &= !empty;
-                    }
-                }
+                let ahead = self.look(&batch, &mut lanes, &regs, looked.next_k, active);
                 let mut ended = 0;
                 for (h, r) in regs.iter_mut().enumerate() {
-                    let live = half(live, h);
-                    let v = fast.trilinear16(index[h], weights[h]);
+                    let live = half(looked.live, h);
+                    let v = looked.value[h];
                     let mut segment = packed.segments16(v);
                     if jumps {
                         let near = packed.near_jumps16(v, load(&lanes.slack, h)) & live;
@@ -400,17 +374,16 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
                         opacity
                     };
                     // `Rgba::add_sample` in live lanes, then the stopping test of `composite`.
-                    let w = _mm512_mul_ps(alpha, _mm512_sub_ps(one, r.acc[3]));
+                    let w = _mm512_fnmadd_ps(alpha, r.acc[3], alpha);
                     for (acc, &c) in r.acc.iter_mut().zip(&colour) {
-                        *acc = _mm512_mask_add_ps(*acc, live, *acc, _mm512_mul_ps(c, w));
+                        *acc = _mm512_mask3_fmadd_ps(c, w, *acc, live);
                     }
                     r.acc[3] = _mm512_mask_add_ps(r.acc[3], live, r.acc[3], w);
-                    let front = _mm512_add_ps(r.alpha_in, _mm512_mul_ps(_mm512_sub_ps(one, r.alpha_in), r.acc[3]));
                     let done = live
                         & _mm512_cmp_ps_mask::<_CMP_NEQ_UQ>(alpha, _mm512_setzero_ps())
-                        & _mm512_cmp_ps_mask::<_CMP_GE_OQ>(front, r.stop_at);
+                        & _mm512_cmp_ps_mask::<_CMP_GE_OQ>(r.acc[3], r.stop_alpha);
                     r.samples = _mm512_mask_add_ps(r.samples, live, r.samples, one);
-                    r.k = next_k[h];
+                    r.k = looked.next_k[h];
                     let end = half(active, h) & (done | _mm512_cmp_ps_mask::<_CMP_GE_OQ>(r.k, r.n));
                     ended |= u32::from(end) << (LANES * h);
                 }
@@ -432,8 +405,84 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
                     }
                     continue 'refilled;
                 }
+                looked = ahead;
             }
         }
+    }
+
+    /// The samples at `k` (per half) of the lanes `active`: located
+    /// ([`LineSamples::point`], then `Axis::cell`), tested for empty space (lanes in empty
+    /// cells jump, as the single-sample loop does, and are not composited) and
+    /// interpolated.
+    #[inline]
+    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
+    unsafe fn look(
+        &self,
+        batch: &Batch<'_>,
+        lanes: &mut Lanes,
+        regs: &[Half; HALVES],
+        k: [__m512; HALVES],
+        active: u32,
+    ) -> Looked {
+        let (packed, fast) = (batch.packed, batch.fast);
+        let one = _mm512_set1_ps(1.0);
+        let (nx, ny) = fast.nx_ny();
+        let mut x0 = [[one; 3]; HALVES];
+        let mut weights = [[one; 3]; HALVES];
+        let mut next_k = [one; HALVES];
+        for (h, r) in regs.iter().enumerate() {
+            let mut u = [one; 3];
+            for (a, u) in u.iter_mut().enumerate() {
+                *u = _mm512_fmadd_ps(r.step[a], k[h], r.origin[a]);
+            }
+            (x0[h], weights[h]) = packed.cells16(u);
+            next_k[h] = _mm512_mask_add_ps(k[h], half(active, h), k[h], one);
+        }
+        let mut live = active;
+        if let Some(skip) = &self.skip {
+            let mut empty = 0;
+            let mut cells = [([one; 3], _mm512_setzero_si512()); HALVES];
+            for (h, &x0) in x0.iter().enumerate() {
+                let e = match &batch.classified {
+                    Some(classes) => {
+                        let scale = _mm512_set1_ps(1.0 / (1u32 << MACROCELL_SHIFT) as f32);
+                        let c = x0.map(|x| floor(_mm512_mul_ps(x, scale)));
+                        let [cx, cy, _] = classes.dims;
+                        cells[h] = (c, packed.index16(c, cx, cy));
+                        bit_set(classes.bits, cells[h].1)
+                    }
+                    None => self.empty_lanes(skip, lanes, h, x0),
+                };
+                empty |= u32::from(e) << (LANES * h);
+            }
+            empty &= active;
+            if empty != 0 {
+                if let Some(FineClasses { distance, .. }) = batch.classified {
+                    // Leaps over cubes of empty cells, in registers.
+                    for (h, r) in regs.iter().enumerate() {
+                        let e = half(empty, h);
+                        if e != 0 {
+                            let leap = leaps(lanes, h, distance, &batch.grid, cells[h], k[h], r.n);
+                            next_k[h] = _mm512_mask_blend_ps(e, next_k[h], leap);
+                        }
+                    }
+                } else {
+                    for (h, &k) in k.iter().enumerate() {
+                        store(&mut lanes.k, h, k);
+                    }
+                    self.jump(lanes, skip, empty, x0);
+                    for (h, next_k) in next_k.iter_mut().enumerate() {
+                        *next_k = _mm512_mask_blend_ps(half(empty, h), *next_k, load(&lanes.k, h));
+                    }
+                }
+                live &= !empty;
+            }
+        }
+        let mut value = [one; HALVES];
+        for (h, value) in value.iter_mut().enumerate() {
+            *value = fast.trilinear16(packed.index16(x0[h], nx, ny), weights[h]);
+        }
+        Looked { value, live, next_k }
     }
 
     /// The segments of half `h`'s lanes `near`, whose f32 values lie within rounding of a
@@ -465,17 +514,13 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         _mm512_loadu_si512(segments.as_ptr().cast())
     }
 
-    /// The lanes of half `h` whose samples, with lower corners `base`, lie in empty
+    /// The lanes of half `h` whose samples, with lower corners `x0`, lie in empty
     /// macrocells, where cells are classified on entry: lane by lane, each lane classifying
     /// a cell when it enters it, as the single-sample loop does.
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    unsafe fn empty_lanes(&self, skip: &Skipper<'_>, lanes: &mut Lanes, h: usize, base: [__m512i; 3]) -> __mmask16 {
-        let base = base.map(|b| {
-            let mut a = [0u32; LANES];
-            _mm512_storeu_si512(a.as_mut_ptr().cast(), b);
-            a
-        });
+    unsafe fn empty_lanes(&self, skip: &Skipper<'_>, lanes: &mut Lanes, h: usize, x0: [__m512; 3]) -> __mmask16 {
+        let base = x0.map(|x| integers(x));
         let mut empty = 0;
         for l in (0..LANES).filter(|&l| lanes.piece[LANES * h + l].is_some()) {
             let c = cell_of([base[0][l], base[1][l], base[2][l]]);
@@ -489,18 +534,12 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         empty
     }
 
-    /// Moves each lane of `empty`, whose sample is based at `base` (per half) in an empty
+    /// Moves each lane of `empty`, whose sample is based at `x0` (per half) in an empty
     /// cell, to the next sample that may contribute ([`Jumps::skip`]).
     #[inline]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    unsafe fn jump(&self, lanes: &mut Lanes, skip: &Skipper<'_>, empty: u32, base: [[__m512i; 3]; HALVES]) {
-        let base = base.map(|b| {
-            b.map(|b| {
-                let mut a = [0u32; LANES];
-                _mm512_storeu_si512(a.as_mut_ptr().cast(), b);
-                a
-            })
-        });
+    unsafe fn jump(&self, lanes: &mut Lanes, skip: &Skipper<'_>, empty: u32, x0: [[__m512; 3]; HALVES]) {
+        let base = x0.map(|x0| x0.map(|x| integers(x)));
         for l in (0..W).filter(|l| empty >> l & 1 == 1) {
             let jumps = lanes.jumps[l].as_ref().expect("a lane of a skipping cast has jumps");
             let [x, y, z] = base[l / LANES].map(|axis| axis[l % LANES]);
@@ -515,16 +554,17 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
             lanes.piece[l] = None;
             return next;
         };
+        // `LineSamples::point`, vc0 + δ·((k + ½)/n), as origin + step·k: rounded to f32, a
+        // few roundings of |vc0| + |δ| off (within `Jumps::for_f32`'s margins).
         let (vc0, delta, inv_n) = piece.line.parts();
         lanes.piece[l] = Some(next);
         for a in 0..3 {
-            lanes.vc0[a][l] = vc0[a] as f32;
-            lanes.delta[a][l] = delta[a] as f32;
+            let step = delta[a] * inv_n;
+            lanes.origin[a][l] = (vc0[a] + 0.5 * step) as f32;
+            lanes.step[a][l] = step as f32;
         }
-        lanes.inv_n[l] = inv_n as f32;
         lanes.n[l] = piece.line.len() as f32;
-        lanes.alpha_in[l] = piece.alpha_in as f32;
-        lanes.stop_at[l] = piece.stop_at as f32;
+        lanes.stop_alpha[l] = stop_alpha(piece.alpha_in, piece.stop_at);
         lanes.slack[l] = packed.slack(&piece.line);
         lanes.ell[l] = piece.line.ell();
         lanes.k[l] = 0.0;
