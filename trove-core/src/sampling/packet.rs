@@ -55,6 +55,9 @@ const LANES: usize = 16;
 const HALVES: usize = 2;
 const W: usize = LANES * HALVES;
 
+/// Lanes idle (their pieces ended) before they all take new pieces.
+const REFILL_AT: usize = 8;
+
 /// Each lane's piece and where it has got to, lane by lane: what the registers are loaded
 /// from when a lane changes piece, and stored to when one ends.
 struct Lanes {
@@ -80,9 +83,8 @@ struct Lanes {
     cell: [[u32; 3]; W],
     empty: [bool; W],
     jumps: [Option<Jumps>; W],
-    /// Each lane's [`Jumps::parts`]: start, samples per unit and margin, per axis (f64:
-    /// leaps are computed as [`Jumps::leap`] computes them).
-    leap: [[[f64; W]; 3]; 3],
+    /// Each lane's [`Jumps::parts`]: start, samples per unit and margin, per axis.
+    leap: [[[f32; W]; 3]; 3],
 }
 
 impl Lanes {
@@ -150,23 +152,6 @@ unsafe fn store(a: &mut [f32; W], h: usize, v: __m512) {
     _mm512_storeu_ps(a.as_mut_ptr().add(LANES * h), v)
 }
 
-/// Eight lanes (octet `o`) of sixteen, as f64.
-#[inline]
-#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-unsafe fn octet(x: __m512, o: usize) -> __m512d {
-    let x = _mm512_castps_pd(x);
-    let part = if o == 0 { _mm512_castpd512_pd256(x) } else { _mm512_extractf64x4_pd::<1>(x) };
-    _mm512_cvtps_pd(_mm256_castpd_ps(part))
-}
-
-/// Eight integer lanes (octet `o`) of sixteen, as f64.
-#[inline]
-#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-unsafe fn octet_i(x: __m512i, o: usize) -> __m512d {
-    let part = if o == 0 { _mm512_castsi512_si256(x) } else { _mm512_extracti64x4_epi64::<1>(x) };
-    _mm512_cvtepi32_pd(part)
-}
-
 /// Sixteen integer lanes of `v` (integers as f32), lane by lane.
 #[inline]
 #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
@@ -189,57 +174,50 @@ unsafe fn bit_set(bits: &[u64], i: __m512i) -> __mmask16 {
 
 /// [`Jumps::skip`] for the lanes of half `h`, whose samples k lie in empty cells `cells`
 /// (coordinates as f32, index) of a skipper with distances: `Jumps::leap`, operation by
-/// operation in f64, eight lanes at a time (lanes not in empty cells get a value that is
-/// not used).
+/// operation, in f32 (whose rounding [`Jumps::for_f32`]'s margins cover; lanes not in empty
+/// cells get a value that is not used).
 #[inline]
 #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
 unsafe fn leaps(
     lanes: &Lanes,
     h: usize,
     distance: &[u8],
-    grid: &[(f64, f64); 3],
+    grid: &[(f32, f32); 3],
     (cell, index): ([__m512; 3], __m512i),
     k: __m512,
     n: __m512,
 ) -> __m512 {
-    let one = _mm512_set1_pd(1.0);
-    let zero = _mm512_setzero_pd();
-    let infinity = _mm512_set1_pd(f64::INFINITY);
-    let size = _mm512_set1_pd((1u32 << MACROCELL_SHIFT) as f64);
+    let one = _mm512_set1_ps(1.0);
+    let zero = _mm512_setzero_ps();
+    let infinity = _mm512_set1_ps(f32::INFINITY);
+    let size = _mm512_set1_ps((1u32 << MACROCELL_SHIFT) as f32);
     // The distance table has three bytes of padding: four bytes at any cell are inside.
     let d = _mm512_and_si512(_mm512_i32gather_epi32::<1>(index, distance.as_ptr().cast()), _mm512_set1_epi32(0xff));
-    let mut next = [_mm256_setzero_ps(); 2];
-    for (o, next) in next.iter_mut().enumerate() {
-        let at = LANES * h + 8 * o;
-        let reach = _mm512_sub_pd(_mm512_max_pd(octet_i(d, o), one), one);
-        let (k, n) = (octet(k, o), octet(n, o));
-        let after = _mm512_add_pd(k, one);
-        let mut leap = n;
-        for (a, &(last, offset)) in grid.iter().enumerate() {
-            let [start, per_unit, margin] = [0, 1, 2].map(|p| _mm512_loadu_pd(lanes.leap[p][a].as_ptr().add(at)));
-            let c = octet(cell[a], o);
-            let finite = _mm512_cmp_pd_mask::<_CMP_LT_OQ>(_mm512_andnot_pd(_mm512_set1_pd(-0.0), per_unit), infinity);
-            let up = finite
-                & _mm512_cmp_pd_mask::<_CMP_GT_OQ>(per_unit, zero)
-                & _mm512_cmp_pd_mask::<_CMP_LT_OQ>(_mm512_add_pd(c, reach), _mm512_set1_pd(last));
-            let down =
-                finite & _mm512_cmp_pd_mask::<_CMP_LT_OQ>(per_unit, zero) & _mm512_cmp_pd_mask::<_CMP_GT_OQ>(c, reach);
-            let offset = _mm512_set1_pd(offset);
-            let above = _mm512_add_pd(_mm512_mul_pd(_mm512_add_pd(_mm512_add_pd(c, reach), one), size), offset);
-            let below = _mm512_add_pd(_mm512_mul_pd(_mm512_sub_pd(c, reach), size), offset);
-            let bound = _mm512_mask_blend_pd(up, below, above);
-            let j = _mm512_sub_pd(_mm512_mul_pd(_mm512_sub_pd(bound, start), per_unit), _mm512_set1_pd(0.5));
-            // `ceil_index(j − margin)`, and k + 1 for a NaN j.
-            let x = _mm512_sub_pd(j, margin);
-            let ceil = _mm512_roundscale_pd::<{ _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC }>(x);
-            let first_unsafe = _mm512_maskz_mov_pd(_mm512_cmp_pd_mask::<_CMP_GT_OQ>(x, zero), ceil);
-            let first_unsafe = _mm512_mask_blend_pd(_mm512_cmp_pd_mask::<_CMP_UNORD_Q>(j, j), first_unsafe, after);
-            leap = _mm512_mask_min_pd(leap, up | down, leap, first_unsafe);
-        }
-        // Below n < 2²⁴: exact in f32.
-        *next = _mm512_cvtpd_ps(_mm512_max_pd(leap, after));
+    let reach = _mm512_sub_ps(_mm512_max_ps(_mm512_cvtepi32_ps(d), one), one);
+    let after = _mm512_add_ps(k, one);
+    let mut next = n;
+    for (a, &(last, offset)) in grid.iter().enumerate() {
+        let [start, per_unit, margin] = [0, 1, 2].map(|p| load(&lanes.leap[p][a], h));
+        let c = cell[a];
+        let finite = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(_mm512_andnot_ps(_mm512_set1_ps(-0.0), per_unit), infinity);
+        let up = finite
+            & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(per_unit, zero)
+            & _mm512_cmp_ps_mask::<_CMP_LT_OQ>(_mm512_add_ps(c, reach), _mm512_set1_ps(last));
+        let down =
+            finite & _mm512_cmp_ps_mask::<_CMP_LT_OQ>(per_unit, zero) & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(c, reach);
+        let offset = _mm512_set1_ps(offset);
+        let above = _mm512_fmadd_ps(_mm512_add_ps(_mm512_add_ps(c, reach), one), size, offset);
+        let below = _mm512_fmadd_ps(_mm512_sub_ps(c, reach), size, offset);
+        let bound = _mm512_mask_blend_ps(up, below, above);
+        let j = _mm512_sub_ps(_mm512_mul_ps(_mm512_sub_ps(bound, start), per_unit), _mm512_set1_ps(0.5));
+        // `ceil_index(j − margin)`, and k + 1 for a NaN j.
+        let x = _mm512_sub_ps(j, margin);
+        let ceil = _mm512_roundscale_ps::<{ _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC }>(x);
+        let first_unsafe = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask::<_CMP_GT_OQ>(x, zero), ceil);
+        let first_unsafe = _mm512_mask_blend_ps(_mm512_cmp_ps_mask::<_CMP_UNORD_Q>(j, j), first_unsafe, after);
+        next = _mm512_mask_min_ps(next, up | down, next, first_unsafe);
     }
-    _mm512_insertf32x8::<1>(_mm512_castps256_ps512(next[0]), next[1])
+    _mm512_max_ps(next, after)
 }
 
 /// One half's registers: its lanes' pieces and where they have got to.
@@ -306,7 +284,7 @@ struct Batch<'c> {
     packed: &'c Packed,
     classified: Option<FineClasses<'c>>,
     /// Per axis: the last macrocell a sample can be based in, and the base grid's offset.
-    grid: [(f64, f64); 3],
+    grid: [(f32, f32); 3],
 }
 
 impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
@@ -333,7 +311,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
             classified: self.skip.as_ref().and_then(Skipper::fine_classes),
             grid: std::array::from_fn(|a| {
                 let (max_base, offset) = self.interp.base_grid(a);
-                ((max_base >> MACROCELL_SHIFT) as f64, offset)
+                ((max_base >> MACROCELL_SHIFT) as f32, offset as f32)
             }),
         };
         let mut lanes = Lanes::idle();
@@ -346,14 +324,14 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         // Lanes change pieces only here: the registers are loaded from `lanes`, the loop runs
         // until some lane ends, and its state goes back to `lanes`.
         'refilled: while lanes.active() != 0 {
-            let active = lanes.active();
+            let mut active = lanes.active();
             let mut regs = [Half::load(&lanes, 0), Half::load(&lanes, 1)];
             let mut looked = self.look(&batch, &mut lanes, &regs, [regs[0].k, regs[1].k], active);
             loop {
                 let ahead = self.look(&batch, &mut lanes, &regs, looked.next_k, active);
                 let mut ended = 0;
                 for (h, r) in regs.iter_mut().enumerate() {
-                    let live = half(looked.live, h);
+                    let live = half(looked.live & active, h);
                     let v = looked.value[h];
                     let mut segment = packed.segments16(v);
                     if jumps {
@@ -388,11 +366,14 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
                     ended |= u32::from(end) << (LANES * h);
                 }
                 if ended != 0 {
+                    // Ended lanes give their results and idle; they take new pieces only when
+                    // a few are idle, since refilling reloads every register and looks at
+                    // every lane's sample again.
                     for (h, r) in regs.iter().enumerate() {
                         r.store(&mut lanes, h);
                     }
                     for l in (0..W).filter(|l| ended >> l & 1 == 1) {
-                        let piece = lanes.piece[l].expect("an ended lane was active");
+                        let piece = lanes.piece[l].take().expect("an ended lane was active");
                         let acc = &lanes.acc;
                         out[lines[piece].slot] = PieceResult {
                             rgba: Rgba {
@@ -401,9 +382,17 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
                             },
                             samples: lanes.samples[l] as u64,
                         };
-                        next = self.refill(packed, &mut lanes, l, lines, next);
                     }
-                    continue 'refilled;
+                    active &= !ended;
+                    let idle = W - active.count_ones() as usize;
+                    if active == 0 || (idle >= REFILL_AT && next < lines.len()) {
+                        for l in 0..W {
+                            if lanes.piece[l].is_none() {
+                                next = self.refill(packed, &mut lanes, l, lines, next);
+                            }
+                        }
+                        continue 'refilled;
+                    }
                 }
                 looked = ahead;
             }
@@ -578,7 +567,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         if let Some(jumps) = &lanes.jumps[l] {
             for (lane, part) in lanes.leap.iter_mut().zip(jumps.parts()) {
                 for a in 0..3 {
-                    lane[a][l] = part[a];
+                    lane[a][l] = part[a] as f32;
                 }
             }
         }

@@ -186,8 +186,8 @@ impl Jumps {
         Jumps::with_rounding(interp, line, f64::EPSILON)
     }
 
-    /// For samples whose positions are computed in f32 ([`super::packet`]): the margins
-    /// cover f32's rounding of their coordinates.
+    /// For samples whose positions, and leaps, are computed in f32 ([`super::packet`]):
+    /// the margins cover f32's rounding of their coordinates and of the crossing indices.
     #[cfg(target_arch = "x86_64")]
     pub(super) fn for_f32<I: Interp>(interp: &I, line: &LineSamples) -> Jumps {
         Jumps::with_rounding(interp, line, f64::from(f32::EPSILON))
@@ -202,7 +202,7 @@ impl Jumps {
             // A coordinate is vc0 + δ·((k + ½)·(1/n)): a few roundings off the ideal line
             // (five in f32, where vc0, δ and 1/n are rounded too).
             let position = 8.0 * epsilon * (start[a].abs() + delta[a].abs());
-            let index = 8.0 * f64::EPSILON * (n + 1.0);
+            let index = 8.0 * epsilon * (n + 1.0);
             2.0 * ((interp.span_tolerance(a) + position) * samples_per_unit[a].abs() + index) + 1e-12
         });
         let grid = std::array::from_fn(|a| interp.base_grid(a));
