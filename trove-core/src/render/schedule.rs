@@ -386,74 +386,116 @@ fn plausible(r: &PieceRgba) -> bool {
 /// Orders datasets front to back as far as the scene allows, and splits each dataset's
 /// tasks into waves by their rank along their ray. Returns the order (datasets with tasks
 /// only) and, per dataset in that order, its waves.
+///
+/// Rays are independent, so chunks of them are surveyed in parallel ([`Survey`]) and the
+/// surveys merged in ray order: the waves list tasks in the same order, and the votes and
+/// depths are the same numbers, as one pass over the rays would give.
 fn plan(inter: &Intersections, dataset_of_object: &[u32], datasets: usize) -> (Vec<usize>, Vec<Vec<Vec<u32>>>) {
-    let dataset_of = |t: usize| dataset_of_object[inter.tasks[t].object as usize] as usize;
-    let order = dataset_order(inter, &dataset_of, datasets);
-    let mut position = vec![usize::MAX; datasets];
-    for (i, &d) in order.iter().enumerate() {
-        position[d] = i;
+    use rayon::prelude::*;
+    const RAYS_PER_SURVEY: usize = 8192;
+    let rays = inter.rays();
+    let surveys: Vec<Survey> = (0..rays.div_ceil(RAYS_PER_SURVEY))
+        .into_par_iter()
+        .map(|c| {
+            Survey::of(inter, dataset_of_object, datasets, c * RAYS_PER_SURVEY..((c + 1) * RAYS_PER_SURVEY).min(rays))
+        })
+        .collect();
+    let mut all = Survey::empty(datasets);
+    for survey in surveys {
+        all.merge(survey);
     }
-    let mut waves: Vec<Vec<Vec<u32>>> = vec![Vec::new(); order.len()];
-    // Per ray: (dataset, pieces of it so far, last piece) — a handful of datasets per ray.
-    let mut seen: Vec<(usize, usize, usize)> = Vec::new();
-    for r in 0..inter.rays() {
-        seen.clear();
-        for p in inter.pieces_of(r) {
-            for t in inter.tasks_of(p) {
-                let d = dataset_of(t);
-                let rank = match seen.iter_mut().find(|s| s.0 == d) {
-                    Some(s) if s.2 == p => s.1 - 1,
-                    Some(s) => {
-                        s.1 += 1;
-                        s.2 = p;
-                        s.1 - 1
-                    }
-                    None => {
-                        seen.push((d, 1, p));
-                        0
-                    }
-                };
-                let lane = &mut waves[position[d]];
-                if lane.len() <= rank {
-                    lane.resize_with(rank + 1, Vec::new);
-                }
-                lane[rank].push(t as u32);
-            }
-        }
-    }
-    (order, waves)
+    let used: Vec<usize> = (0..datasets).filter(|&d| all.count[d] > 0).collect();
+    let mean_depth: Vec<f64> =
+        (0..datasets).map(|d| if all.count[d] > 0 { all.depth_sum[d] / all.count[d] as f64 } else { 0.0 }).collect();
+    let order = greedy_order(&used, &all.votes, &mean_depth);
+    let mut waves = all.waves;
+    let ordered = order.iter().map(|&d| std::mem::take(&mut waves[d])).collect();
+    (order, ordered)
 }
 
-/// The datasets some task uses, front to back as far as the scene allows.
-///
-/// Each ray votes "A before B" for each pair of datasets it meets one right after the
-/// other (first appearances along the ray), and [`greedy_order`] orders that graph: when it
-/// has no cycle every ray meets datasets in their turn order. Ties go to the smaller mean
-/// depth of the dataset's pieces.
-fn dataset_order(inter: &Intersections, dataset_of: &impl Fn(usize) -> usize, n: usize) -> Vec<usize> {
-    let mut votes: HashMap<(usize, usize), u64> = HashMap::new();
-    let (mut depth_sum, mut count) = (vec![0.0; n], vec![0u64; n]);
-    let mut seq: Vec<usize> = Vec::new();
-    for r in 0..inter.rays() {
-        seq.clear();
-        for p in inter.pieces_of(r) {
-            for t in inter.tasks_of(p) {
-                let d = dataset_of(t);
-                depth_sum[d] += inter.tasks[t].t0;
-                count[d] += 1;
-                if !seq.contains(&d) {
-                    seq.push(d);
+/// What a chunk of rays tells [`plan`], per dataset: its tasks by rank along their ray
+/// (wave by wave), how many there are and the sum of their depths; and the votes for the
+/// dataset order: each ray votes "A before B" for each pair of datasets it meets one right
+/// after the other (first appearances along the ray), which [`greedy_order`] orders (when
+/// that graph has no cycle every ray meets datasets in their turn order; ties go to the
+/// smaller mean depth).
+struct Survey {
+    waves: Vec<Vec<Vec<u32>>>,
+    count: Vec<u64>,
+    depth_sum: Vec<f64>,
+    votes: HashMap<(usize, usize), u64>,
+}
+
+impl Survey {
+    fn empty(datasets: usize) -> Survey {
+        Survey {
+            waves: vec![Vec::new(); datasets],
+            count: vec![0; datasets],
+            depth_sum: vec![0.0; datasets],
+            votes: HashMap::new(),
+        }
+    }
+
+    fn of(inter: &Intersections, dataset_of_object: &[u32], datasets: usize, rays: std::ops::Range<usize>) -> Survey {
+        let mut survey = Survey::empty(datasets);
+        // Per ray: (dataset, pieces of it so far, last piece) — a handful of datasets per ray,
+        // in the order the ray first meets them.
+        let mut seen: Vec<(usize, usize, usize)> = Vec::new();
+        for r in rays {
+            seen.clear();
+            for p in inter.pieces_of(r) {
+                for t in inter.tasks_of(p) {
+                    let d = dataset_of_object[inter.tasks[t].object as usize] as usize;
+                    survey.depth_sum[d] += inter.tasks[t].t0;
+                    survey.count[d] += 1;
+                    let rank = match seen.iter_mut().find(|s| s.0 == d) {
+                        Some(s) if s.2 == p => s.1 - 1,
+                        Some(s) => {
+                            s.1 += 1;
+                            s.2 = p;
+                            s.1 - 1
+                        }
+                        None => {
+                            seen.push((d, 1, p));
+                            0
+                        }
+                    };
+                    let lane = &mut survey.waves[d];
+                    if lane.len() <= rank {
+                        lane.resize_with(rank + 1, Vec::new);
+                    }
+                    lane[rank].push(t as u32);
+                }
+            }
+            for pair in seen.windows(2) {
+                *survey.votes.entry((pair[0].0, pair[1].0)).or_insert(0) += 1;
+            }
+        }
+        survey
+    }
+
+    /// Appends `later`, a survey of the rays after these.
+    fn merge(&mut self, later: Survey) {
+        for (waves, later) in self.waves.iter_mut().zip(later.waves) {
+            if waves.len() < later.len() {
+                waves.resize_with(later.len(), Vec::new);
+            }
+            for (wave, later) in waves.iter_mut().zip(later) {
+                if wave.is_empty() {
+                    *wave = later;
+                } else {
+                    wave.extend(later);
                 }
             }
         }
-        for pair in seq.windows(2) {
-            *votes.entry((pair[0], pair[1])).or_insert(0) += 1;
+        for d in 0..self.count.len() {
+            self.count[d] += later.count[d];
+            self.depth_sum[d] += later.depth_sum[d];
+        }
+        for (pair, v) in later.votes {
+            *self.votes.entry(pair).or_insert(0) += v;
         }
     }
-    let used: Vec<usize> = (0..n).filter(|&d| count[d] > 0).collect();
-    let mean_depth: Vec<f64> =
-        (0..n).map(|d| if count[d] > 0 { depth_sum[d] / count[d] as f64 } else { 0.0 }).collect();
-    greedy_order(&used, &votes, &mean_depth)
 }
 
 /// The Eades–Lin–Smyth greedy ordering of `nodes` under weighted edges `votes[(a, b)]`
