@@ -555,7 +555,8 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         lanes.n[l] = piece.line.len() as f32;
         lanes.stop_alpha[l] = stop_alpha(piece.alpha_in, piece.stop_at);
         lanes.slack[l] = packed.slack(&piece.line);
-        lanes.ell[l] = piece.line.ell();
+        // ℓ (a square root) only where opacity is corrected.
+        lanes.ell[l] = if self.correction { piece.line.ell() } else { 0.0 };
         lanes.k[l] = 0.0;
         for acc in &mut lanes.acc {
             acc[l] = 0.0;
