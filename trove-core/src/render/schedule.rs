@@ -124,7 +124,9 @@ pub struct Scheduler {
     termination: f64,
     batch_tasks: usize,
     status: Vec<Status>,
-    results: Vec<PieceRgba>,
+    /// Each task's result as [r, g, b, α] (a `PieceRgba`'s fields): all-zero f32 arrays,
+    /// which the allocator hands out as fresh zeroed pages instead of writing them here.
+    results: Vec<[f32; 4]>,
     order: Vec<usize>,
     lanes: Vec<Lane>,
     in_flight: HashMap<u64, InFlight>,
@@ -148,7 +150,7 @@ impl Scheduler {
         }
         Ok(Scheduler {
             status: vec![Status::Pending; n],
-            results: vec![PieceRgba::default(); n],
+            results: vec![[0.0; 4]; n],
             progress: Progress { total: n as u64, ..Progress::default() },
             inter,
             dataset_of_object,
@@ -260,7 +262,7 @@ impl Scheduler {
         let batch = self.in_flight.remove(&id).expect("looked up above");
         for (&t, r) in batch.tasks.iter().zip(results) {
             self.status[t as usize] = Status::Done;
-            self.results[t as usize] = *r;
+            self.results[t as usize] = [r.colour[0], r.colour[1], r.colour[2], r.alpha];
         }
         self.progress.cast += batch.tasks.len() as u64;
         self.lanes[batch.dataset].outstanding -= 1;
@@ -336,7 +338,7 @@ impl Scheduler {
         let tasks = self.inter.tasks_of(p);
         if tasks.len() == 1 {
             return match self.status[tasks.start] {
-                Status::Done => Some(self.results[tasks.start].into()),
+                Status::Done => Some(self.result(tasks.start).into()),
                 Status::Pending => Some(Rgba::CLEAR),
                 Status::Culled => None,
             };
@@ -344,7 +346,13 @@ impl Scheduler {
         if tasks.clone().any(|t| self.status[t] == Status::Culled) {
             return None;
         }
-        Some(Rgba::colocated(tasks.filter(|&t| self.status[t] == Status::Done).map(|t| self.results[t].into())))
+        Some(Rgba::colocated(tasks.filter(|&t| self.status[t] == Status::Done).map(|t| self.result(t).into())))
+    }
+
+    /// Task `t`'s recorded result.
+    fn result(&self, t: usize) -> PieceRgba {
+        let [r, g, b, alpha] = self.results[t];
+        PieceRgba { colour: [r, g, b], alpha }
     }
 
     /// Whether every task of piece `p` belongs to dataset `d`.
