@@ -76,8 +76,6 @@ pub(super) struct Packed {
     pub small: bool,
     /// The break points, rounded to f32.
     pub breaks: Vec<f32>,
-    /// The f64 break points (a value near a jump counts them itself).
-    pub breaks64: Vec<f64>,
     /// Per joint segment ([`Packed::REFERENCE`] and the others): a value in it, and the
     /// opacity and each colour channel there and their slopes, so that one subtraction
     /// serves all four (each is linear over a joint segment). Padded to 32 segments (at
@@ -86,12 +84,10 @@ pub(super) struct Packed {
     /// The break points at which the map jumps (LUT bounds): a value whose f32 and f64
     /// forms could lie on either side of one must be classified from the f64 form.
     pub jumps: Vec<f32>,
-    /// How far the channel's values can differ (its range, or its type's), and their
-    /// largest magnitude: what bounds the difference between a sample's f32 and f64 value.
-    pub spread: f64,
-    pub magnitude: f64,
-    /// Per axis: the snapping tolerance of the f64 loops.
-    pub tol: [f64; 3],
+    /// [`Packed::slack`] for a piece is `slack_per_unit · Σ (|vc0| + |δ|) + slack_fixed`:
+    /// the parts that depend on the object only, worked out once.
+    slack_per_unit: f64,
+    slack_fixed: f64,
 }
 
 impl Packed {
@@ -121,7 +117,7 @@ impl Packed {
             let [x0, inv_w, y0, dy] = parts(f, s);
             y0 + ((v - x0) * inv_w) * dy
         };
-        let jumps = breaks
+        let jumps: Vec<f32> = breaks
             .iter()
             .enumerate()
             .filter(|&(i, &b)| {
@@ -161,16 +157,20 @@ impl Packed {
         if breaks.len() >= 32 || breaks.iter().any(|&b| !(b as f32).is_finite()) {
             return None;
         }
+        // What bounds a sample's f32 value's distance from its f64 value ([`Packed::slack`]):
+        // how far the channel's values spread (its range, or its type's), their largest
+        // magnitude, the snapping tolerances of the f64 loops, and the largest jump.
+        let spread = range[1] - range[0];
+        let tolerances: f64 = rule.iter().map(|r| r[1]).sum();
+        let largest_jump = jumps.iter().fold(0.0f64, |m, &j| m.max(f64::from(j).abs()));
         Some(Packed {
             rule: rule.map(|[last, _, x0_max]| [last as f32, x0_max as f32]),
             small: voxels <= 1 << 24,
             breaks: breaks.iter().map(|&b| b as f32).collect(),
-            breaks64: breaks.to_vec(),
             tables: packed,
+            slack_per_unit: spread * 8.0 * EPS32,
+            slack_fixed: spread * 2.0 * tolerances + 8.0 * EPS32 * (magnitude + largest_jump),
             jumps,
-            spread: range[1] - range[0],
-            magnitude,
-            tol: rule.map(|r| r[1]),
         })
     }
 
@@ -180,10 +180,8 @@ impl Packed {
     /// the f32 lerps round; plus the rounding of the jumps to f32.
     pub fn slack(&self, line: &LineSamples) -> f32 {
         let (start, delta) = (line.start(), line.delta());
-        let moved: f64 = (0..3).map(|a| 8.0 * EPS32 * (start[a].abs() + delta[a].abs()) + 2.0 * self.tol[a]).sum();
-        let jumps = self.jumps.iter().fold(0.0f64, |m, &j| m.max(f64::from(j).abs()));
-        let slack = self.spread * moved + 8.0 * EPS32 * (self.magnitude + jumps);
-        (slack * 1.01) as f32
+        let extent: f64 = (0..3).map(|a| start[a].abs() + delta[a].abs()).sum();
+        ((self.slack_per_unit * extent + self.slack_fixed) * 1.01) as f32
     }
 }
 
@@ -239,6 +237,16 @@ impl<'a> Trilinear4<'a> {
     /// What the sixteen-lane loop of [`super::packet`] needs, where the processor has it.
     pub(super) fn packed(&self) -> Option<&Packed> {
         self.packed.as_deref()
+    }
+
+    /// Voxels along x and y.
+    pub(super) fn nx_ny(&self) -> (u32, u32) {
+        (self.nx as u32, self.ny as u32)
+    }
+
+    /// The map's break points (f64), which the f32 lanes count themselves near a jump.
+    pub(super) fn breaks(&self) -> &[f64] {
+        &self.breaks
     }
 
     /// Samples k, k + 1, … of `line` located (lanes from `m` on repeat sample k + m − 1).
@@ -527,7 +535,7 @@ mod avx2 {
         #[cold]
         #[inline(never)]
         #[target_feature(enable = "avx2")]
-        pub(super) unsafe fn last_corners(&self, lanes: &[i32; 4], rows: [i32; 4]) -> [[__m256d; 2]; 4] {
+        unsafe fn last_corners(&self, lanes: &[i32; 4], rows: [i32; 4]) -> [[__m256d; 2]; 4] {
             let ox = self.offsets[0] as usize;
             let mut pairs = [[_mm256_setzero_pd(); 2]; 4];
             for (pair, &row) in pairs.iter_mut().zip(&rows) {
@@ -550,13 +558,6 @@ pub(super) mod avx512 {
     use std::arch::x86_64::*;
 
     use super::{Packed, Trilinear4};
-
-    impl Trilinear4<'_> {
-        /// Voxels along x and y.
-        pub(in crate::sampling) fn nx_ny(&self) -> (u32, u32) {
-            (self.nx as u32, self.ny as u32)
-        }
-    }
 
     /// ⌊x⌋, exactly (the lower corner of a cell).
     #[inline]

@@ -337,7 +337,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
                     if jumps {
                         let near = packed.near_jumps16(v, load(&lanes.slack, h)) & live;
                         if near != 0 {
-                            segment = self.exact_segments(packed, lines, &lanes, h, near, r.k, segment);
+                            segment = self.exact_segments(fast.breaks(), lines, &lanes, h, near, r.k, segment);
                         }
                     }
                     let (opacity, colour) = packed.map16(v, segment);
@@ -483,7 +483,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
     unsafe fn exact_segments(
         &self,
-        packed: &Packed,
+        breaks: &[f64],
         lines: &[Line],
         lanes: &Lanes,
         h: usize,
@@ -498,7 +498,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
             let piece = lanes.piece[LANES * h + l].expect("a live lane has a piece");
             let s = self.interp.locate(lines[piece].line.point(ks[l] as u64));
             let v = self.voxels.value(&self.interp, &s);
-            segments[l] = packed.breaks64.iter().filter(|&&b| b <= v).count() as i32;
+            segments[l] = breaks.iter().filter(|&&b| b <= v).count() as i32;
         }
         _mm512_loadu_si512(segments.as_ptr().cast())
     }
@@ -554,7 +554,8 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         }
         lanes.n[l] = piece.line.len() as f32;
         lanes.stop_alpha[l] = stop_alpha(piece.alpha_in, piece.stop_at);
-        lanes.slack[l] = packed.slack(&piece.line);
+        // The slack serves only maps that jump.
+        lanes.slack[l] = if packed.jumps.is_empty() { 0.0 } else { packed.slack(&piece.line) };
         // ℓ (a square root) only where opacity is corrected.
         lanes.ell[l] = if self.correction { piece.line.ell() } else { 0.0 };
         lanes.k[l] = 0.0;

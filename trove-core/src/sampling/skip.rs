@@ -357,7 +357,9 @@ fn chessboard_distance(empty: &[u64], dims: [u32; 3]) -> Vec<u8> {
 fn forward_pass(d: &mut [u8], [nx, ny, nz]: [u32; 3]) {
     let [nx, ny, nz] = [nx, ny, nz].map(|n| n as usize);
     let plane = nx * ny;
-    // 1 + the 3-minimum of a row, or of a slice's rows (then of 3 rows of those).
+    // Per cell of the slice just finished: the minimum of its row's 3 cells around it
+    // (`across`), then one more than the minimum of 3 of those rows (`below`, its 3×3
+    // neighbourhood, for the next slice).
     let mut across = vec![u8::MAX; plane];
     let mut below = vec![u8::MAX; plane];
     for z in 0..nz {
