@@ -239,7 +239,10 @@ fn coordinator_command(args: CoordinatorArgs) -> Result<()> {
         println!("{}", listener.local_addr().context("the listener has no address")?);
         let config = FarmConfig {
             heartbeat: std::time::Duration::from_millis(args.heartbeat_ms.max(10)),
-            driver: farm::DriverConfig { batch_deadline: std::time::Duration::from_secs(args.batch_deadline_s.max(1)) },
+            driver: farm::DriverConfig {
+                batch_deadline: std::time::Duration::from_secs(args.batch_deadline_s.max(1)),
+                ..farm::DriverConfig::default()
+            },
         };
         farm::run(listener, trove_proto::shutdown_signal(), config).await.context("coordinator")
     })

@@ -39,6 +39,9 @@ pub struct Registry {
     state: Mutex<State>,
     heartbeat: Duration,
     next_id: AtomicU64,
+    /// Changes whenever a worker registers, so a job's dispatcher knows when to look its
+    /// datasets' holders up again instead of on every batch.
+    generation: AtomicU64,
 }
 
 #[derive(Default)]
@@ -59,7 +62,12 @@ const CONNECT_DEADLINE: Duration = Duration::from_secs(5);
 impl Registry {
     /// An empty registry whose workers send a heartbeat every `heartbeat`.
     pub fn new(heartbeat: Duration) -> Registry {
-        Registry { state: Mutex::new(State::default()), heartbeat, next_id: AtomicU64::new(1) }
+        Registry {
+            state: Mutex::new(State::default()),
+            heartbeat,
+            next_id: AtomicU64::new(1),
+            generation: AtomicU64::new(0),
+        }
     }
 
     /// How often workers are asked to send heartbeats.
@@ -93,7 +101,13 @@ impl Registry {
         state.workers.retain(|_, w| w.address != request.address);
         tracing::info!(worker = %id, address = %entry.address, files = entry.files.len(), "worker registered");
         state.workers.insert(id.clone(), entry);
+        self.generation.fetch_add(1, Ordering::Release);
         Ok(id)
+    }
+
+    /// A number that changes whenever the set of registered workers does.
+    pub fn generation(&self) -> u64 {
+        self.generation.load(Ordering::Acquire)
     }
 
     /// Records a heartbeat; false when the worker is unknown (it must register again).

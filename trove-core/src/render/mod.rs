@@ -18,6 +18,7 @@
 //! [`Scheduler`], which the farm drives with workers instead. Both algorithms render the
 //! same image up to early termination (SPEC §4.4).
 
+pub mod dispatch;
 mod error;
 mod grouped;
 mod image;

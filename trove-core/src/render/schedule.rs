@@ -61,6 +61,10 @@ pub struct Batch {
     pub id: u64,
     /// The dataset index in the scene; every task's object uses it.
     pub dataset: usize,
+    /// How many times these tasks were handed out before and given up ([`Scheduler::abandon`]):
+    /// 0 for a first dispatch. A driver sends it with the batch, checks it on the answer, and
+    /// can fail a job whose batch every worker gives up on.
+    pub attempt: u32,
     /// The tasks, each with its front opacity set.
     pub tasks: Vec<PieceTask>,
 }
@@ -94,14 +98,16 @@ struct Lane {
     wave: usize,
     /// How much of that wave has been handed out.
     cursor: usize,
-    /// Task lists of abandoned batches of that wave, to hand out again first.
-    retry: Vec<Vec<u32>>,
+    /// Task lists of abandoned batches of that wave, with the attempt they were, to hand
+    /// out again first.
+    retry: Vec<(Vec<u32>, u32)>,
     /// Batches of the current wave handed out and not yet recorded.
     outstanding: usize,
 }
 
 struct InFlight {
     dataset: usize,
+    attempt: u32,
     tasks: Vec<u32>,
 }
 
@@ -178,6 +184,18 @@ impl Scheduler {
         self.progress
     }
 
+    /// Bytes this scheduler holds on the heap: its intersections, the tasks' statuses,
+    /// results and waves. What a driver's memory bound ([`super::dispatch::Admission`])
+    /// counts; the few in-flight lists are left out (they are at most the waves again).
+    pub fn heap_bytes(&self) -> u64 {
+        use std::mem::size_of;
+        let inter = self.inter.tasks.capacity() * size_of::<PieceTask>()
+            + (self.inter.piece_start.capacity() + self.inter.ray_start.capacity()) * size_of::<usize>();
+        let per_task = self.status.capacity() * size_of::<Status>() + self.results.capacity() * size_of::<[f32; 4]>();
+        let waves: usize = self.lanes.iter().flat_map(|l| &l.waves).map(|w| w.capacity() * size_of::<u32>()).sum();
+        (inter + per_task + waves) as u64
+    }
+
     /// Whether every task is recorded or culled.
     pub fn is_complete(&self) -> bool {
         self.progress.cast + self.progress.culled == self.progress.total
@@ -204,14 +222,14 @@ impl Scheduler {
             if lane.wave >= lane.waves.len() {
                 return None;
             }
-            let candidates: Vec<u32> = if let Some(retry) = lane.retry.pop() {
-                retry
+            let (candidates, attempt): (Vec<u32>, u32) = if let Some((retry, attempt)) = lane.retry.pop() {
+                (retry, attempt + 1)
             } else if lane.cursor < lane.waves[lane.wave].len() {
                 let wave = &lane.waves[lane.wave];
                 let end = (lane.cursor + self.batch_tasks).min(wave.len());
                 let chunk = wave[lane.cursor..end].to_vec();
                 lane.cursor = end;
-                chunk
+                (chunk, 0)
             } else if lane.outstanding > 0 {
                 return None;
             } else {
@@ -241,8 +259,8 @@ impl Scheduler {
             let id = self.next_id;
             self.next_id += 1;
             self.lanes[d].outstanding += 1;
-            self.in_flight.insert(id, InFlight { dataset: d, tasks: cast });
-            return Some(Batch { id, dataset: d, tasks });
+            self.in_flight.insert(id, InFlight { dataset: d, attempt, tasks: cast });
+            return Some(Batch { id, dataset: d, attempt, tasks });
         }
     }
 
@@ -275,7 +293,7 @@ impl Scheduler {
         let batch = self.in_flight.remove(&id).ok_or(ScheduleError::UnknownBatch { id })?;
         let lane = &mut self.lanes[batch.dataset];
         lane.outstanding -= 1;
-        lane.retry.push(batch.tasks);
+        lane.retry.push((batch.tasks, batch.attempt));
         Ok(())
     }
 

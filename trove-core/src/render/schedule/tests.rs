@@ -151,6 +151,12 @@ fn abandoned_batches_are_handed_out_again_under_a_new_id_and_late_answers_are_re
     assert_eq!(again.len(), 1);
     assert_ne!(again[0].id, first[0].id);
     assert_eq!(again[0].tasks, first[0].tasks);
+    assert_eq!((first[0].attempt, again[0].attempt), (0, 1), "each re-dispatch counts");
+    s.abandon(again[0].id).unwrap();
+    let third = drain(&mut s, 0);
+    assert_eq!(third[0].attempt, 2);
+    s.abandon(third[0].id).unwrap();
+    let again = drain(&mut s, 0);
     assert_eq!(s.record(first[0].id, &[rgba(0.5)]), Err(ScheduleError::UnknownBatch { id: first[0].id }));
     s.record(again[0].id, &[rgba(0.5)]).unwrap();
     assert_eq!(s.record(again[0].id, &[rgba(0.5)]), Err(ScheduleError::UnknownBatch { id: again[0].id }));

@@ -1,0 +1,156 @@
+//! A job's side of dispatch: the holders of each of its datasets (looked up in the registry
+//! once, then again only when the registry changes or on the driver's tick), the `Cast`
+//! streams it opened, and its batches in flight. Which holder casts a batch is
+//! [`trove_core::render::dispatch::least_loaded`]'s choice; this module only keeps what that
+//! choice and the answers need.
+
+use std::collections::{HashMap, HashSet};
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+use trove_core::render::dispatch::{least_loaded, Load};
+
+use super::super::registry::{Registry, WorkerHandle};
+use super::StreamKey;
+
+/// A batch handed to a worker and not answered yet.
+pub(super) struct InFlight {
+    pub band: usize,
+    /// The scheduler's id of the batch.
+    pub id: u64,
+    pub dataset: usize,
+    pub attempt: u32,
+    pub stream: StreamKey,
+    pub tasks: u64,
+    pub sent: Instant,
+}
+
+/// Why an answer is not taken.
+#[derive(Debug, PartialEq, Eq)]
+pub(super) enum Refused {
+    /// No such batch is in flight: it was given up (and perhaps sent elsewhere), or never sent.
+    Unknown,
+    /// The answer came on another stream than the batch went out on.
+    WrongStream,
+    /// The answer names another attempt of the batch.
+    WrongAttempt { sent: u32, answered: u32 },
+}
+
+/// The job's holders, streams and batches in flight.
+pub(super) struct Dispatch {
+    /// Per dataset: the keys of its files (empty for generated datasets).
+    keys: Vec<Vec<String>>,
+    /// Per dataset: its alive holders, in the registry's (id) order.
+    holders: Vec<Vec<WorkerHandle>>,
+    generation: u64,
+    /// (worker, dataset) pairs this job no longer uses (their stream broke or answered wrongly).
+    unusable: HashSet<StreamKey>,
+    in_flight: HashMap<u64, InFlight>,
+    next_wire: u64,
+}
+
+impl Dispatch {
+    pub fn new(keys: Vec<Vec<String>>) -> Dispatch {
+        let holders = vec![Vec::new(); keys.len()];
+        Dispatch {
+            keys,
+            holders,
+            generation: u64::MAX,
+            unusable: HashSet::new(),
+            in_flight: HashMap::new(),
+            next_wire: 1,
+        }
+    }
+
+    /// Looks the holders of every dataset up again if the registry changed since, or if
+    /// `always` (the tick: heartbeats age without the registry changing).
+    pub fn refresh(&mut self, registry: &Registry, always: bool) {
+        let generation = registry.generation();
+        if !always && generation == self.generation {
+            return;
+        }
+        self.generation = generation;
+        for (d, keys) in self.keys.iter().enumerate() {
+            self.holders[d] = registry
+                .holders(keys)
+                .into_iter()
+                .filter(|w| !self.unusable.contains(&(w.clone(), d)))
+                .filter_map(|w| registry.handle(&w))
+                .collect();
+        }
+    }
+
+    /// Whether dataset `d` has no holder left for this job.
+    pub fn is_orphaned(&self, d: usize) -> bool {
+        self.holders[d].is_empty()
+    }
+
+    /// The holder of dataset `d` that casts its next batch, if one has room.
+    pub fn pick(&self, d: usize) -> Option<&WorkerHandle> {
+        let holders = &self.holders[d];
+        let loads = holders.iter().map(|w| Load { in_flight: w.in_flight.load(Ordering::Relaxed), threads: w.threads });
+        least_loaded(loads).map(|i| &holders[i])
+    }
+
+    /// A fresh wire id for a batch.
+    pub fn next_wire(&mut self) -> u64 {
+        let wire = self.next_wire;
+        self.next_wire += 1;
+        wire
+    }
+
+    /// Notes batch `wire` as sent to `worker`.
+    pub fn sent(&mut self, wire: u64, worker: &WorkerHandle, batch: InFlight) {
+        worker.in_flight.fetch_add(1, Ordering::Relaxed);
+        self.in_flight.insert(wire, batch);
+    }
+
+    /// Takes the answer to batch `wire` (attempt `attempt`) arriving on `stream`, with the
+    /// worker's counters updated; a refused answer leaves the batch in flight.
+    pub fn answered(
+        &mut self,
+        wire: u64,
+        attempt: u32,
+        stream: &StreamKey,
+        worker: Option<&WorkerHandle>,
+    ) -> Result<InFlight, Refused> {
+        let batch = self.in_flight.get(&wire).ok_or(Refused::Unknown)?;
+        if batch.stream != *stream {
+            return Err(Refused::WrongStream);
+        }
+        if batch.attempt != attempt {
+            return Err(Refused::WrongAttempt { sent: batch.attempt, answered: attempt });
+        }
+        let batch = self.in_flight.remove(&wire).expect("looked up above");
+        if let Some(w) = worker {
+            w.in_flight.fetch_sub(1, Ordering::Relaxed);
+            w.done.fetch_add(1, Ordering::Relaxed);
+        }
+        Ok(batch)
+    }
+
+    /// Stops using `stream` for this job; returns its batches in flight, with the worker's
+    /// count given back, for the caller to hand to their schedulers again.
+    pub fn lose(&mut self, stream: &StreamKey, worker: Option<&WorkerHandle>) -> Vec<InFlight> {
+        let wires: Vec<u64> = self.in_flight.iter().filter(|(_, b)| b.stream == *stream).map(|(&w, _)| w).collect();
+        let lost: Vec<InFlight> = wires.into_iter().filter_map(|w| self.in_flight.remove(&w)).collect();
+        if let Some(w) = worker {
+            w.in_flight.fetch_sub(lost.len() as u64, Ordering::Relaxed);
+        }
+        self.unusable.insert(stream.clone());
+        if let Some(holders) = self.holders.get_mut(stream.1) {
+            holders.retain(|w| w.id != stream.0);
+        }
+        lost
+    }
+
+    /// The streams with a batch older than `deadline`.
+    pub fn overdue(&self, deadline: Duration) -> HashSet<StreamKey> {
+        self.in_flight.values().filter(|b| b.sent.elapsed() > deadline).map(|b| b.stream.clone()).collect()
+    }
+
+    /// Whether `stream` has batches in flight.
+    pub fn has_batches_on(&self, stream: &StreamKey) -> bool {
+        self.in_flight.values().any(|b| b.stream == *stream)
+    }
+}

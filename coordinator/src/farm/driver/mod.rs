@@ -1,0 +1,566 @@
+//! One job, driven to its end: the farm's driver of `trove-core`'s [`Scheduler`].
+//!
+//! The image is worked through in *bands* of rows ([`bands`]): the coordinator holds only
+//! the pieces of the bands in flight, as many as [`DriverConfig::memory_bound`] and
+//! [`DriverConfig::max_bands`] admit, started in an order spread over the image so that
+//! many datasets are busy at once. For each band the driver runs the intersection phase
+//! (from dataset headers only — it never reads a voxel), hands the scheduler's ready
+//! batches to the workers that hold each dataset ([`dispatch`], under the policy of
+//! `trove_core::render::dispatch`) over one `Cast` stream per worker and dataset, records
+//! the results as they come back in any order, and composites the band into the image with
+//! the same code as local mode. Datasets stay resident on their workers from band to band.
+//!
+//! Everything that happens to a job arrives on one channel of [`Event`]s — a band
+//! intersected or composited (on blocking threads), an answer or the end of a stream — and
+//! is handled by this one task, so the job's state needs no locks. The work per piece
+//! (intersection, planning, composition) runs on the blocking threads; the task itself only
+//! moves batches, and finds the ones ready without scanning: a (band, dataset) pair is
+//! looked at again only when something happened to it.
+//!
+//! A batch is identified by its wire id (unique in the job) and its attempt (how many times
+//! its tasks were given up before); an answer is taken only on the stream the batch went
+//! out on and for the attempt it was, so answers to a batch that was given up are dropped.
+//! A worker that stops answering (its stream breaks, it misses heartbeats, or a batch
+//! outlives [`DriverConfig::batch_deadline`]) has its batches handed to another holder of
+//! the dataset; a job fails only when no holder is left, when a batch has been given up
+//! [`DriverConfig::max_attempts`] times, or when a worker reports a failure that retrying
+//! cannot fix.
+
+mod bands;
+mod dispatch;
+mod error;
+mod tally;
+
+use std::collections::BTreeSet;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use prost::Message;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::Status;
+use trove_core::render::dispatch::Admission;
+use trove_core::render::intersection::intersect;
+use trove_core::render::wire::{decode_results, encode_tasks};
+use trove_core::render::{quantize, Algorithm, Batch, Scheduler};
+use trove_core::scene::Scene;
+use trove_proto::convert::{self, JOB_HEADER};
+use trove_proto::v1 as pb;
+use trove_proto::v1::worker_client::WorkerClient;
+
+use super::jobs::{Job, JobOutput};
+use super::registry::{Registry, WorkerHandle};
+use bands::{Bands, Composited};
+use dispatch::{Dispatch, InFlight};
+pub use error::JobError;
+use tally::Tally;
+
+/// Tasks per batch when the job does not say.
+pub const DEFAULT_BATCH_TASKS: usize = 4096;
+
+/// How the driver treats workers and how much of an image it holds.
+#[derive(Clone, Debug)]
+pub struct DriverConfig {
+    /// A batch not answered within this is given up and handed to another holder.
+    pub batch_deadline: Duration,
+    /// Bands whose pieces a job holds at once, at most.
+    pub max_bands: usize,
+    /// Bytes of band bookkeeping (tasks, results, fronts) a job holds at once, at most; one
+    /// band is always admitted. The image itself is not counted.
+    pub memory_bound: u64,
+    /// Dispatches of one batch before the job fails.
+    pub max_attempts: u32,
+}
+
+impl Default for DriverConfig {
+    fn default() -> Self {
+        DriverConfig {
+            batch_deadline: Duration::from_secs(120),
+            max_bands: 8,
+            memory_bound: 256 << 20,
+            max_attempts: 5,
+        }
+    }
+}
+
+/// A validated job, ready to run.
+pub struct JobPlan {
+    /// The scene, validated against the workers' headers.
+    pub scene: Arc<Scene>,
+    /// Its text and name, sent to each worker once per stream.
+    pub scene_toml: String,
+    /// The scene file's name, for messages.
+    pub scene_name: String,
+    /// The client's options.
+    pub options: pb::JobOptions,
+    /// The registrations of every file the scene names.
+    pub headers: Vec<pb::DatasetFile>,
+    /// Per dataset: the keys of its files (empty for generated datasets).
+    pub dataset_keys: Vec<Vec<String>>,
+}
+
+/// A `Cast` stream: (worker id, dataset).
+type StreamKey = (String, usize);
+
+/// What happens to a job.
+enum Event {
+    Intersected {
+        band: usize,
+        scheduler: Box<Scheduler>,
+        seconds: f64,
+    },
+    Composited {
+        band: usize,
+        part: Box<Composited>,
+    },
+    Answer {
+        stream: StreamKey,
+        response: pb::CastResponse,
+        bytes: u64,
+    },
+    StreamEnded {
+        stream: StreamKey,
+        status: Option<Status>,
+    },
+    /// A step that ran off the event loop failed; the job cannot go on.
+    Failed(JobError),
+}
+
+struct Stream {
+    tx: mpsc::Sender<pb::CastRequest>,
+    worker: WorkerHandle,
+}
+
+struct Driver {
+    plan: JobPlan,
+    job: Arc<Job>,
+    registry: Arc<Registry>,
+    config: DriverConfig,
+    events: mpsc::Sender<Event>,
+    bands: Bands,
+    batch_tasks: usize,
+    dispatch: Dispatch,
+    streams: std::collections::HashMap<StreamKey, Stream>,
+    /// (band start order, band, dataset) pairs that may have a batch to hand out: a pair
+    /// leaves when its dataset has nothing ready and comes back when an answer or a lost
+    /// batch could change that.
+    ready: BTreeSet<(usize, usize, usize)>,
+    tally: Tally,
+}
+
+/// Runs `plan` as `job` until it succeeds, fails or is cancelled, leaving the outcome in the
+/// job's status (and its files in the job).
+pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: DriverConfig) {
+    let span = tracing::info_span!("job", id = %job.id);
+    let _entered = span.enter();
+    let started = Instant::now();
+    let (events, mut inbox) = mpsc::channel(1024);
+    let (w, h) = (plan.scene.image().width, plan.scene.image().height);
+    let band_rows = Bands::rows_per_band(plan.options.band_rows, w, h);
+    let batch_tasks = match plan.options.batch_tasks {
+        0 => DEFAULT_BATCH_TASKS,
+        n => (n as usize).min(trove_proto::MAX_BATCH_TASKS),
+    };
+    let admission = Admission { max_bands: config.max_bands.max(1), memory_bound: config.memory_bound };
+    let mut driver = Driver {
+        bands: Bands::new(w, h, band_rows, admission, plan.options.want_pfm),
+        dispatch: Dispatch::new(plan.dataset_keys.clone()),
+        plan,
+        job: job.clone(),
+        registry,
+        config,
+        events,
+        batch_tasks,
+        streams: Default::default(),
+        ready: BTreeSet::new(),
+        tally: Tally::default(),
+    };
+    job.update(|s| {
+        s.state = pb::JobState::Running as i32;
+        s.phase = pb::Phase::Intersection as i32;
+        s.rows_total = h;
+    });
+    let mut cancelled = job.cancelled();
+    let mut tick = tokio::time::interval(Duration::from_millis(250));
+    let outcome = loop {
+        if let Err(e) = driver.advance() {
+            break Err(e);
+        }
+        if driver.bands.is_done() {
+            break Ok(());
+        }
+        tokio::select! {
+            event = inbox.recv() => {
+                let Some(event) = event else { break Err(JobError::Internal("the job's event channel closed".into())) };
+                if let Err(e) = driver.handle(event) {
+                    break Err(e);
+                }
+            }
+            _ = cancelled.changed() => break Err(JobError::Cancelled),
+            _ = tick.tick() => driver.check_workers(),
+        }
+    };
+    // Closing every stream tells the workers to drop what they still hold for this job, and
+    // gives back to their load counts, shared with other jobs, what this job still had out.
+    let open: Vec<StreamKey> = driver.streams.keys().cloned().collect();
+    for stream in &open {
+        driver.lose_stream(stream);
+    }
+    let outcome = match outcome {
+        Ok(()) => driver.finish(started).await,
+        Err(e) => Err(e),
+    };
+    if let Err(e) = outcome {
+        let state = if e.is_cancel() { pb::JobState::Cancelled } else { pb::JobState::Failed };
+        let failure = e.to_failure();
+        tracing::warn!(reason = ?failure.reason(), message = %failure.message, "job ended");
+        job.update(|s| {
+            s.state = state as i32;
+            s.failure = Some(failure);
+        });
+    }
+}
+
+impl Driver {
+    fn scene(&self) -> &Arc<Scene> {
+        &self.plan.scene
+    }
+
+    /// Starts intersecting new bands while admission allows, then hands out every batch
+    /// some worker has room for.
+    fn advance(&mut self) -> Result<(), JobError> {
+        while let Some((band, rows)) = self.bands.start_next() {
+            let (scene, events, batch_tasks) = (self.scene().clone(), self.events.clone(), self.batch_tasks);
+            tokio::task::spawn_blocking(move || {
+                let started = Instant::now();
+                let inter = intersect(&scene, rows.clone());
+                let event = match Scheduler::new(&scene, inter, batch_tasks) {
+                    Ok(scheduler) => {
+                        let seconds = started.elapsed().as_secs_f64();
+                        Event::Intersected { band, scheduler: Box::new(scheduler), seconds }
+                    }
+                    Err(source) => Event::Failed(JobError::Band { rows, source }),
+                };
+                let _ = events.blocking_send(event);
+            });
+        }
+        self.dispatch_ready()
+    }
+
+    /// Hands out ready batches, earliest started band first, each to the least loaded
+    /// holder of its dataset that has room; then composites every band that asking for
+    /// batches completed (its last tasks can be culled rather than cast, so no answer would
+    /// complete it).
+    fn dispatch_ready(&mut self) -> Result<(), JobError> {
+        self.dispatch.refresh(&self.registry, false);
+        let pairs: Vec<(usize, usize, usize)> = self.ready.iter().copied().collect();
+        let mut touched = Vec::new();
+        for pair @ (_, band, d) in pairs {
+            loop {
+                let Some((_, scheduler)) = self.bands.casting(band) else {
+                    self.ready.remove(&pair);
+                    break;
+                };
+                if scheduler.is_dataset_done(d) {
+                    self.ready.remove(&pair);
+                    touched.push(band);
+                    break;
+                }
+                if self.dispatch.is_orphaned(d) {
+                    return Err(JobError::NoHolder { dataset: self.scene().datasets()[d].name().to_string() });
+                }
+                let Some(worker) = self.dispatch.pick(d).cloned() else { break };
+                let Some((_, scheduler)) = self.bands.casting(band) else { break };
+                let Some(batch) = scheduler.next_batch(d) else {
+                    self.ready.remove(&pair);
+                    touched.push(band);
+                    break;
+                };
+                if batch.attempt >= self.config.max_attempts {
+                    let dataset = self.scene().datasets()[d].name().to_string();
+                    return Err(JobError::TooManyAttempts { dataset, attempts: batch.attempt });
+                }
+                self.send(band, worker, batch);
+            }
+        }
+        touched.sort_unstable();
+        touched.dedup();
+        for band in touched {
+            self.composite_if_complete(band);
+        }
+        Ok(())
+    }
+
+    /// Marks every dataset of `band` as possibly ready.
+    fn wake_band(&mut self, band: usize) {
+        if let Some((seq, scheduler)) = self.bands.casting(band) {
+            let datasets = scheduler.datasets().to_vec();
+            self.ready.extend(datasets.into_iter().map(|d| (seq, band, d)));
+        }
+    }
+
+    /// Sends `batch` of band `band` to `worker`'s stream for its dataset.
+    fn send(&mut self, band: usize, worker: WorkerHandle, batch: Batch) {
+        let key = (worker.id.clone(), batch.dataset);
+        if !self.streams.contains_key(&key) {
+            self.open(&worker, batch.dataset);
+        }
+        let wire = self.dispatch.next_wire();
+        let _span = tracing::debug_span!("batch", wire, dataset = batch.dataset, attempt = batch.attempt, worker = %worker.id, tasks = batch.tasks.len()).entered();
+        let request = pb::CastRequest {
+            kind: Some(pb::cast_request::Kind::Batch(pb::CastBatch {
+                batch_id: wire,
+                attempt: batch.attempt,
+                tasks: encode_tasks(&batch.tasks),
+            })),
+        };
+        self.tally.wire_to += request.encoded_len() as u64;
+        let stream = self.streams.get(&key).expect("opened above");
+        if stream.tx.try_send(request).is_err() {
+            // The stream's reader is gone or its queue is full: give the batch back.
+            if let Some((seq, scheduler)) = self.bands.casting(band) {
+                let _ = scheduler.abandon(batch.id);
+                self.ready.insert((seq, band, batch.dataset));
+            }
+            self.lose_stream(&key);
+            return;
+        }
+        let in_flight = InFlight {
+            band,
+            id: batch.id,
+            dataset: batch.dataset,
+            attempt: batch.attempt,
+            stream: key,
+            tasks: batch.tasks.len() as u64,
+            sent: Instant::now(),
+        };
+        self.dispatch.sent(wire, &worker, in_flight);
+        if self.tally.cast_started.is_none() {
+            self.tally.cast_started = Some(Instant::now());
+            self.job.update(|s| s.phase = pb::Phase::VolumeRendering as i32);
+        }
+    }
+
+    /// Opens the `Cast` stream to `worker` for dataset `d`: the scene first, then batches.
+    fn open(&mut self, worker: &WorkerHandle, d: usize) {
+        let (tx, rx) = mpsc::channel(256);
+        let open = pb::CastRequest {
+            kind: Some(pb::cast_request::Kind::Open(pb::CastOpen {
+                job_id: self.job.id.clone(),
+                scene_toml: self.plan.scene_toml.clone(),
+                scene_name: self.plan.scene_name.clone(),
+                dataset: d as u32,
+                headers: self.plan.headers.clone(),
+            })),
+        };
+        self.tally.wire_to += open.encoded_len() as u64;
+        let _ = tx.try_send(open);
+        let key = (worker.id.clone(), d);
+        let mut client = WorkerClient::new(worker.channel.clone())
+            .max_decoding_message_size(trove_proto::MAX_MESSAGE_BYTES)
+            .max_encoding_message_size(trove_proto::MAX_MESSAGE_BYTES);
+        let mut request = tonic::Request::new(ReceiverStream::new(rx));
+        if let Ok(value) = self.job.id.parse() {
+            request.metadata_mut().insert(JOB_HEADER, value);
+        }
+        let events = self.events.clone();
+        let stream_key = key.clone();
+        tokio::spawn(async move {
+            let status = match client.cast(request).await {
+                Ok(response) => {
+                    let mut inbound = response.into_inner();
+                    loop {
+                        match inbound.message().await {
+                            Ok(Some(response)) => {
+                                let bytes = response.encoded_len() as u64;
+                                let stream = stream_key.clone();
+                                if events.send(Event::Answer { stream, response, bytes }).await.is_err() {
+                                    return;
+                                }
+                            }
+                            Ok(None) => break None,
+                            Err(status) => break Some(status),
+                        }
+                    }
+                }
+                Err(status) => Some(status),
+            };
+            let _ = events.send(Event::StreamEnded { stream: stream_key, status }).await;
+        });
+        self.streams.insert(key, Stream { tx, worker: worker.clone() });
+    }
+
+    fn handle(&mut self, event: Event) -> Result<(), JobError> {
+        match event {
+            Event::Failed(e) => Err(e),
+            Event::Intersected { band, scheduler, seconds } => {
+                let inter = scheduler.intersections();
+                self.tally.stats.segments += inter.segments;
+                self.tally.stats.pieces += inter.pieces() as u64;
+                self.tally.stats.seconds.intersection += seconds;
+                let total = scheduler.progress().total;
+                self.job.update(|s| s.pieces_total += total);
+                self.bands.intersected(band, scheduler);
+                self.wake_band(band);
+                self.composite_if_complete(band);
+                Ok(())
+            }
+            Event::Composited { band, part } => {
+                self.bands.place(band, &part);
+                self.tally.stats.samples_skipped += part.samples_skipped;
+                self.tally.stats.seconds.composition += part.seconds;
+                let rows_done = self.bands.rows_done;
+                self.job.update(|s| s.rows_done = rows_done);
+                self.tally.publish(&self.job, self.bands.tasks_done());
+                Ok(())
+            }
+            Event::Answer { stream, response, bytes } => {
+                self.tally.wire_from += bytes;
+                match response.kind {
+                    Some(pb::cast_response::Kind::Result(result)) => {
+                        self.record(&stream, result);
+                        Ok(())
+                    }
+                    Some(pb::cast_response::Kind::Failure(failure)) => self.failed(&stream, failure),
+                    None => Ok(()),
+                }
+            }
+            Event::StreamEnded { stream, status } => {
+                if let Some(failure) = status.as_ref().and_then(convert::status_failure) {
+                    if !failure.retryable {
+                        return Err(JobError::Worker { worker: stream.0.clone(), failure: Box::new(failure) });
+                    }
+                }
+                if self.streams.contains_key(&stream) || self.dispatch.has_batches_on(&stream) {
+                    tracing::warn!(worker = %stream.0, dataset = stream.1, status = ?status.map(|s| s.code()), "stream ended");
+                    self.lose_stream(&stream);
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// A batch's results: recorded in its band's scheduler; the band is composited once
+    /// complete. An answer to a batch given up, on another stream or for another attempt,
+    /// is dropped; one that does not decode or record loses the stream its batch came on.
+    fn record(&mut self, stream: &StreamKey, result: pb::BatchResult) {
+        let worker = self.streams.get(stream).map(|s| s.worker.clone());
+        let batch = match self.dispatch.answered(result.batch_id, result.attempt, stream, worker.as_ref()) {
+            Ok(batch) => batch,
+            Err(why) => {
+                tracing::debug!(wire = result.batch_id, worker = %stream.0, ?why, "answer not taken; dropped");
+                return;
+            }
+        };
+        let _span = tracing::debug_span!("batch", wire = result.batch_id, worker = %stream.0).entered();
+        let Some((seq, scheduler)) = self.bands.casting(batch.band) else { return };
+        let recorded = match decode_results(&result.results) {
+            Ok(results) => scheduler.record(batch.id, &results).map_err(|e| e.to_string()),
+            Err(e) => Err(format!("undecodable results: {e}")),
+        };
+        if let Err(e) = recorded {
+            // A worker that answers nonsense is not trusted with more of this job.
+            tracing::warn!(worker = %stream.0, error = %e, "refused an answer");
+            let _ = scheduler.abandon(batch.id);
+            self.ready.insert((seq, batch.band, batch.dataset));
+            self.lose_stream(stream);
+            return;
+        }
+        self.ready.insert((seq, batch.band, batch.dataset));
+        self.tally.answered(&stream.0, batch.tasks, &result);
+        self.composite_if_complete(batch.band);
+    }
+
+    /// A worker's failure report: a batch it cannot cast, or the stream as a whole.
+    fn failed(&mut self, stream: &StreamKey, failure: pb::Failure) -> Result<(), JobError> {
+        if !failure.retryable {
+            return Err(JobError::Worker { worker: stream.0.clone(), failure: Box::new(failure) });
+        }
+        tracing::warn!(worker = %stream.0, reason = ?failure.reason(), message = %failure.message, "worker failed a batch; retrying elsewhere");
+        self.lose_stream(stream);
+        Ok(())
+    }
+
+    /// Stops using `stream` for this job: its batches go back to their schedulers, to be
+    /// handed to another holder.
+    fn lose_stream(&mut self, stream: &StreamKey) {
+        let worker = self.streams.remove(stream).map(|s| s.worker);
+        for batch in self.dispatch.lose(stream, worker.as_ref()) {
+            if let Some((seq, scheduler)) = self.bands.casting(batch.band) {
+                let _ = scheduler.abandon(batch.id);
+                self.ready.insert((seq, batch.band, batch.dataset));
+            }
+        }
+    }
+
+    /// The tick: gives up on workers that missed their heartbeats and on batches past their
+    /// deadline, looks holders up again (heartbeats age without the registry changing), and
+    /// publishes the job's progress.
+    fn check_workers(&mut self) {
+        let mut lost = self.dispatch.overdue(self.config.batch_deadline);
+        lost.extend(self.streams.keys().filter(|(w, _)| !self.registry.is_alive(w)).cloned());
+        for stream in lost {
+            tracing::warn!(worker = %stream.0, dataset = stream.1, "worker silent; its batches go elsewhere");
+            self.lose_stream(&stream);
+        }
+        self.dispatch.refresh(&self.registry, true);
+        // A worker that joined, or one that freed room for another job, may take batches
+        // that no holder had room for.
+        let casting: Vec<usize> = self.bands.casting_bands().map(|(b, _)| b).collect();
+        for band in casting {
+            self.wake_band(band);
+        }
+        self.tally.publish(&self.job, self.bands.tasks_done());
+    }
+
+    /// Composites band `band` on a blocking thread if its every task is cast or culled.
+    fn composite_if_complete(&mut self, band: usize) {
+        let Some((rows, scheduler)) = self.bands.take_complete(band) else { return };
+        self.job.update(|s| s.phase = pb::Phase::Composition as i32);
+        let (scene, events, want_pfm) = (self.scene().clone(), self.events.clone(), self.plan.options.want_pfm);
+        tokio::task::spawn_blocking(move || {
+            let started = Instant::now();
+            let pixels = scheduler.composite_pixels(scene.image().background);
+            let rgb8 = pixels.iter().flat_map(|p| p.map(quantize)).collect();
+            let rgb32f = want_pfm.then(|| pixels.iter().flat_map(|p| p.map(|c| c as f32)).collect());
+            let samples_skipped = scheduler.culled_samples(&scene);
+            drop(scheduler);
+            let part = Composited { rows, rgb8, rgb32f, samples_skipped, seconds: started.elapsed().as_secs_f64() };
+            let _ = events.blocking_send(Event::Composited { band, part: Box::new(part) });
+        });
+    }
+
+    /// Encodes the image and statistics and marks the job succeeded.
+    async fn finish(self, started: Instant) -> Result<(), JobError> {
+        self.job.update(|s| s.phase = pb::Phase::Encoding as i32);
+        let Driver { plan, job, bands, mut tally, .. } = self;
+        if let Some(cast) = tally.cast_started {
+            tally.stats.seconds.volume_rendering =
+                (cast.elapsed().as_secs_f64() - tally.stats.seconds.composition).max(0.0);
+        }
+        let (w, h) = (plan.scene.image().width, plan.scene.image().height);
+        let tasks = bands.tasks_composited;
+        let (rgb8, rgb32f) = bands.into_image();
+        let encoded = tokio::task::spawn_blocking(move || {
+            let png = trove_core::render::encode_png(w, h, &rgb8);
+            let pfm = rgb32f.map(|f| trove_core::render::encode_pfm(w, h, &f));
+            (png, pfm)
+        })
+        .await
+        .map_err(|e| JobError::Internal(format!("encoding the image: {e}")))?;
+        let png = encoded.0.map_err(JobError::Encode)?;
+        let pfm = encoded.1;
+        let mut stats = std::mem::take(&mut tally.stats);
+        stats.finish(&plan.scene, Algorithm::Grouped, &tally.store, None, started.elapsed().as_secs_f64());
+        let stats_json = tally.into_stats(stats).to_json();
+        job.set_output(JobOutput { png, pfm, stats_json });
+        job.update(|s| {
+            s.state = pb::JobState::Succeeded as i32;
+            s.phase = pb::Phase::Done as i32;
+            s.pieces_done = tasks;
+            s.rows_done = h;
+        });
+        tracing::info!(seconds = started.elapsed().as_secs_f64(), "job succeeded");
+        Ok(())
+    }
+}

@@ -1,0 +1,164 @@
+//! The dispatch policy of Algorithm 2's drivers, in one place: how many batches a caster may
+//! have in flight, which of a dataset's holders casts the next batch, how many bands of the
+//! image are admitted at once and in what order. The farm's coordinator and `trove-bench
+//! farm-sim` both call it, so the simulation cannot drift from the code it models; it knows
+//! no clocks, sockets or threads, so its unit tests are exact.
+
+/// Batches a worker of `threads` threads may have in flight at once: enough that its
+/// threads stay busy while answers travel (two per thread), few enough that culling, which
+/// needs answers in front, still saves work.
+pub fn capacity(threads: u32) -> u64 {
+    (2 * threads as u64).max(4)
+}
+
+/// What the policy needs to know of one candidate caster of a batch.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Load {
+    /// Batches it has in flight, over every job it serves.
+    pub in_flight: u64,
+    /// Its threads.
+    pub threads: u32,
+}
+
+impl Load {
+    /// Whether it has room for another batch.
+    pub fn has_room(&self) -> bool {
+        self.in_flight < capacity(self.threads)
+    }
+}
+
+/// The index of the candidate that casts the next batch: of those with room, the one with
+/// the fewest batches in flight relative to its capacity (a worker of 16 threads with 8
+/// batches out is as busy as one of 8 threads with 4); ties go to the earlier candidate, so
+/// a caller that lists holders in a fixed order gets a deterministic choice. `None` when
+/// every candidate is full (the batch waits for an answer).
+pub fn least_loaded(candidates: impl IntoIterator<Item = Load>) -> Option<usize> {
+    let mut best: Option<(usize, Load)> = None;
+    for (i, c) in candidates.into_iter().enumerate() {
+        if !c.has_room() {
+            continue;
+        }
+        // c is less loaded than b when c.in_flight / cap(c) < b.in_flight / cap(b).
+        let less = |b: &Load| {
+            let (mine, theirs) =
+                (c.in_flight as u128 * capacity(b.threads) as u128, b.in_flight as u128 * capacity(c.threads) as u128);
+            mine < theirs
+        };
+        if best.as_ref().is_none_or(|(_, b)| less(b)) {
+            best = Some((i, c));
+        }
+    }
+    best.map(|(i, _)| i)
+}
+
+/// How much of an image a driver works on at once.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Admission {
+    /// Bands whose pieces are held at once, at most.
+    pub max_bands: usize,
+    /// Bytes of band bookkeeping (tasks, results, fronts: [`crate::render::Scheduler::heap_bytes`])
+    /// held at once, at most; one band is always admitted, however large.
+    pub memory_bound: u64,
+}
+
+impl Admission {
+    /// Whether another band, expected to take `next` bytes, may start while `bands` bands
+    /// holding `held` bytes are in flight.
+    pub fn admits(&self, bands: usize, held: u64, next: u64) -> bool {
+        bands == 0 || (bands < self.max_bands && held.saturating_add(next) <= self.memory_bound)
+    }
+}
+
+/// The order in which a driver starts `bands` bands of rows: the bit-reversed
+/// (van der Corput) order, so that the bands in flight at any time are spread over the
+/// image, and so over more of its datasets, instead of being neighbours that meet the same
+/// few. Every band appears once.
+pub fn band_order(bands: usize) -> Vec<usize> {
+    if bands <= 1 {
+        return (0..bands).collect();
+    }
+    let bits = usize::BITS - (bands - 1).leading_zeros();
+    (0..1usize << bits).map(|i| i.reverse_bits() >> (usize::BITS - bits)).filter(|&b| b < bands).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn load(in_flight: u64, threads: u32) -> Load {
+        Load { in_flight, threads }
+    }
+
+    #[test]
+    fn capacity_is_two_batches_per_thread_and_at_least_four() {
+        assert_eq!(capacity(1), 4);
+        assert_eq!(capacity(2), 4);
+        assert_eq!(capacity(3), 6);
+        assert_eq!(capacity(16), 32);
+    }
+
+    #[test]
+    fn the_least_loaded_candidate_with_room_is_chosen() {
+        assert_eq!(least_loaded([load(3, 2), load(1, 2), load(2, 2)]), Some(1));
+        // Full candidates are passed over even when they are first.
+        assert_eq!(least_loaded([load(4, 2), load(3, 2)]), Some(1));
+        assert_eq!(least_loaded([load(4, 2), load(4, 1)]), None);
+        assert_eq!(least_loaded(std::iter::empty()), None);
+    }
+
+    #[test]
+    fn load_is_relative_to_capacity_and_ties_go_to_the_first() {
+        // 8 of 32 is a quarter; 2 of 4 is a half.
+        assert_eq!(least_loaded([load(2, 2), load(8, 16)]), Some(1));
+        // 2 of 4 and 16 of 32 are both half: the first wins.
+        assert_eq!(least_loaded([load(16, 16), load(2, 2)]), Some(0));
+        assert_eq!(least_loaded([load(0, 2), load(0, 8)]), Some(0));
+    }
+
+    #[test]
+    fn a_replica_with_room_takes_the_batch_a_full_holder_cannot() {
+        // A dataset held by three workers: the busy one is skipped, the idle one chosen.
+        let holders = [load(4, 2), load(1, 2), load(0, 2)];
+        assert_eq!(least_loaded(holders), Some(2));
+    }
+
+    #[test]
+    fn a_worker_joining_mid_job_gets_the_next_batches() {
+        // Two workers at 3 of 4; a new one registers with nothing in flight: it gets batches
+        // until it is as loaded as the others.
+        let mut holders = vec![load(3, 2), load(3, 2)];
+        assert_eq!(least_loaded(holders.iter().copied()), Some(0));
+        holders.push(load(0, 2));
+        for expected_in_flight in 0..3 {
+            let pick = least_loaded(holders.iter().copied()).unwrap();
+            assert_eq!(pick, 2, "after {expected_in_flight} batches");
+            holders[pick].in_flight += 1;
+        }
+        assert_eq!(least_loaded(holders.iter().copied()), Some(0));
+    }
+
+    #[test]
+    fn admission_holds_one_band_always_and_more_within_the_bounds() {
+        let a = Admission { max_bands: 3, memory_bound: 100 };
+        assert!(a.admits(0, 0, 1000), "the first band, however large");
+        assert!(a.admits(1, 40, 60));
+        assert!(!a.admits(1, 40, 61), "over the memory bound");
+        assert!(!a.admits(3, 0, 0), "over the band count");
+        assert!(!a.admits(2, u64::MAX, 1), "no overflow");
+    }
+
+    #[test]
+    fn band_order_visits_every_band_once_spread_over_the_image() {
+        for n in 0..70 {
+            let order = band_order(n);
+            let mut sorted = order.clone();
+            sorted.sort_unstable();
+            assert_eq!(sorted, (0..n).collect::<Vec<_>>(), "{n} bands");
+        }
+        assert_eq!(band_order(8), [0, 4, 2, 6, 1, 5, 3, 7]);
+        assert_eq!(band_order(5), [0, 4, 2, 1, 3]);
+        // The first bands started are far apart: the first two are half the image apart.
+        let order = band_order(64);
+        assert_eq!(order[1] - order[0], 32);
+    }
+}
