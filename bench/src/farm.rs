@@ -72,14 +72,14 @@ fn run_in(args: &Args, bin: &Binaries, dir: &Path) -> Result<()> {
         cases.push(fig01_case(&args.data_root, args.fig01_size, dir)?);
     }
     println!(
-        "| scene | workers | local s (median) | farm s (median) | farm / local | pieces | bytes/piece to workers | bytes/piece back | coordinator peak RSS | same PNG |"
+        "| scene | workers | local s (median) | farm s (median) | farm / local | pieces | bytes/piece to workers | bytes/piece back | coordinator CPU ns/piece | workers' CPU ns/piece | coordinator peak RSS | same PNG |"
     );
-    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---|");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|");
     for case in &cases {
         for &n in &args.workers {
             let row = measure(bin, case, n, args.repeat, dir)?;
             println!(
-                "| {} | {n} | {:.3} | {:.3} | {:.2} | {} | {:.1} | {:.1} | {:.0} MiB | {} |",
+                "| {} | {n} | {:.3} | {:.3} | {:.2} | {} | {:.1} | {:.1} | {:.0} | {:.0} | {:.0} MiB | {} |",
                 case.name,
                 row.local,
                 row.farm,
@@ -87,6 +87,8 @@ fn run_in(args: &Args, bin: &Binaries, dir: &Path) -> Result<()> {
                 row.pieces,
                 row.to_workers as f64 / row.pieces.max(1) as f64,
                 row.from_workers as f64 / row.pieces.max(1) as f64,
+                row.coordinator_ns_per_piece,
+                row.workers_ns_per_piece,
                 row.coordinator_peak as f64 / (1 << 20) as f64,
                 if row.identical { "yes" } else { "NO" },
             );
@@ -155,6 +157,11 @@ struct Row {
     to_workers: u64,
     from_workers: u64,
     coordinator_peak: u64,
+    /// CPU time (user + system, every thread) the coordinator process spent over the farm
+    /// renders, per piece rendered.
+    coordinator_ns_per_piece: f64,
+    /// The same for the worker processes together.
+    workers_ns_per_piece: f64,
     identical: bool,
 }
 
@@ -164,9 +171,13 @@ fn measure(bin: &Binaries, case: &Case, workers: u32, repeat: u32, dir: &Path) -
     farm.wait_until_ready(bin, &case.scene, &farm_png)?;
     let (mut local, mut remote) = (Vec::new(), Vec::new());
     let mut identical = true;
+    let (mut coordinator_cpu, mut workers_cpu) = (0.0, 0.0);
     for _ in 0..repeat {
         local.push(bin.render(&case.scene, &local_png, &[])?);
+        let before = (farm.coordinator_cpu()?, farm.workers_cpu()?);
         remote.push(bin.render(&case.scene, &farm_png, &["--coordinator", &farm.url, "--stats", path_str(&stats)?])?);
+        coordinator_cpu += farm.coordinator_cpu()? - before.0;
+        workers_cpu += farm.workers_cpu()? - before.1;
         identical &= std::fs::read(&local_png)? == std::fs::read(&farm_png)?;
         eprintln!(
             "{} / {workers} workers: local {:.3} s, farm {:.3} s",
@@ -177,7 +188,10 @@ fn measure(bin: &Binaries, case: &Case, workers: u32, repeat: u32, dir: &Path) -
     }
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(&stats)?)?;
     let count = |key: &str| json[key].as_u64().with_context(|| format!("the farm's statistics have no `{key}`"));
+    let pieces_rendered = (count("pieces")? * repeat as u64).max(1) as f64;
     Ok(Row {
+        coordinator_ns_per_piece: coordinator_cpu * 1e9 / pieces_rendered,
+        workers_ns_per_piece: workers_cpu * 1e9 / pieces_rendered,
         local: median(&mut local),
         farm: median(&mut remote),
         pieces: count("pieces")?,
@@ -312,6 +326,16 @@ impl Farm {
         }
     }
 
+    /// CPU seconds (user + system, all threads) the coordinator has used so far.
+    fn coordinator_cpu(&self) -> Result<f64> {
+        cpu_seconds(self.coordinator.id())
+    }
+
+    /// CPU seconds the workers have used so far, together.
+    fn workers_cpu(&self) -> Result<f64> {
+        self.workers.iter().map(|w| cpu_seconds(w.id())).sum()
+    }
+
     /// The coordinator's peak resident set so far (`VmHWM`), in bytes.
     fn coordinator_peak(&self) -> Result<u64> {
         let status = std::fs::read_to_string(format!("/proc/{}/status", self.coordinator.id()))
@@ -329,6 +353,20 @@ impl Drop for Farm {
             let _ = child.wait();
         }
     }
+}
+
+/// CPU seconds (user + system over every thread) process `pid` has used: fields 14 and 15
+/// of `/proc/PID/stat`, in clock ticks of 1/100 s (Linux's `USER_HZ` on every platform it
+/// runs on).
+fn cpu_seconds(pid: u32) -> Result<f64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).context("reading /proc/PID/stat (Linux only)")?;
+    // The command name (field 2) is in parentheses and may hold spaces: count after it.
+    let after = stat.rsplit_once(')').context("a /proc stat line without `)`")?.1;
+    let fields: Vec<&str> = after.split_whitespace().collect();
+    let ticks =
+        |i: usize| -> Result<f64> { Ok(fields.get(i).context("a short /proc stat line")?.parse::<u64>()? as f64) };
+    // Field 3 (the state) is fields[0], so field n is fields[n - 3].
+    Ok((ticks(11)? + ticks(12)?) / 100.0)
 }
 
 /// Where a server's log goes: `$TROVE_BENCH_LOGS/NAME-PID.log` when that variable names a

@@ -135,7 +135,7 @@ fn run_in(args: &Args, dir: &Path) -> Result<()> {
         }
     }
     let shared = load_scene(dir, &texts[1])?;
-    let budgeted = |algorithm| RenderOptions { algorithm, memory_budget: Some(budget), progress: None };
+    let budgeted = |algorithm| RenderOptions { algorithm, memory_budget: Some(budget), ..Default::default() };
     if args.shared_only {
         return shared_only(&shared, &budgeted(Algorithm::PerRay), &budgeted(Algorithm::Grouped), args.repeat);
     }
@@ -155,7 +155,7 @@ fn run_in(args: &Args, dir: &Path) -> Result<()> {
 
     println!("\nEarly termination (samples cast; skipped = samples of pieces never cast behind opaque rays):\n");
     let fig10 = load_scene(dir, &texts[2])?;
-    let plain = |algorithm| RenderOptions { algorithm, memory_budget: None, progress: None };
+    let plain = |algorithm| RenderOptions { algorithm, memory_budget: None, ..Default::default() };
     let fig10_runs = [
         median_of("Fig. 10", &fig10, &plain(Algorithm::PerRay), 1)?,
         median_of("Fig. 10", &fig10, &plain(Algorithm::Grouped), 1)?,

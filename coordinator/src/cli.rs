@@ -47,6 +47,10 @@ struct RenderArgs {
     /// largest dataset.
     #[arg(long, value_name = "BYTES", value_parser = parse_bytes)]
     memory_budget: Option<u64>,
+    /// Most bytes of pieces and their results held at once by the grouped algorithm
+    /// (default 1GiB); a larger image renders in bands of rows within it.
+    #[arg(long, value_name = "BYTES", value_parser = parse_bytes)]
+    band_memory: Option<u64>,
     /// Write counts and the Table-1 timing breakdown as JSON.
     #[arg(long)]
     stats: Option<PathBuf>,
@@ -77,6 +81,13 @@ struct CoordinatorArgs {
     /// Seconds a batch may take before it is given to another worker.
     #[arg(long, default_value_t = 120)]
     batch_deadline_s: u64,
+    /// Most bytes of pieces and their results one job holds at once (e.g. 256MiB); its
+    /// image is worked through in bands of rows within it.
+    #[arg(long, value_name = "BYTES", value_parser = parse_bytes, default_value = "256MiB")]
+    band_memory: u64,
+    /// Bands of one job in flight at once, at most: more keep more datasets busy.
+    #[arg(long, default_value_t = 8)]
+    bands_in_flight: usize,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -128,6 +139,7 @@ fn render_command(args: RenderArgs) -> Result<()> {
     let options = RenderOptions {
         algorithm: args.algorithm.into(),
         memory_budget: args.memory_budget,
+        band_memory: args.band_memory,
         progress: bar.clone().map(|b| Arc::new(move |rows: u64| b.set_position(rows)) as render::Progress),
     };
     let rendered = render::render(&scene, &options).map_err(|e| {
@@ -185,10 +197,11 @@ fn farm_render(args: RenderArgs) -> Result<()> {
         check_output(stats, &["json"])?;
     }
     if args.memory_budget.is_some()
+        || args.band_memory.is_some()
         || args.distorted_sampling.is_some()
         || !matches!(args.algorithm, AlgorithmArg::Grouped)
     {
-        bail!("--memory-budget, --distorted-sampling and --algorithm apply to local renders; a farm's workers set their own budgets and always cast grouped by dataset");
+        bail!("--memory-budget, --band-memory, --distorted-sampling and --algorithm apply to local renders; a farm's workers set their own budgets, its coordinator its band memory (`trove coordinator --band-memory`), and it always casts grouped by dataset");
     }
     if let Some(dir) = &args.data_root {
         bail!(
@@ -241,6 +254,8 @@ fn coordinator_command(args: CoordinatorArgs) -> Result<()> {
             heartbeat: std::time::Duration::from_millis(args.heartbeat_ms.max(10)),
             driver: farm::DriverConfig {
                 batch_deadline: std::time::Duration::from_secs(args.batch_deadline_s.max(1)),
+                memory_bound: args.band_memory,
+                max_bands: args.bands_in_flight.max(1),
                 ..farm::DriverConfig::default()
             },
         };

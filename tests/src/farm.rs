@@ -131,7 +131,11 @@ impl TestFarm {
     /// Renders scene text through the farm, as `trove render --coordinator` does. A test
     /// must end by itself: a job that has not finished within [`RENDER_DEADLINE`] fails it.
     pub fn render(&self, scene_toml: &str, name: &str, want_pfm: bool) -> Result<JobFiles, ClientError> {
-        let options = pb::JobOptions { want_pfm, ..Default::default() };
+        self.render_with(scene_toml, name, pb::JobOptions { want_pfm, ..Default::default() })
+    }
+
+    /// As [`TestFarm::render`], with the job's options (band rows, batch size).
+    pub fn render_with(&self, scene_toml: &str, name: &str, options: pb::JobOptions) -> Result<JobFiles, ClientError> {
         self.block_on(async {
             let render =
                 async { self.client().await.render(scene_toml.to_string(), name.to_string(), options, |_| {}).await };

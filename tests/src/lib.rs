@@ -273,7 +273,7 @@ pub fn render_with(scene: &Scene, algorithm: Algorithm, memory_budget: Option<u6
     if memory_budget.is_none() {
         assert_sampler_paths_agree(scene);
     }
-    render(scene, &RenderOptions { algorithm, memory_budget, progress: None })
+    render(scene, &RenderOptions { algorithm, memory_budget, ..Default::default() })
 }
 
 /// `../shared/data` beside the repository: the data root of the example scenes, present or

@@ -359,3 +359,18 @@ fn stats_json_has_the_spec_keys_and_the_new_ones() {
     }
     assert_eq!(json["algorithm"], "grouped");
 }
+
+#[test]
+fn grouped_renders_in_bands_of_rows_give_the_image_of_one_band() {
+    use trove_core::render::{render, RenderOptions};
+    for (path, scene) in example_scenes(40) {
+        let name = path.file_name().unwrap().to_string_lossy().to_string();
+        let whole = render(&scene, &RenderOptions::default()).unwrap_or_else(|e| panic!("{name}: {e}"));
+        // A band memory of one byte: every band is one row, and the datasets stay resident
+        // from band to band.
+        let options = RenderOptions { band_memory: Some(1), ..Default::default() };
+        let banded = render(&scene, &options).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert!(banded.image.pixels() == whole.image.pixels(), "{name}: banded pixels differ");
+        assert_eq!((banded.stats.pieces, banded.stats.samples), (whole.stats.pieces, whole.stats.samples), "{name}");
+    }
+}

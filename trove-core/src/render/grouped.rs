@@ -1,6 +1,8 @@
 //! Algorithm 2 (paper §3.3) in one process: intersect every ray first, then cast dataset
 //! by dataset — each loaded once, every piece of every object that uses it cast while it is
-//! resident, then unloaded — and finally composite each ray's pieces front to back.
+//! resident, then unloaded — and finally composite each ray's pieces front to back. An
+//! image whose pieces do not fit the band memory is worked through in bands of rows, each
+//! band as above ([`crate::render::bands`], the shape the farm's driver shares).
 //!
 //! This is the local driver of the [`Scheduler`]: it visits datasets in the scheduler's
 //! front-to-back order, and casts each dataset's batches on as many threads as rayon has,
@@ -14,6 +16,8 @@
 use std::sync::{Condvar, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
+use super::bands::Bands;
+use super::dispatch::Admission;
 use super::intersection::intersect;
 use super::schedule::Scheduler;
 use super::workunit::{BatchCaster, PieceRgba};
@@ -25,41 +29,72 @@ use crate::scene::Scene;
 /// two threads over uneven pieces (256 and 2048 were both slower on the peers' scenes).
 const BATCH_TASKS: usize = 1024;
 
-/// Renders with Algorithm 2.
-pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progress>) -> Result<Rendered, RenderError> {
+/// Renders with Algorithm 2, in bands of rows whose bookkeeping stays within
+/// `band_memory` bytes ([`Bands`], the shape the farm's driver shares): one band, and so
+/// each dataset loaded once, for any image whose pieces fit; more for larger images, which
+/// then render in bounded memory instead of holding every piece at once.
+pub(super) fn render(
+    scene: &Scene,
+    store: &VolumeStore,
+    progress: Option<&Progress>,
+    band_memory: u64,
+) -> Result<Rendered, RenderError> {
     let (w, h) = (scene.image().width, scene.image().height);
     let mut stats = RenderStats::default();
-
-    // Phase 1: intersection (object level only).
     let started = Instant::now();
-    let inter = intersect(scene, 0..h);
-    stats.segments = inter.segments;
-    stats.pieces = inter.pieces() as u64;
-    stats.seconds.intersection = started.elapsed().as_secs_f64();
-
-    // Phase 2: volume rendering, dataset by dataset, in front-to-back waves.
-    let started = Instant::now();
-    let mut scheduler = Scheduler::new(scene, inter, BATCH_TASKS)?;
+    let band_rows = Bands::rows_within(scene, band_memory);
+    let mut bands = Bands::new(h, band_rows, Admission { max_bands: 1, memory_bound: band_memory });
+    stats.seconds.intersection += started.elapsed().as_secs_f64();
+    let mut pixels = vec![[0.0; 3]; w as usize * h as usize];
     let mut loading = Duration::ZERO;
-    for dataset in scheduler.datasets().to_vec() {
-        let info = &scene.datasets()[dataset];
-        let load_started = Instant::now();
-        let volume = store.get(info)?;
-        loading += load_started.elapsed();
-        let caster = BatchCaster::for_dataset_turn(scene, dataset, &volume)?;
-        stats.samples += cast_turn(&mut scheduler, &caster, dataset, progress, h)?;
-        drop(caster);
-        drop(volume);
-        store.unload(info);
-    }
-    stats.samples_skipped = scheduler.culled_samples(scene);
-    stats.seconds.loading = loading.as_secs_f64();
-    stats.seconds.volume_rendering = (started.elapsed() - loading).as_secs_f64();
+    let mut casting = Duration::ZERO;
+    while let Some((band, rows)) = bands.start_next() {
+        // Phase 1: intersection (object level only).
+        let started = Instant::now();
+        let inter = intersect(scene, rows.clone());
+        stats.segments += inter.segments;
+        stats.pieces += inter.pieces() as u64;
+        bands.intersected(band, Box::new(Scheduler::new(scene, inter, BATCH_TASKS)?));
+        stats.seconds.intersection += started.elapsed().as_secs_f64();
 
-    // Phase 3: composition, front to back per ray.
-    let started = Instant::now();
-    let pixels = scheduler.composite_pixels(scene.image().background);
-    stats.seconds.composition = started.elapsed().as_secs_f64();
+        // Phase 2: volume rendering, dataset by dataset, in front-to-back waves. Datasets
+        // stay resident from band to band (the store evicts under its budget) and are
+        // unloaded after their turn in the last band.
+        let started = Instant::now();
+        let before = bands.rows_done();
+        let last = before + rows.len() as u32 == h;
+        let (_, scheduler) = bands.casting(band).expect("just intersected");
+        let band_progress = progress.map(|p| (p, before as u64, rows.len() as u64));
+        let mut band_loading = Duration::ZERO;
+        for dataset in scheduler.datasets().to_vec() {
+            let info = &scene.datasets()[dataset];
+            let load_started = Instant::now();
+            let volume = store.get(info)?;
+            band_loading += load_started.elapsed();
+            let caster = BatchCaster::for_dataset_turn(scene, dataset, &volume)?;
+            stats.samples += cast_turn(scheduler, &caster, dataset, band_progress)?;
+            drop(caster);
+            drop(volume);
+            if last {
+                store.unload(info);
+            }
+        }
+        stats.samples_skipped += scheduler.culled_samples(scene);
+        loading += band_loading;
+        casting += started.elapsed() - band_loading;
+
+        // Phase 3: composition, front to back per ray.
+        let started = Instant::now();
+        let (rows, scheduler) = bands.take_complete(band).expect("every task of the band is cast or culled");
+        let row_len = w as usize;
+        let composited = scheduler.composite_pixels(scene.image().background);
+        pixels[rows.start as usize * row_len..rows.end as usize * row_len].copy_from_slice(&composited);
+        drop(scheduler);
+        bands.composited(band);
+        stats.seconds.composition += started.elapsed().as_secs_f64();
+    }
+    stats.seconds.loading = loading.as_secs_f64();
+    stats.seconds.volume_rendering = casting.as_secs_f64();
     if let Some(p) = progress {
         p(h as u64);
     }
@@ -76,8 +111,7 @@ fn cast_turn(
     scheduler: &mut Scheduler,
     caster: &BatchCaster<'_>,
     d: usize,
-    progress: Option<&Progress>,
-    rows: u32,
+    progress: Option<(&Progress, u64, u64)>,
 ) -> Result<u64, RenderError> {
     struct Turn<'s> {
         scheduler: &'s mut Scheduler,
@@ -113,9 +147,9 @@ fn cast_turn(
                     t.error.get_or_insert(e);
                 }
             }
-            if let Some(p) = progress {
+            if let Some((p, before, rows)) = progress {
                 let done = t.scheduler.progress();
-                p(rows as u64 * (done.cast + done.culled) / done.total.max(1));
+                p(before + rows * (done.cast + done.culled) / done.total.max(1));
             }
             recorded.notify_all();
         }

@@ -115,6 +115,47 @@ pub(crate) fn segments_of(
     }
 }
 
+/// What one ray's intersection needs, kept from ray to ray so that none allocates.
+#[derive(Default)]
+struct RayScratch {
+    segments: Vec<Segment>,
+    cuts: Vec<f64>,
+    pieces: Vec<Piece>,
+    cover: Vec<u32>,
+}
+
+impl RayScratch {
+    /// Splits the ray of pixel `(col, row)` into pieces (`self.pieces`, their objects in
+    /// `self.cover`); returns its number of segments.
+    fn pieces(&mut self, scene: &Scene, reach: &Reach, (col, row): (u32, u32)) -> usize {
+        let (w, h) = (scene.image().width, scene.image().height);
+        let ray = scene.camera().ray(col, row, w, h);
+        segments_of(scene, reach, (col, row), &ray, &mut self.segments);
+        split_into_pieces(&self.segments, &mut self.cuts, &mut self.pieces, &mut self.cover);
+        self.segments.len()
+    }
+}
+
+/// The tasks that image rows `rows` of `scene` make, counted without storing any: what
+/// sizes a driver's bands before it intersects them.
+pub fn count_tasks(scene: &Scene, rows: std::ops::Range<u32>) -> u64 {
+    let (w, h) = (scene.image().width, scene.image().height);
+    let rows = rows.start.min(h)..rows.end.min(h);
+    let reach = Reach::new(scene);
+    (rows.start..rows.end)
+        .into_par_iter()
+        .map(|row| {
+            let mut scratch = RayScratch::default();
+            (0..w)
+                .map(|col| {
+                    scratch.pieces(scene, &reach, (col, row));
+                    scratch.cover.len() as u64
+                })
+                .sum::<u64>()
+        })
+        .sum()
+}
+
 /// Intersects every ray of image rows `rows` of `scene` with every object (the scene
 /// guarantees at most [`crate::scene::MAX_OBJECTS`] objects, so an object index fits the
 /// task's 16 bits).
@@ -127,18 +168,14 @@ pub fn intersect(scene: &Scene, rows: std::ops::Range<u32>) -> Intersections {
         .step_by(BAND_ROWS)
         .map(|first_row| {
             let mut band = Band::default();
-            let (mut segments, mut cuts, mut pieces, mut cover) =
-                (Vec::new(), Vec::new(), Vec::<Piece>::new(), Vec::new());
+            let mut scratch = RayScratch::default();
             for row in first_row..(first_row + BAND_ROWS).min(rows.end as usize) {
                 for col in 0..w {
                     let ray_index = row as u32 * w + col;
-                    let ray = scene.camera().ray(col, row as u32, w, h);
-                    segments_of(scene, &reach, (col, row as u32), &ray, &mut segments);
-                    band.segments += segments.len() as u64;
-                    split_into_pieces(&segments, &mut cuts, &mut pieces, &mut cover);
-                    band.pieces_per_ray.push(pieces.len() as u32);
-                    for p in &pieces {
-                        let objects = &cover[p.cover.0 as usize..p.cover.1 as usize];
+                    band.segments += scratch.pieces(scene, &reach, (col, row as u32)) as u64;
+                    band.pieces_per_ray.push(scratch.pieces.len() as u32);
+                    for p in &scratch.pieces {
+                        let objects = &scratch.cover[p.cover.0 as usize..p.cover.1 as usize];
                         let shared = objects.len() > 1;
                         for &o in objects {
                             band.tasks.push(PieceTask::new(ray_index, o as u16, p.t0, p.t1, shared));
@@ -236,6 +273,8 @@ mod tests {
                 culled += reach.0.iter().filter(|r| !r.contains(col, row)).count();
             }
         }
+        // Counting stores no task and counts what intersecting makes.
+        assert_eq!(count_tasks(&scene, 3..40), intersect(&scene, 3..40).tasks.len() as u64);
         // The test means something: objects are hit, and many rays are never tested.
         assert!(hits > 500 && culled > (w * h) as usize, "{hits} hits, {culled} culled");
         // Out of view: no pixel; partly behind the eye: every pixel.

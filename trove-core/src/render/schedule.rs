@@ -138,6 +138,18 @@ pub struct Scheduler {
     in_flight: HashMap<u64, InFlight>,
     next_id: u64,
     progress: Progress,
+    /// Per region ray: its leading pieces whose every task is cast, composited. Statuses
+    /// only move from pending to done or culled, so this prefix only grows, and the bound a
+    /// task's cull test needs starts from it instead of from the ray's first piece: the
+    /// same `over` operations in the same order, so the same bound to the bit.
+    known: Vec<KnownFront>,
+}
+
+/// A ray's leading pieces that are wholly cast: how many, and their composite.
+#[derive(Clone, Copy, Debug, Default)]
+struct KnownFront {
+    pieces: u32,
+    acc: Rgba,
 }
 
 impl Scheduler {
@@ -155,6 +167,7 @@ impl Scheduler {
             lanes[d].waves = w;
         }
         Ok(Scheduler {
+            known: vec![KnownFront::default(); inter.rays()],
             status: vec![Status::Pending; n],
             results: vec![[0.0; 4]; n],
             progress: Progress { total: n as u64, ..Progress::default() },
@@ -193,7 +206,7 @@ impl Scheduler {
             + (self.inter.piece_start.capacity() + self.inter.ray_start.capacity()) * size_of::<usize>();
         let per_task = self.status.capacity() * size_of::<Status>() + self.results.capacity() * size_of::<[f32; 4]>();
         let waves: usize = self.lanes.iter().flat_map(|l| &l.waves).map(|w| w.capacity() * size_of::<u32>()).sum();
-        (inter + per_task + waves) as u64
+        (inter + per_task + waves + self.known.capacity() * size_of::<KnownFront>()) as u64
     }
 
     /// Whether every task is recorded or culled.
@@ -301,7 +314,8 @@ impl Scheduler {
     /// combined first, SPEC §4.4) until it is opaque. Call once [`Scheduler::is_complete`].
     pub fn composite_ray(&self, r: usize) -> Rgba {
         debug_assert!(self.is_complete(), "composite before every task is cast");
-        let (acc, _) = self.front_to_back(self.inter.pieces_of(r), self.termination, |p| self.piece_rgba(p));
+        let (acc, _) =
+            self.front_to_back(Rgba::CLEAR, self.inter.pieces_of(r), self.termination, |p| self.piece_rgba(p));
         acc
     }
 
@@ -332,11 +346,11 @@ impl Scheduler {
     /// fronts all use it.
     fn front_to_back(
         &self,
+        mut acc: Rgba,
         pieces: std::ops::Range<usize>,
         stop_at: f64,
         mut rgba: impl FnMut(usize) -> Option<Rgba>,
     ) -> (Rgba, bool) {
-        let mut acc = Rgba::CLEAR;
         for p in pieces {
             if acc.alpha >= stop_at {
                 return (acc, true);
@@ -379,14 +393,30 @@ impl Scheduler {
     }
 
     /// Cull task `t`, or cast it with the deterministic front (module documentation).
-    fn decide(&self, t: usize) -> Decision {
+    fn decide(&mut self, t: usize) -> Decision {
         let task = &self.inter.tasks[t];
         let d = self.dataset_of_object[task.object as usize];
         let r = self.inter.local_ray(task.ray);
         let own = self.inter.piece_of(t);
         let in_front = self.inter.pieces_of(r).start..own;
         let cull_at = self.termination + CULL_MARGIN;
-        let (bound, stopped) = self.front_to_back(in_front.clone(), cull_at, |p| self.piece_rgba(p));
+        // The wholly cast pieces in front, from where the last decision on this ray left
+        // them; then the rest of the bound as `front_to_back` would go on.
+        let KnownFront { pieces, mut acc } = self.known[r];
+        let mut p = in_front.start + pieces as usize;
+        debug_assert!(p <= own, "a pending task's piece lies behind the ray's wholly cast pieces");
+        while p < own && acc.alpha < cull_at && self.inter.tasks_of(p).all(|t| self.status[t] == Status::Done) {
+            acc.over(self.piece_rgba(p).expect("a cast piece has a colour"));
+            p += 1;
+        }
+        if p > in_front.start + pieces as usize {
+            self.known[r] = KnownFront { pieces: (p - in_front.start) as u32, acc };
+        }
+        let (bound, stopped) = if acc.alpha >= cull_at {
+            (acc, p < own)
+        } else {
+            self.front_to_back(acc, p..own, cull_at, |p| self.piece_rgba(p))
+        };
         if stopped || bound.alpha >= cull_at {
             return Decision::Cull;
         }
@@ -395,7 +425,7 @@ impl Scheduler {
         }
         // Pieces wholly of this dataset are in its earlier waves: all recorded, none culled
         // (a culled one would have stopped the bound above).
-        let (front, _) = self.front_to_back(in_front, self.termination, |p| {
+        let (front, _) = self.front_to_back(Rgba::CLEAR, in_front, self.termination, |p| {
             Some(if self.piece_is_of(p, d) { self.piece_rgba(p)? } else { Rgba::CLEAR })
         });
         Decision::Cast(front.alpha)

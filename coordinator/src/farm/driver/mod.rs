@@ -1,6 +1,7 @@
 //! One job, driven to its end: the farm's driver of `trove-core`'s [`Scheduler`].
 //!
-//! The image is worked through in *bands* of rows ([`bands`]): the coordinator holds only
+//! The image is worked through in *bands* of rows (`trove_core::render::bands`, the shape
+//! local mode shares; the image fills up in [`raster`]): the coordinator holds only
 //! the pieces of the bands in flight, as many as [`DriverConfig::memory_bound`] and
 //! [`DriverConfig::max_bands`] admit, started in an order spread over the image so that
 //! many datasets are busy at once. For each band the driver runs the intersection phase
@@ -26,9 +27,9 @@
 //! [`DriverConfig::max_attempts`] times, or when a worker reports a failure that retrying
 //! cannot fix.
 
-mod bands;
 mod dispatch;
 mod error;
+mod raster;
 mod tally;
 
 use std::collections::BTreeSet;
@@ -39,10 +40,11 @@ use prost::Message;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Status;
+use trove_core::render::bands::Bands;
 use trove_core::render::dispatch::Admission;
 use trove_core::render::intersection::intersect;
 use trove_core::render::wire::{decode_results, encode_tasks};
-use trove_core::render::{quantize, Algorithm, Batch, Scheduler};
+use trove_core::render::{Algorithm, Batch, Scheduler};
 use trove_core::scene::Scene;
 use trove_proto::convert::{self, JOB_HEADER};
 use trove_proto::v1 as pb;
@@ -50,9 +52,9 @@ use trove_proto::v1::worker_client::WorkerClient;
 
 use super::jobs::{Job, JobOutput};
 use super::registry::{Registry, WorkerHandle};
-use bands::{Bands, Composited};
 use dispatch::{Dispatch, InFlight};
 pub use error::JobError;
+use raster::{Composited, Raster};
 use tally::Tally;
 
 /// Tasks per batch when the job does not say.
@@ -66,7 +68,8 @@ pub struct DriverConfig {
     /// Bands whose pieces a job holds at once, at most.
     pub max_bands: usize,
     /// Bytes of band bookkeeping (tasks, results, fronts) a job holds at once, at most; one
-    /// band is always admitted. The image itself is not counted.
+    /// band is always admitted, and bands are made small enough that this holds
+    /// [`DriverConfig::max_bands`] of them. The image itself is not counted.
     pub memory_bound: u64,
     /// Dispatches of one batch before the job fails.
     pub max_attempts: u32,
@@ -138,6 +141,7 @@ struct Driver {
     config: DriverConfig,
     events: mpsc::Sender<Event>,
     bands: Bands,
+    raster: Raster,
     batch_tasks: usize,
     dispatch: Dispatch,
     streams: std::collections::HashMap<StreamKey, Stream>,
@@ -156,14 +160,17 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     let started = Instant::now();
     let (events, mut inbox) = mpsc::channel(1024);
     let (w, h) = (plan.scene.image().width, plan.scene.image().height);
-    let band_rows = Bands::rows_per_band(plan.options.band_rows, w, h);
+    let max_bands = config.max_bands.max(1);
+    let within = Bands::rows_within(&plan.scene, config.memory_bound / max_bands as u64);
+    let band_rows = raster::rows_per_band(plan.options.band_rows, w, h, within);
     let batch_tasks = match plan.options.batch_tasks {
         0 => DEFAULT_BATCH_TASKS,
         n => (n as usize).min(trove_proto::MAX_BATCH_TASKS),
     };
-    let admission = Admission { max_bands: config.max_bands.max(1), memory_bound: config.memory_bound };
+    let admission = Admission { max_bands, memory_bound: config.memory_bound };
     let mut driver = Driver {
-        bands: Bands::new(w, h, band_rows, admission, plan.options.want_pfm),
+        bands: Bands::new(h, band_rows, admission),
+        raster: Raster::new(w, h, plan.options.want_pfm),
         dispatch: Dispatch::new(plan.dataset_keys.clone()),
         plan,
         job: job.clone(),
@@ -406,10 +413,11 @@ impl Driver {
                 Ok(())
             }
             Event::Composited { band, part } => {
-                self.bands.place(band, &part);
+                self.raster.place(&part);
+                self.bands.composited(band);
                 self.tally.stats.samples_skipped += part.samples_skipped;
                 self.tally.stats.seconds.composition += part.seconds;
-                let rows_done = self.bands.rows_done;
+                let rows_done = self.bands.rows_done();
                 self.job.update(|s| s.rows_done = rows_done);
                 self.tally.publish(&self.job, self.bands.tasks_done());
                 Ok(())
@@ -519,13 +527,8 @@ impl Driver {
         self.job.update(|s| s.phase = pb::Phase::Composition as i32);
         let (scene, events, want_pfm) = (self.scene().clone(), self.events.clone(), self.plan.options.want_pfm);
         tokio::task::spawn_blocking(move || {
-            let started = Instant::now();
-            let pixels = scheduler.composite_pixels(scene.image().background);
-            let rgb8 = pixels.iter().flat_map(|p| p.map(quantize)).collect();
-            let rgb32f = want_pfm.then(|| pixels.iter().flat_map(|p| p.map(|c| c as f32)).collect());
-            let samples_skipped = scheduler.culled_samples(&scene);
+            let part = Composited::of(&scene, rows, &scheduler, want_pfm);
             drop(scheduler);
-            let part = Composited { rows, rgb8, rgb32f, samples_skipped, seconds: started.elapsed().as_secs_f64() };
             let _ = events.blocking_send(Event::Composited { band, part: Box::new(part) });
         });
     }
@@ -533,14 +536,14 @@ impl Driver {
     /// Encodes the image and statistics and marks the job succeeded.
     async fn finish(self, started: Instant) -> Result<(), JobError> {
         self.job.update(|s| s.phase = pb::Phase::Encoding as i32);
-        let Driver { plan, job, bands, mut tally, .. } = self;
+        let Driver { plan, job, bands, raster, mut tally, .. } = self;
         if let Some(cast) = tally.cast_started {
             tally.stats.seconds.volume_rendering =
                 (cast.elapsed().as_secs_f64() - tally.stats.seconds.composition).max(0.0);
         }
         let (w, h) = (plan.scene.image().width, plan.scene.image().height);
-        let tasks = bands.tasks_composited;
-        let (rgb8, rgb32f) = bands.into_image();
+        let tasks = bands.tasks_composited();
+        let Raster { rgb8, rgb32f, .. } = raster;
         let encoded = tokio::task::spawn_blocking(move || {
             let png = trove_core::render::encode_png(w, h, &rgb8);
             let pfm = rgb32f.map(|f| trove_core::render::encode_pfm(w, h, &f));

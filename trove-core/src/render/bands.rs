@@ -1,50 +1,47 @@
-//! A job's image as bands of rows: which band starts next (spread over the image, within
-//! the job's memory bound: [`trove_core::render::dispatch`]), where each band stands
-//! (intersecting, casting, compositing), and the image as it fills up. The coordinator
-//! holds only the pieces of the bands in flight, so its memory is bounded by configuration,
-//! not by the image's area.
+//! An image worked through in bands of rows, the one shape of Algorithm 2's drivers: which
+//! band starts next (spread over the image: [`super::dispatch::band_order`]), how many are
+//! held at once (within a memory bound: [`super::dispatch::Admission`]), and where each
+//! stands. The local renderer holds one band at a time and the farm's coordinator several;
+//! both hold only the pieces of the bands in flight, so their memory is bounded by
+//! configuration rather than by the image's area. Each driver keeps its own raster (local
+//! mode the f64 pixels of its `Image`, the farm its PNG bytes and PFM floats).
 
 use std::collections::BTreeMap;
 use std::ops::Range;
 
-use trove_core::render::dispatch::{band_order, Admission};
-use trove_core::render::Scheduler;
+use super::dispatch::{band_order, Admission};
+use super::intersection::count_tasks;
+use super::schedule::Scheduler;
+use crate::scene::Scene;
 
-/// Pixels per band when the job does not say: some tens of thousands of pieces in most
-/// scenes, a few megabytes of bookkeeping. Small enough that a 512² image makes four bands,
-/// so that intersecting and compositing one band overlap casting another (with 2¹⁸ a 512²
-/// render was one band, each stage waiting for the last: `trove-bench farm`, Fig. 1 through
-/// 2 workers, went from 1.72× to 1.20× local mode's time).
-pub const BAND_PIXELS: u32 = 1 << 16;
+/// Heap bytes a band's scheduler takes per task and per ray, for sizing bands before any is
+/// intersected: a task (24 bytes), its status, result and wave entry (1 + 16 + 4) and a
+/// share of the piece index; a ray's start index and known front (8 + 40).
+const BYTES_PER_TASK: u64 = 24 + 1 + 16 + 4 + 8;
+const BYTES_PER_RAY: u64 = 8 + 40;
+
+/// Rows sampled to size bands.
+const SAMPLED_ROWS: u32 = 16;
 
 /// Where a band stands.
-pub(super) enum Stage {
+pub enum Stage {
+    /// Its rays are being intersected.
     Intersecting,
+    /// Its scheduler hands out batches.
     Casting(Box<Scheduler>),
+    /// Every task is cast or culled; its pixels are being composited.
     Compositing,
 }
 
-/// A band in flight.
-pub(super) struct Band {
-    /// Its place in the start order: earlier bands are dispatched first.
-    pub seq: usize,
-    pub rows: Range<u32>,
-    pub stage: Stage,
-    /// What its scheduler holds on the heap, once intersected.
+struct Band {
+    seq: usize,
+    rows: Range<u32>,
+    stage: Stage,
     bytes: u64,
 }
 
-/// A band's share of the image, composited.
-pub(super) struct Composited {
-    pub rows: Range<u32>,
-    pub rgb8: Vec<u8>,
-    pub rgb32f: Option<Vec<f32>>,
-    pub samples_skipped: u64,
-    pub seconds: f64,
-}
-
-/// The job's bands and its image.
-pub(super) struct Bands {
+/// An image's bands; see the module documentation.
+pub struct Bands {
     rows: Vec<Range<u32>>,
     order: Vec<usize>,
     started: usize,
@@ -52,22 +49,16 @@ pub(super) struct Bands {
     admission: Admission,
     held: u64,
     largest: u64,
-    width: u32,
-    rgb8: Vec<u8>,
-    rgb32f: Option<Vec<f32>>,
-    /// Rows composited into the image.
-    pub rows_done: u32,
-    /// Tasks of the bands composited or being composited (all cast or culled).
-    pub tasks_composited: u64,
+    rows_done: u32,
+    tasks_composited: u64,
 }
 
 impl Bands {
-    /// An image of `width × height` pixels in bands of `band_rows` rows.
-    pub fn new(width: u32, height: u32, band_rows: u32, admission: Admission, want_pfm: bool) -> Bands {
+    /// `height` rows in bands of `band_rows` rows, admitted under `admission`.
+    pub fn new(height: u32, band_rows: u32, admission: Admission) -> Bands {
         let band_rows = band_rows.clamp(1, height.max(1));
         let rows: Vec<Range<u32>> =
             (0..height.div_ceil(band_rows)).map(|b| b * band_rows..((b + 1) * band_rows).min(height)).collect();
-        let pixels = width as usize * height as usize * 3;
         Bands {
             order: band_order(rows.len()),
             rows,
@@ -76,25 +67,42 @@ impl Bands {
             admission,
             held: 0,
             largest: 0,
-            width,
-            rgb8: vec![0; pixels],
-            rgb32f: want_pfm.then(|| vec![0.0; pixels]),
             rows_done: 0,
             tasks_composited: 0,
         }
     }
 
-    /// The rows of a band per the job's options (0: [`BAND_PIXELS`] worth of rows).
-    pub fn rows_per_band(asked: u32, width: u32, height: u32) -> u32 {
-        match asked {
-            0 => (BAND_PIXELS / width.max(1)).clamp(1, height.max(1)),
-            n => n.min(height.max(1)),
-        }
+    /// Rows per band such that a band's scheduler takes about `bytes` at most, from the
+    /// tasks counted on a sample of rows (the densest sampled row, doubled for the rows
+    /// between samples that are denser still). Counting stores no task, so a scene of very
+    /// many pieces is measured without allocating them.
+    pub fn rows_within(scene: &Scene, bytes: u64) -> u32 {
+        let (w, h) = (scene.image().width, scene.image().height);
+        let samples = SAMPLED_ROWS.min(h).max(1);
+        let densest = (0..samples)
+            .map(|i| {
+                let row = (i * h + h / 2) / samples;
+                count_tasks(scene, row..row + 1)
+            })
+            .max()
+            .unwrap_or(0);
+        let row_bytes = 2 * densest * BYTES_PER_TASK + w as u64 * BYTES_PER_RAY;
+        (bytes / row_bytes.max(1)).clamp(1, h.max(1) as u64) as u32
     }
 
-    /// Whether every band is composited into the image.
+    /// Whether every band is done.
     pub fn is_done(&self) -> bool {
         self.started == self.order.len() && self.live.is_empty()
+    }
+
+    /// Rows done so far.
+    pub fn rows_done(&self) -> u32 {
+        self.rows_done
+    }
+
+    /// Tasks of the bands composited or being composited.
+    pub fn tasks_composited(&self) -> u64 {
+        self.tasks_composited
     }
 
     /// The next band to intersect, if admission allows another: its index and rows. A band
@@ -127,7 +135,7 @@ impl Bands {
         }
     }
 
-    /// The band's start order and scheduler, while it casts.
+    /// The band's start order (earlier bands go first) and scheduler, while it casts.
     pub fn casting(&mut self, band: usize) -> Option<(usize, &mut Scheduler)> {
         match self.live.get_mut(&band) {
             Some(Band { seq, stage: Stage::Casting(s), .. }) => Some((*seq, s)),
@@ -143,8 +151,8 @@ impl Bands {
         })
     }
 
-    /// Takes the scheduler of a band whose every task is cast or culled, to composite it;
-    /// the band's memory is counted until [`Bands::place`].
+    /// Takes the scheduler of a band whose every task is cast or culled, with its rows, to
+    /// composite it; its memory counts until [`Bands::composited`].
     pub fn take_complete(&mut self, band: usize) -> Option<(Range<u32>, Box<Scheduler>)> {
         let b = self.live.get_mut(&band)?;
         if !matches!(&b.stage, Stage::Casting(s) if s.is_complete()) {
@@ -155,18 +163,12 @@ impl Bands {
         Some((b.rows.clone(), scheduler))
     }
 
-    /// Copies a composited band into the image and forgets it.
-    pub fn place(&mut self, band: usize, part: &Composited) {
+    /// Band `band`'s pixels are in the image: it is forgotten.
+    pub fn composited(&mut self, band: usize) {
         if let Some(b) = self.live.remove(&band) {
             self.held -= b.bytes;
+            self.rows_done += b.rows.len() as u32;
         }
-        let row_len = self.width as usize * 3;
-        let start = part.rows.start as usize * row_len;
-        self.rgb8[start..start + part.rgb8.len()].copy_from_slice(&part.rgb8);
-        if let (Some(all), Some(band)) = (&mut self.rgb32f, &part.rgb32f) {
-            all[start..start + band.len()].copy_from_slice(band);
-        }
-        self.rows_done += part.rows.len() as u32;
     }
 
     /// Tasks done so far: composited bands' and the casting bands' cast or culled ones.
@@ -180,11 +182,6 @@ impl Bands {
             .sum();
         self.tasks_composited + casting
     }
-
-    /// The finished image: 8-bit, and floats when the job asked for a PFM.
-    pub fn into_image(self) -> (Vec<u8>, Option<Vec<f32>>) {
-        (self.rgb8, self.rgb32f)
-    }
 }
 
 #[cfg(test)]
@@ -193,7 +190,7 @@ mod tests {
 
     #[test]
     fn bands_cover_the_image_once_and_start_spread_out() {
-        let mut bands = Bands::new(10, 103, 10, Admission { max_bands: 64, memory_bound: u64::MAX }, false);
+        let mut bands = Bands::new(103, 10, Admission { max_bands: 64, memory_bound: u64::MAX });
         let mut seen = Vec::new();
         while let Some((b, rows)) = bands.start_next() {
             seen.push((b, rows));
@@ -202,16 +199,17 @@ mod tests {
         assert_eq!(seen[1].0, 8, "the second band starts far from the first");
         let mut rows: Vec<Range<u32>> = seen.into_iter().map(|(_, r)| r).collect();
         rows.sort_by_key(|r| r.start);
-        assert_eq!(rows.first().unwrap().start, 0);
-        assert_eq!(rows.last().unwrap().end, 103);
+        assert_eq!((rows[0].start, rows[10].end), (0, 103));
         assert!(rows.windows(2).all(|w| w[0].end == w[1].start));
     }
 
     #[test]
     fn admission_caps_the_bands_in_flight() {
-        let mut bands = Bands::new(4, 40, 1, Admission { max_bands: 3, memory_bound: u64::MAX }, false);
+        let mut bands = Bands::new(40, 1, Admission { max_bands: 3, memory_bound: u64::MAX });
         assert!(bands.start_next().is_some() && bands.start_next().is_some() && bands.start_next().is_some());
         assert_eq!(bands.start_next(), None);
         assert!(!bands.is_done());
+        bands.composited(0);
+        assert!(bands.start_next().is_some(), "a band done makes room");
     }
 }
