@@ -11,7 +11,7 @@
 //! a batch are neighbouring pixels, so the lanes read nearby voxels.
 //!
 //! Each lane runs the operations the single-sample loop runs for its piece, in the same
-//! order, in f32 ([`super::lanes::Packed`]): sixteen lanes to a register halve the
+//! order, in f32 ([`Packed`]): sixteen lanes to a register halve the
 //! instructions per sample against f64. Sample k is where the f64 loop puts it up to a few
 //! f32 roundings (about 1e-7 of the coordinates), so results differ from
 //! [`super::kernel::Cast::cast`]'s by rounding (tests bound it); a value that rounding could
@@ -23,8 +23,8 @@
 use std::arch::x86_64::*;
 
 use super::kernel::{Kernel, Maps, VoxelSource};
-use super::lanes::avx512::floor;
-use super::lanes::{Packed, Trilinear4};
+use super::lanes::avx512::{floor, Packed};
+use super::lanes::Trilinear4;
 use super::skip::{cell_of, FineClasses, Jumps, Skipper};
 use super::{corrected_opacity, PieceResult};
 use crate::composite::Rgba;
