@@ -6,7 +6,7 @@
 //! a group of samples needs a long sequence of dependent steps, so the processor cannot run
 //! far enough ahead to keep its units busy. Across rays there is no chain: each lane walks
 //! its own piece sample by sample, and each step (position, cell, voxels, map, compositing)
-//! does eight pieces' samples in one register. A lane whose piece ends (its last sample,
+//! does sixteen pieces' samples in one register. A lane whose piece ends (its last sample,
 //! or the opacity at which it may stop) takes the batch's next piece. Neighbouring pieces of
 //! a batch are neighbouring pixels, so the lanes read nearby voxels.
 //!
