@@ -14,6 +14,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, ensure, Context, Result};
 
+use crate::stats::median;
 use crate::table1::{table1_scene, write_dataset, Storage};
 
 /// `trove-bench farm` options.
@@ -192,8 +193,8 @@ fn measure(bin: &Binaries, case: &Case, workers: u32, repeat: u32, dir: &Path) -
     Ok(Row {
         coordinator_ns_per_piece: coordinator_cpu * 1e9 / pieces_rendered,
         workers_ns_per_piece: workers_cpu * 1e9 / pieces_rendered,
-        local: median(&mut local),
-        farm: median(&mut remote),
+        local: median(local).unwrap_or(f64::NAN),
+        farm: median(remote).unwrap_or(f64::NAN),
         pieces: count("pieces")?,
         to_workers: count("wire_bytes_to_workers")?,
         from_workers: count("wire_bytes_from_workers")?,
@@ -223,11 +224,6 @@ fn large(bin: &Binaries, case: &Case, dir: &Path) -> Result<()> {
     );
     ensure!(identical, "{}: the farm's image differs from local mode's", case.name);
     Ok(())
-}
-
-fn median(values: &mut [f64]) -> f64 {
-    values.sort_by(f64::total_cmp);
-    values[values.len() / 2]
 }
 
 fn path_str(path: &Path) -> Result<&str> {

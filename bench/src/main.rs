@@ -10,6 +10,7 @@ mod distorted;
 mod farm;
 mod farm_sim;
 mod peers;
+mod stats;
 mod table1;
 
 use std::process::ExitCode;

@@ -17,6 +17,8 @@ use anyhow::{anyhow, bail, Context, Result};
 use trove_core::render::{self, RenderOptions, Rendered};
 use trove_core::scene::{DataRoot, Scene};
 
+use crate::stats::median;
+
 /// `trove-bench peers` options.
 #[derive(clap::Args)]
 pub struct Args {
@@ -279,12 +281,6 @@ fn rmse_levels(a: &[u8], b: &[u8]) -> Result<f64> {
     }
     let sum: f64 = a.iter().zip(b).map(|(x, y)| (f64::from(*x) - f64::from(*y)).powi(2)).sum();
     Ok((sum / a.len() as f64).sqrt())
-}
-
-fn median(values: impl Iterator<Item = f64>) -> Option<f64> {
-    let mut v: Vec<f64> = values.collect();
-    v.sort_by(f64::total_cmp);
-    (!v.is_empty()).then(|| v[v.len() / 2])
 }
 
 #[cfg(test)]

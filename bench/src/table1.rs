@@ -24,6 +24,8 @@ use trove_core::render::{Algorithm, RenderOptions, RenderStats, Rendered};
 use trove_core::scene::Scene;
 use trove_tests::Header;
 
+use crate::stats::median;
+
 /// `trove-bench table1` options.
 #[derive(clap::Args)]
 pub struct Args {
@@ -231,19 +233,6 @@ fn median_run(mut runs: Vec<Rendered>) -> Rendered {
     runs.swap_remove(middle)
 }
 
-/// The median of `values` (the mean of the middle two for an even count).
-fn median(mut values: Vec<f64>) -> f64 {
-    values.sort_by(f64::total_cmp);
-    let n = values.len();
-    if n == 0 {
-        f64::NAN
-    } else if n % 2 == 1 {
-        values[n / 2]
-    } else {
-        (values[n / 2 - 1] + values[n / 2]) / 2.0
-    }
-}
-
 /// `--shared-only`: the 15/1 configuration, per-ray and grouped alternately for `repeat`
 /// rounds; prints every round, the median of each time (taken separately) and the median of
 /// the rounds' total-time ratios (each round's two runs saw the same load).
@@ -275,13 +264,13 @@ fn shared_only(scene: &Scene, per_ray: &RenderOptions, grouped: &RenderOptions, 
         ("Total time", |s| s.seconds.total),
     ];
     for (name, f) in rows {
-        let x = median(a.iter().map(|r| f(&r.stats)).collect());
-        let y = median(b.iter().map(|r| f(&r.stats)).collect());
+        let x = median(a.iter().map(|r| f(&r.stats))).unwrap_or(f64::NAN);
+        let y = median(b.iter().map(|r| f(&r.stats))).unwrap_or(f64::NAN);
         let ratio = if x > 0.0 { format!("{:.2}", y / x) } else { "–".to_string() };
         println!("| {name} | {x:.3} | {y:.3} | {ratio} |");
     }
-    let ratios = a.iter().zip(&b).map(|(p, g)| g.stats.seconds.total / p.stats.seconds.total).collect();
-    println!("| Total time, median of the rounds' ratios | | | {:.2} |", median(ratios));
+    let ratios = a.iter().zip(&b).map(|(p, g)| g.stats.seconds.total / p.stats.seconds.total);
+    println!("| Total time, median of the rounds' ratios | | | {:.2} |", median(ratios).unwrap_or(f64::NAN));
     println!("| Samples | {} | {} | |", a[0].stats.samples, b[0].stats.samples);
     Ok(())
 }

@@ -11,8 +11,8 @@ use std::path::Path;
 
 use image::{ColorType, ImageDecoder, ImageReader};
 
+use super::error::DatasetError;
 use super::{Channel, ChannelName, ChannelSource, DataFile, Dims};
-use crate::DatasetError;
 
 /// The layout of an accepted image: which byte of a pixel is which component.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

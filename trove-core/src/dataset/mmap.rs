@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use memmap2::Mmap;
 
-use crate::DatasetError;
+use super::error::DatasetError;
 
 /// Maps `path` read-only.
 ///

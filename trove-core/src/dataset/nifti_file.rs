@@ -24,10 +24,10 @@ use std::sync::Arc;
 
 use nifti::{NiftiHeader, NiftiType};
 
+use super::error::DatasetError;
 use super::nrrd::FileChannel;
 use super::raw::{self, StoredType};
 use super::{Channel, ChannelSource, DataFile, Dims, Encoding, Endian, VoxelBytes, VoxelType};
-use crate::DatasetError;
 
 /// What the header says, reduced to what loading needs.
 struct Layout {

@@ -16,9 +16,9 @@ use std::fs::File;
 use std::io::{BufRead, BufReader, Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 
+use super::error::DatasetError;
 use super::raw::{self, StoredType};
 use super::{ChannelSource, Dims, Encoding, Endian, VoxelType};
-use crate::DatasetError;
 
 /// One channel described by a file header (NRRD, NIfTI): its dims, its type once loaded,
 /// and where its voxels come from. Sizes were already checked against the header.

@@ -21,8 +21,8 @@ use std::sync::Arc;
 
 use flate2::read::MultiGzDecoder;
 
+use super::error::DatasetError;
 use super::{Channel, ChannelSource, DataFile, Dims, Encoding, Endian, VoxelBytes, VoxelType};
-use crate::DatasetError;
 
 /// How numbers are stored in a file, including the types converted to f32 on load.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]

@@ -3,11 +3,11 @@
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
+use super::error::DatasetError;
 use super::generator::Generator;
 use super::macrocell::{Macrocells, RANGED_CHANNELS};
 use super::raw::StoredType;
 use super::{Channel, ChannelName, DataFile, Dims, Endian, Volume, VoxelType};
-use crate::DatasetError;
 
 /// How a file region is encoded.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]

@@ -9,8 +9,8 @@ use std::sync::Arc;
 
 use thiserror::Error;
 
+use crate::dataset::DatasetError;
 use crate::sampling::BindError;
-use crate::DatasetError;
 
 /// A failure while rendering a valid scene.
 #[derive(Debug, Error)]

@@ -7,8 +7,6 @@
 //! tested against.
 
 use super::lanes::{Located, Trilinear4};
-#[cfg(target_arch = "x86_64")]
-use super::packet::Line;
 use super::skip::{cell_of, Jumps, Skipper};
 use super::{corrected_opacity, PieceResult};
 use crate::composite::Rgba;
@@ -413,17 +411,8 @@ impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
     fn cast_many(&self, pieces: Vec<(usize, SampleWalk<'_>, f64, f64)>, out: &mut [PieceResult]) {
         #[cfg(target_arch = "x86_64")]
         if let Some((fast, packed)) = self.lanes.as_ref().and_then(|fast| Some((fast, fast.packed()?))) {
-            // Straight pieces sixteen at a time; the others (exact distorted walks, lines
-            // too long for f32 indices) one by one.
-            let mut lines = Vec::with_capacity(pieces.len());
-            for (slot, walk, alpha_in, stop_at) in pieces {
-                match walk.line().filter(Line::fits) {
-                    Some(line) => lines.push(Line { slot, line, alpha_in, stop_at }),
-                    None => out[slot] = self.cast(walk, alpha_in, stop_at),
-                }
-            }
             // SAFETY: `packed` exists only where the processor has AVX-512.
-            unsafe { self.cast_packets(fast, packed, &lines, out) };
+            unsafe { self.cast_many_packed(fast, packed, pieces, out) };
             return;
         }
         for (slot, walk, alpha_in, stop_at) in pieces {

@@ -8,6 +8,32 @@
 //! opacity map sends to 0 are passed over without interpolating. Neither changes a single
 //! sample's value or position, so images are the same bit for bit as the general loop
 //! without skipping, which stays available ([`CastOptions`]) and is what tests compare with.
+//!
+//! # Which file does what
+//!
+//! * `bind.rs` picks, once per object, the loop compiled for its interpolation × stored
+//!   type × colour and opacity maps.
+//! * `kernel.rs` is that generic loop. Along a straight line it locates, interpolates and
+//!   maps four samples at a time and composites them one by one (each waits for the
+//!   opacity in front of it).
+//! * `lanes.rs` does a group's work in AVX2 registers (two registers of four f64 lanes) for
+//!   the commonest combination: trilinear over u8 or u16 voxels with LUT or ramp maps that
+//!   merge into a small joint map. It runs the generic loop's operations in its order, so
+//!   it changes no sample.
+//! * `packet.rs` casts a batch's straight pieces of such an object sixteen at a time, one
+//!   per f32 lane of an AVX-512 register (two registers side by side), pipelined one sample
+//!   ahead ([`ObjectCaster::cast_many`], what `BatchCaster` calls): across rays there is no
+//!   compositing chain to wait on. `lanes/avx512.rs` holds the f32 forms of the object's
+//!   grid and map it reads and its sixteen-lane steps. In f32 a piece's result agrees with
+//!   the f64 loops to rounding (tests hold it to 1e-5), a value within rounding of a LUT
+//!   bound takes its segment from its f64 value so that no sample changes class, and jumps
+//!   over empty cells widen their margins by f32's rounding.
+//! * `skip.rs` jumps over empty macrocells: walking cells, or, where cells were classified
+//!   at bind, leaping out of a cube of empty ones by each cell's distance to the nearest
+//!   non-empty cell; its margins keep every jump from passing a sample that is not empty.
+//!
+//! Without AVX2, or on other targets, the generic loop runs; without AVX-512,
+//! [`ObjectCaster::cast_many`] casts its pieces one by one.
 
 mod bind;
 mod kernel;
@@ -173,7 +199,7 @@ impl<'a> ObjectCaster<'a> {
         self.kernel.uses_avx2()
     }
 
-    /// Whether [`ObjectCaster::cast_many`] casts straight pieces eight at a time in AVX-512
+    /// Whether [`ObjectCaster::cast_many`] casts straight pieces sixteen at a time in AVX-512
     /// registers (objects with the AVX2 loop, where the processor has AVX-512).
     pub fn casts_packets(&self) -> bool {
         self.kernel.casts_packets()
@@ -199,9 +225,10 @@ impl<'a> ObjectCaster<'a> {
         self.kernel.cast(walk, alpha_in, stop_at)
     }
 
-    /// [`ObjectCaster::cast`] for each of `pieces`, result `i` into `out[i]`: the same
-    /// results, computed several pieces at a time where the object's loop can (eight
-    /// straight pieces in AVX-512 lanes at once, [`ObjectCaster::casts_packets`]).
+    /// [`ObjectCaster::cast`] for each of `pieces`, result `i` into `out[i]`, computed
+    /// several pieces at a time where the object's loop can (sixteen straight pieces in f32
+    /// AVX-512 lanes at once, [`ObjectCaster::casts_packets`], whose results differ from
+    /// `cast`'s by rounding).
     ///
     /// # Panics
     /// If `out` is shorter than `pieces`.

@@ -6,12 +6,12 @@
 //! a group of samples needs a long sequence of dependent steps, so the processor cannot run
 //! far enough ahead to keep its units busy. Across rays there is no chain: each lane walks
 //! its own piece sample by sample, and each step (position, cell, voxels, map, compositing)
-//! does eight pieces' samples in one register. A lane whose piece ends (its last sample,
+//! does sixteen pieces' samples in one register. A lane whose piece ends (its last sample,
 //! or the opacity at which it may stop) takes the batch's next piece. Neighbouring pieces of
 //! a batch are neighbouring pixels, so the lanes read nearby voxels.
 //!
 //! Each lane runs the operations the single-sample loop runs for its piece, in the same
-//! order, in f32 ([`super::lanes::Packed`]): sixteen lanes to a register halve the
+//! order, in f32 ([`Packed`]): sixteen lanes to a register halve the
 //! instructions per sample against f64. Sample k is where the f64 loop puts it up to a few
 //! f32 roundings (about 1e-7 of the coordinates), so results differ from
 //! [`super::kernel::Cast::cast`]'s by rounding (tests bound it); a value that rounding could
@@ -22,19 +22,19 @@
 
 use std::arch::x86_64::*;
 
-use super::kernel::{Kernel, Maps, VoxelSource};
-use super::lanes::avx512::floor;
-use super::lanes::{Packed, Trilinear4};
+use super::kernel::{Cast, Kernel, Maps, VoxelSource};
+use super::lanes::avx512::{floor, Packed};
+use super::lanes::Trilinear4;
 use super::skip::{cell_of, FineClasses, Jumps, Skipper};
 use super::{corrected_opacity, PieceResult};
 use crate::composite::Rgba;
 use crate::dataset::macrocell::{Level, MACROCELL_SHIFT};
-use crate::geometry::LineSamples;
+use crate::geometry::{LineSamples, SampleWalk};
 use crate::interp::Interp;
 
 /// A straight piece waiting for a lane: its slot in the results, its samples, the opacity
 /// in front of it and where it may stop.
-pub(super) struct Line {
+struct Line {
     pub slot: usize,
     pub line: LineSamples,
     pub alpha_in: f64,
@@ -43,7 +43,7 @@ pub(super) struct Line {
 
 impl Line {
     /// Whether a lane can cast it: sample indices must be exact in f32.
-    pub(super) fn fits(line: &LineSamples) -> bool {
+    fn fits(line: &LineSamples) -> bool {
         line.len() < 1 << 24
     }
 }
@@ -288,6 +288,30 @@ struct Batch<'c> {
 }
 
 impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
+    /// [`Cast::cast_many`] for an object whose loop has packed forms: straight pieces
+    /// sixteen at a time; the others (exact distorted walks, lines too long for f32
+    /// indices) one by one.
+    ///
+    /// # Safety
+    /// As for [`Kernel::cast_packets`].
+    pub(super) unsafe fn cast_many_packed(
+        &self,
+        fast: &Trilinear4<'_>,
+        packed: &Packed,
+        pieces: Vec<(usize, SampleWalk<'_>, f64, f64)>,
+        out: &mut [PieceResult],
+    ) {
+        let mut lines = Vec::with_capacity(pieces.len());
+        for (slot, walk, alpha_in, stop_at) in pieces {
+            match walk.line().filter(Line::fits) {
+                Some(line) => lines.push(Line { slot, line, alpha_in, stop_at }),
+                None => out[slot] = self.cast(walk, alpha_in, stop_at),
+            }
+        }
+        // SAFETY: the caller's promise is this function's.
+        unsafe { self.cast_packets(fast, packed, &lines, out) };
+    }
+
     /// Casts `lines` (each [`Line::fits`]), writing each result to `out[line.slot]`.
     ///
     /// The loop is pipelined by one sample: the samples at k + 1 (or where a lane jumps to)
@@ -298,13 +322,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
     /// # Safety
     /// The processor must have AVX-512 F, DQ and VL ([`Trilinear4::packed`] is `Some`).
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    pub(super) unsafe fn cast_packets(
-        &self,
-        fast: &Trilinear4<'_>,
-        packed: &Packed,
-        lines: &[Line],
-        out: &mut [PieceResult],
-    ) {
+    unsafe fn cast_packets(&self, fast: &Trilinear4<'_>, packed: &Packed, lines: &[Line], out: &mut [PieceResult]) {
         let batch = Batch {
             fast,
             packed,

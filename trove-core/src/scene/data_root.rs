@@ -17,9 +17,8 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
-use super::SceneErrorKind;
+use super::error::{SceneError, SceneErrorKind};
 use crate::dataset::{Catalog, DatasetError, FileInfo, FileKind, FsCatalog};
-use crate::SceneError;
 
 /// The environment variable that names the data root when `--data-root` is not given.
 pub const DATA_ROOT_ENV: &str = "TROVE_DATA";

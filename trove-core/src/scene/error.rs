@@ -13,8 +13,11 @@ use std::path::PathBuf;
 
 use thiserror::Error;
 
-use super::mappings::{MAX_POLYNOMIAL_TERMS, MAX_TABLE_ENTRIES};
-use super::{DataRoot, MAX_IMAGE_SIDE};
+use super::limits::{
+    INTERPOLATIONS, MAX_IMAGE_SIDE, MAX_POLYNOMIAL_TERMS, MAX_SAMPLES_PER_PIECE, MAX_SAMPLES_PER_RENDER,
+    MAX_TABLE_ENTRIES,
+};
+use super::DataRoot;
 use crate::dataset::generator::GeneratorError;
 use crate::dataset::{ChannelName, DatasetError, Dims, DimsError, VoxelType};
 use crate::geometry::hexahedron::HexahedronError;
@@ -190,7 +193,7 @@ pub enum SceneErrorKind {
     #[error(
         "the render could take up to {total:.3e} samples ({width}×{height} pixels, up to {per_ray:.3e} per ray in \
          this object); at most {max:.3e} are allowed: use a larger sampling distance or a smaller image",
-        max = super::MAX_SAMPLES_PER_RENDER
+        max = MAX_SAMPLES_PER_RENDER
     )]
     RenderTooCostly {
         /// Worst-case samples of the render.
@@ -322,7 +325,7 @@ pub enum SceneErrorKind {
     #[error(
         "{distance:?} would take up to {samples:.3e} samples per ray through a box {diagonal:.3e} across; at most \
          {max:.3e} are allowed",
-        max = super::MAX_SAMPLES_PER_PIECE
+        max = MAX_SAMPLES_PER_PIECE
     )]
     TooManySamplesPerRay {
         /// The sampling distance.
@@ -481,7 +484,7 @@ pub enum SceneErrorKind {
 
     // ----------------------------------------------------------------- interpolation
     /// An interpolation name TROVE does not have.
-    #[error("unknown interpolation \"{got}\"; expected {}", super::mappings::INTERPOLATIONS)]
+    #[error("unknown interpolation \"{got}\"; expected {INTERPOLATIONS}")]
     UnknownInterpolation {
         /// The name given.
         got: String,

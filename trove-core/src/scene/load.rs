@@ -8,13 +8,11 @@ use std::path::Path;
 
 use glam::{DMat3, DMat4, DVec3, DVec4};
 
-use super::error::SceneErrorKind as Kind;
+use super::error::{SceneError, SceneErrorKind as Kind};
 use super::file::{ChannelFile, DatasetFile, ObjectFile, SceneFile, TransformFile};
+use super::limits::{MAX_IMAGE_SIDE, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE, MAX_SAMPLES_PER_RENDER};
 use super::mappings::{self, KeyError};
-use super::{
-    ImageSettings, Object, RenderSettings, Scene, MAX_IMAGE_SIDE, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE,
-    MAX_SAMPLES_PER_RENDER,
-};
+use super::{ImageSettings, Object, RenderSettings, Scene};
 use crate::dataset::generator::{Generator, GeneratorError};
 use crate::dataset::raw::{self, StoredType};
 use crate::dataset::{
@@ -23,7 +21,6 @@ use crate::dataset::{
 };
 use crate::geometry::hexahedron::Hexahedron;
 use crate::geometry::{Camera, CameraField, Extent, Placement, Shape};
-use crate::SceneError;
 
 /// A refusal at `key`.
 fn err<T>(key: impl Into<String>, kind: Kind) -> Result<T, KeyError> {

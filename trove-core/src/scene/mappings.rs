@@ -4,13 +4,9 @@
 use toml::Value;
 
 use super::error::SceneErrorKind as Kind;
+use super::limits::{INTERPOLATIONS, MAX_POLYNOMIAL_TERMS, MAX_TABLE_ENTRIES};
 use crate::interp::Interpolation;
 use crate::mapping::{ColourMap, Lut, OpacityMap, Polynomial, Ramp, RawColour};
-
-/// Largest number of coefficients in a general polynomial map.
-pub const MAX_POLYNOMIAL_TERMS: usize = 32;
-/// Largest number of LUT domains or ramp points.
-pub const MAX_TABLE_ENTRIES: usize = 65_536;
 
 /// A refusal at a key path, completed with the file name by the caller (`load::scene`).
 #[derive(Debug)]
@@ -242,10 +238,6 @@ pub(super) fn opacity(v: &Value, key: &str, has: impl Fn(&str) -> bool) -> Resul
         }
     }
 }
-
-/// The interpolations a scene may name, for messages.
-pub(super) const INTERPOLATIONS: &str =
-    "\"nearest\", \"trilinear\", \"cubic\" or { type = \"nonlinear\", omega = [w0, w1, w2] }";
 
 /// `"nearest"`, `"trilinear"`, `"cubic"`, or `{ type = "nonlinear", omega = [w0, w1, w2] }`.
 pub(super) fn interpolation(v: &Value, key: &str) -> Result<Interpolation, KeyError> {

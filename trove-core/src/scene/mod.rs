@@ -8,6 +8,7 @@
 mod data_root;
 mod error;
 mod file;
+mod limits;
 mod load;
 mod mappings;
 #[cfg(test)]
@@ -22,20 +23,7 @@ use crate::mapping::{ColourMap, OpacityMap};
 
 pub use data_root::{DataRoot, DATA_ROOT_ENV};
 pub use error::{SceneError, SceneErrorKind};
-
-/// Largest image side accepted, in pixels.
-pub const MAX_IMAGE_SIDE: u32 = 16_384;
-/// Largest number of objects (and of datasets) in one scene.
-pub const MAX_OBJECTS: usize = 4_096;
-/// Largest number of samples one object may take over one piece of one ray; a scene whose
-/// sampling distance could exceed it is refused at load rather than rendering for hours.
-pub const MAX_SAMPLES_PER_PIECE: f64 = (1u64 << 24) as f64;
-/// Largest number of samples a whole render may take, estimated at load as pixels × Σ over
-/// objects of the samples one ray through the object's bounding-box diagonal takes (an
-/// upper bound). 2³⁵ ≈ 3.4·10¹⁰ admits a 4096² image of a 512³ volume at half a voxel per
-/// step; beyond it a scene (say a 10⁻⁶ step on a 512² image, which passes the per-piece
-/// cap) would render for hours, so it is refused with the numbers instead.
-pub const MAX_SAMPLES_PER_RENDER: f64 = (1u64 << 35) as f64;
+pub use limits::{MAX_IMAGE_SIDE, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE, MAX_SAMPLES_PER_RENDER};
 
 /// `[image]`: the output raster.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -9,14 +9,13 @@
 
 use std::path::{Path, PathBuf};
 
-use super::{DataRoot, Scene, SceneErrorKind as Kind, MAX_IMAGE_SIDE, MAX_OBJECTS};
+use super::{DataRoot, Scene, SceneError, SceneErrorKind as Kind, MAX_IMAGE_SIDE, MAX_OBJECTS};
 use crate::dataset::generator::GeneratorError;
 use crate::dataset::{
     ChannelName, DataFile, DatasetError, DimsError, FileInfo, FileKind, FsCatalog, KeyProblem, VoxelType,
 };
 use crate::geometry::hexahedron::HexahedronError;
 use crate::geometry::{CameraError, CameraField};
-use crate::SceneError;
 
 /// The scene file's name in every message checked here.
 const NAME: &str = "bad-input-scene.toml";
