@@ -3,7 +3,7 @@
 
 use std::collections::HashMap;
 use std::fs::{self, File};
-use std::io::Write;
+use std::io::{BufReader, Write};
 use std::path::{Path, PathBuf};
 
 use super::archive::zip_member;
@@ -49,8 +49,13 @@ pub(super) fn build(
                 }
             };
             let archive = archive.map_err(|reason| FetchError::Download { url: url.clone(), reason })?;
-            let zip = fs::read(&archive)?;
-            let bytes = zip_member(&zip, member).map_err(|reason| FetchError::Archive { url: url.clone(), reason })?;
+            let bytes = zip_member(BufReader::new(File::open(&archive)?), member).map_err(|e| FetchError::Archive {
+                url: url.clone(),
+                reason: match std::error::Error::source(&e) {
+                    Some(cause) => format!("{e}: {cause}"),
+                    None => e.to_string(),
+                },
+            })?;
             fs::write(out, swap(bytes, url)?)?;
         }
         (None, Some([first, last])) => {
