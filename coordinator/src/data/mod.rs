@@ -27,9 +27,10 @@ mod rebuild;
 mod test_support;
 mod verify;
 
+use std::error::Error;
 use std::path::PathBuf;
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use trove_core::scene::{DataRoot, DATA_ROOT_ENV};
 
 use download::Curl;
@@ -70,7 +71,7 @@ pub(crate) enum DataCommand {
 impl DataCommand {
     /// Runs the command, printing one line per file.
     pub(crate) fn run(self) -> Result<()> {
-        let manifest = Manifest::builtin()?;
+        let manifest = Manifest::builtin().context("data/manifest.toml (compiled into trove)")?;
         match self {
             DataCommand::List => {
                 for e in &manifest.files {
@@ -112,7 +113,7 @@ impl DataCommand {
                 let outcomes = fetch(&manifest, &dir, &curl, &mut |name, outcome| match outcome {
                     Ok(Fetched::AlreadyThere) => println!("ok       {name} (already there)"),
                     Ok(Fetched::Downloaded) => println!("fetched  {name}"),
-                    Err(e) => println!("FAILED   {name}: {e}"),
+                    Err(e) => println!("FAILED   {name}: {}", one_line(e)),
                 })?;
                 let failed = outcomes.iter().filter(|o| o.is_err()).count();
                 if failed > 0 {
@@ -136,5 +137,47 @@ fn data_dir(given: Option<PathBuf>) -> PathBuf {
     match DataRoot::choose(given, std::env::var_os(DATA_ROOT_ENV)) {
         DataRoot::Given(dir) | DataRoot::Environment(dir) => dir,
         _ => PathBuf::from(DEFAULT_DIR),
+    }
+}
+
+/// `e` and its causes on one line, as `main` prints the error that ends a command, so that a
+/// file's FAILED line says as much. A cause is left out where its error's text already ends
+/// with it (some libraries' errors repeat their source).
+fn one_line(e: &dyn Error) -> String {
+    let mut line = e.to_string();
+    for cause in std::iter::successors(e.source(), |&c| c.source()) {
+        let text = cause.to_string();
+        if !line.ends_with(&text) {
+            line = format!("{line}: {text}");
+        }
+    }
+    line
+}
+
+#[cfg(test)]
+mod tests {
+    use std::io;
+
+    use super::archive::ArchiveError;
+    use super::download::{DownloadError, DownloadFailure};
+    use super::fetch::FetchError;
+    use super::*;
+
+    #[test]
+    fn a_failed_line_names_the_source_and_every_cause_once() {
+        let download = FetchError::from(DownloadError {
+            url: "https://h/x.raw".into(),
+            reason: DownloadFailure::Curl("The requested URL returned error: 404".into()),
+        });
+        assert_eq!(one_line(&download), "downloading https://h/x.raw: The requested URL returned error: 404");
+        let damaged = FetchError::Archive {
+            url: "https://h/p.whl".into(),
+            member: "p/a.png".into(),
+            source: ArchiveError::Unreadable(zip::result::ZipError::Io(io::Error::other("disk on fire"))),
+        };
+        assert_eq!(
+            one_line(&damaged),
+            "taking p/a.png out of https://h/p.whl: not a zip archive that trove can read: i/o error: disk on fire"
+        );
     }
 }

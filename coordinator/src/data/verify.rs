@@ -2,10 +2,10 @@
 
 use std::fs::File;
 use std::io::{self, Read};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context, Result};
 use sha2::{Digest, Sha256};
+use thiserror::Error;
 
 use super::manifest::{Entry, Manifest};
 
@@ -35,19 +35,38 @@ impl Status {
     }
 }
 
+/// Why a folder could not be checked at all (as opposed to a file that fails the check).
+#[derive(Debug, Error)]
+pub(crate) enum VerifyError {
+    /// Nothing to check: every file would be missing, which says less than this.
+    #[error("{} is not a folder; `trove data fetch --data-root {}` creates and fills it", dir.display(), dir.display())]
+    NotAFolder {
+        /// The folder given.
+        dir: PathBuf,
+    },
+    /// A file is there but cannot be read, so it is neither right nor wrong.
+    #[error("cannot read {}", path.display())]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// What the OS said.
+        #[source]
+        source: io::Error,
+    },
+}
+
 /// Checks every file of `manifest` in `dir`. Files the manifest does not name are ignored.
-pub(crate) fn verify(manifest: &Manifest, dir: &Path) -> Result<Vec<Status>> {
+pub(crate) fn verify(manifest: &Manifest, dir: &Path) -> Result<Vec<Status>, VerifyError> {
     if !dir.is_dir() {
-        bail!(
-            "{} is not a folder; `trove data fetch --data-root {}` creates and fills it",
-            dir.display(),
-            dir.display()
-        );
+        return Err(VerifyError::NotAFolder { dir: dir.to_path_buf() });
     }
     manifest
         .files
         .iter()
-        .map(|e| check(e, &dir.join(&e.name)).with_context(|| format!("reading {}", dir.join(&e.name).display())))
+        .map(|e| {
+            let path = dir.join(&e.name);
+            check(e, &path).map_err(|source| VerifyError::Read { path, source })
+        })
         .collect()
 }
 
@@ -111,7 +130,10 @@ mod tests {
         assert_eq!(report[1], Status::Corrupt { bytes: 6, sha256: Some(sha(b"sEcond")) });
         assert_eq!(report[2], Status::Corrupt { bytes: 6, sha256: None });
         assert_eq!(report[3], Status::Missing);
-        assert!(verify(&manifest, &dir.join("absent")).is_err(), "a missing folder is an error, not four verdicts");
+        assert!(
+            matches!(verify(&manifest, &dir.join("absent")), Err(VerifyError::NotAFolder { .. })),
+            "a missing folder is an error, not four verdicts"
+        );
     }
 
     #[test]
