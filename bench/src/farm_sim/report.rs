@@ -37,10 +37,9 @@ impl Farm {
                 coordinator_cores: args.coordinator_cores,
                 loops: 1,
                 coordinators: 1,
-                band_stride: 1,
+                spread_bands: false,
                 batch_tasks: 4096,
                 bands_in_flight: 2,
-                batches_per_thread: 2,
                 dispatch: Dispatch::Scan,
                 bvh: false,
             },
@@ -160,9 +159,9 @@ type Lift = (&'static str, fn(&mut Farm));
 pub(crate) const LIFTS: [Lift; 7] = [
     ("holders kept per job: no registry scan per event", |f| f.config.dispatch = Dispatch::Indexed),
     ("intersection through a BVH (projected)", |f| f.config.bvh = true),
-    ("8 bands in flight, taken 8 apart", |f| {
+    ("8 bands in flight, spread over the image", |f| {
         f.config.bands_in_flight = 8;
-        f.config.band_stride = 8
+        f.config.spread_bands = true
     }),
     ("an event loop per band in flight, 32 coordinator cores", |f| {
         f.config.loops = 8;

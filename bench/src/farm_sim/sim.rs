@@ -27,6 +27,7 @@
 
 use std::cmp::Ordering;
 use std::collections::{BTreeMap, BTreeSet, BinaryHeap, HashMap, VecDeque};
+use trove_core::render::dispatch::{band_order, least_loaded, Load};
 
 use super::inputs::Inputs;
 use super::pool::{transfer, Link, Pool};
@@ -69,24 +70,14 @@ pub(crate) struct FarmConfig {
     /// Bands whose pieces a coordinator holds at once (the driver's `BANDS_IN_FLIGHT`),
     /// counting those being intersected and composited.
     pub bands_in_flight: usize,
-    /// Batches in flight per worker thread (the driver allows 2).
-    pub batches_per_thread: usize,
     pub dispatch: Dispatch,
-    /// Order of the bands: 1 takes them top to bottom (as it is); n takes every n-th band
-    /// first (0, n, 2n, …, then 1, n + 1, …), so that the bands in flight lie apart in the
-    /// image and meet different datasets.
-    pub band_stride: usize,
+    /// Order of the bands: top to bottom, or spread over the image as the driver starts
+    /// them (`trove_core::render::dispatch::band_order`), so that the bands in flight lie
+    /// apart in the image and meet different datasets.
+    pub spread_bands: bool,
     /// Intersection tests every ray against every object (as it is), or, projected, walks
     /// a bounding-volume hierarchy: about 2·log₂(objects) boxes plus the objects hit.
     pub bvh: bool,
-}
-
-impl FarmConfig {
-    /// Batches a worker may have in flight (`capacity` in the driver: 2 per thread, at
-    /// least 4).
-    fn cap(&self) -> usize {
-        (self.batches_per_thread * self.worker_threads).max(4)
-    }
 }
 
 /// Where a coordinator's event loop spent its time, in seconds.
@@ -435,11 +426,11 @@ impl<'a> Sim<'a> {
 
 impl Shard {
     /// A coordinator of the image's `bands` bands that works through `tile`, in the order
-    /// `config.band_stride` asks for.
+    /// `config.spread_bands` asks for.
     fn new(config: &FarmConfig, tile: Vec<usize>, bands: usize) -> Shard {
         let loops = config.loops.max(1);
-        let stride = config.band_stride.clamp(1, tile.len().max(1));
-        let order: Vec<usize> = (0..stride).flat_map(|i| tile.iter().copied().skip(i).step_by(stride)).collect();
+        let order: Vec<usize> =
+            if config.spread_bands { band_order(tile.len()).into_iter().map(|i| tile[i]).collect() } else { tile };
         let mut loop_of = vec![0; bands];
         order.iter().enumerate().for_each(|(i, &b)| loop_of[b] = i % loops);
         let start = |l| if l == 0 { VecDeque::from([LoopEvent::Start]) } else { VecDeque::new() };
@@ -642,10 +633,13 @@ impl Sim<'_> {
         }
     }
 
-    /// The least-loaded holder of dataset `d` with room, as `pick_worker` chooses.
+    /// The holder of dataset `d` that casts its next batch: the driver's own policy
+    /// (`trove_core::render::dispatch::least_loaded`), over holders in worker order.
     fn pick(&self, s: usize, d: usize) -> Option<usize> {
         let in_flight = &self.shards[s].in_flight;
-        self.holders[d].iter().copied().filter(|&w| in_flight[w] < self.config.cap()).min_by_key(|&w| (in_flight[w], w))
+        let threads = self.config.worker_threads as u32;
+        let loads = self.holders[d].iter().map(|&w| Load { in_flight: in_flight[w] as u64, threads });
+        least_loaded(loads).map(|i| self.holders[d][i])
     }
 
     /// `next_batch` on a ready lane and `send` to `worker`.
@@ -914,10 +908,9 @@ mod tests {
             coordinator_cores: 4,
             loops: 1,
             coordinators: 1,
-            band_stride: 1,
+            spread_bands: false,
             batch_tasks: 256 * threads as u64,
             bands_in_flight: 2,
-            batches_per_thread: 2,
             dispatch: Dispatch::Scan,
             bvh: false,
         }

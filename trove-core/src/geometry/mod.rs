@@ -10,4 +10,6 @@ mod placement;
 pub(crate) use camera::PixelRect;
 pub use camera::{Camera, CameraError, CameraField, Ray};
 pub use pieces::{split_into_pieces, Piece, Segment};
-pub use placement::{sample_count, Extent, InversionPrecisionError, LineSamples, Placement, SampleWalk, Shape, VcLine};
+pub use placement::{
+    sample_count, BoxOrigin, Extent, InversionPrecisionError, LineSamples, Placement, SampleWalk, Shape, VcLine,
+};

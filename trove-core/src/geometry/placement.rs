@@ -190,11 +190,34 @@ impl Placement {
     pub fn segment(&self, ray: &Ray) -> Option<(f64, f64)> {
         match &self.shape {
             Shape::Affine { box_from_world, .. } => {
-                let o = box_from_world.transform_point3(ray.origin);
-                let d = box_from_world.transform_vector3(ray.dir);
-                slab_segment(o, d)
+                let o = BoxOrigin::new(ray.origin, box_from_world.transform_point3(ray.origin));
+                slab_segment(&o, box_from_world.transform_vector3(ray.dir))
             }
             Shape::Distorted { hex, .. } => hex.segment(ray.origin, ray.dir),
+        }
+    }
+
+    /// What [`Placement::segment`] works out from a ray's origin alone, for an affine box:
+    /// every ray of a pinhole camera starts at the eye, so the intersection phase does this
+    /// once per object instead of once per ray. `None` for a distorted box.
+    pub fn box_origin(&self, origin: DVec3) -> Option<BoxOrigin> {
+        match &self.shape {
+            Shape::Affine { box_from_world, .. } => {
+                Some(BoxOrigin::new(origin, box_from_world.transform_point3(origin)))
+            }
+            Shape::Distorted { .. } => None,
+        }
+    }
+
+    /// [`Placement::segment`], with the origin's part taken from `from` when the ray starts
+    /// where `from` was worked out: the same operations on the same values, so the same
+    /// segment to the bit.
+    pub fn segment_from(&self, from: Option<&BoxOrigin>, ray: &Ray) -> Option<(f64, f64)> {
+        match (&self.shape, from) {
+            (Shape::Affine { box_from_world, .. }, Some(o)) if o.world == ray.origin => {
+                slab_segment(o, box_from_world.transform_vector3(ray.dir))
+            }
+            _ => self.segment(ray),
         }
     }
 
@@ -247,16 +270,31 @@ pub fn sample_count(world_len: f64, sampling_distance: f64, vc_len: f64) -> u64 
     (x.round() as u64).max(1)
 }
 
+/// A ray origin in an affine box's coordinates, with what the slab test derives from it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BoxOrigin {
+    world: DVec3,
+    o: DVec3,
+    slack: f64,
+    o_len: f64,
+}
+
+impl BoxOrigin {
+    fn new(world: DVec3, o: DVec3) -> BoxOrigin {
+        BoxOrigin { world, o, slack: BOX_SLACK * (1.0 + o.abs().max_element()), o_len: o.length() }
+    }
+}
+
 /// The slab test against the closed unit box in box coordinates. An axis along which the
 /// ray moves less than the rounding slack over every t at which it could be in the box
 /// (`reach` bounds those t) is treated as parallel: the ray is inside that slab for all t
 /// or for none, decided on its origin with the slack. A zero direction component (+0.0 or
 /// −0.0) takes that branch, so it never divides and never makes NaN. Other axes give the
 /// exact crossing parameters.
-fn slab_segment(o: DVec3, d: DVec3) -> Option<(f64, f64)> {
-    let slack = BOX_SLACK * (1.0 + o.abs().max_element());
+fn slab_segment(origin: &BoxOrigin, d: DVec3) -> Option<(f64, f64)> {
+    let (o, slack) = (origin.o, origin.slack);
     // |o + t·d| ≤ √3 inside the box, so t ≤ (|o| + √3)/|d| there.
-    let reach = (o.length() + 2.0) / d.length();
+    let reach = (origin.o_len + 2.0) / d.length();
     let (mut t_near, mut t_far) = (0.0f64, f64::INFINITY);
     // How far rounding of the box coordinates can move a crossing parameter.
     let mut t_tol = 0.0f64;

@@ -15,7 +15,7 @@
 use rayon::prelude::*;
 
 use super::workunit::PieceTask;
-use crate::geometry::{split_into_pieces, Piece, PixelRect, Ray, Segment};
+use crate::geometry::{split_into_pieces, BoxOrigin, Piece, PixelRect, Ray, Segment};
 use crate::scene::Scene;
 
 /// Rows per parallel work item.
@@ -82,13 +82,18 @@ struct Band {
 /// rectangle of its box's corners, [`crate::geometry::Camera::pixels_reaching`]): a ray
 /// outside is not tested against the object. An object's box lies in the convex hull of its
 /// corners (trilinear points are convex combinations of them), so this never drops a hit.
-pub(crate) struct Reach(Vec<PixelRect>);
+pub(crate) struct Reach(Vec<PixelRect>, Vec<Option<BoxOrigin>>);
 
 impl Reach {
     pub(crate) fn new(scene: &Scene) -> Reach {
         let (w, h) = (scene.image().width, scene.image().height);
         let camera = scene.camera();
-        Reach(scene.objects().iter().map(|o| camera.pixels_reaching(&o.placement().corners(), w, h)).collect())
+        let eye = camera.ray(0, 0, w.max(1), h.max(1)).origin;
+        Reach(
+            scene.objects().iter().map(|o| camera.pixels_reaching(&o.placement().corners(), w, h)).collect(),
+            // Every ray starts at the eye: its part of each slab test is worked out once.
+            scene.objects().iter().map(|o| o.placement().box_origin(eye)).collect(),
+        )
     }
 }
 
@@ -103,11 +108,11 @@ pub(crate) fn segments_of(
     segments: &mut Vec<Segment>,
 ) {
     segments.clear();
-    for (i, (object, rect)) in scene.objects().iter().zip(&reach.0).enumerate() {
+    for (i, ((object, rect), origin)) in scene.objects().iter().zip(&reach.0).zip(&reach.1).enumerate() {
         if !rect.contains(col, row) {
             continue;
         }
-        if let Some((t_near, t_far)) = object.placement().segment(ray) {
+        if let Some((t_near, t_far)) = object.placement().segment_from(origin.as_ref(), ray) {
             if t_far > t_near {
                 segments.push(Segment { object: i as u32, t_near, t_far });
             }
@@ -260,7 +265,7 @@ mod tests {
         let scene = Scene::parse(&text, "reach.toml").unwrap();
         let (w, h) = (scene.image().width, scene.image().height);
         let reach = Reach::new(&scene);
-        let everywhere = Reach(vec![PixelRect::whole(w, h); objects.len()]);
+        let everywhere = Reach(vec![PixelRect::whole(w, h); objects.len()], vec![None; objects.len()]);
         let (mut culled, mut hits) = (0, 0);
         let (mut a, mut b) = (Vec::new(), Vec::new());
         for row in 0..h {

@@ -250,10 +250,11 @@ impl Scheduler {
                 lane.cursor = 0;
                 continue;
             };
+            let first_wave = self.lanes[d].wave == 0;
             let mut cast = Vec::with_capacity(candidates.len());
             let mut tasks = Vec::with_capacity(candidates.len());
             for t in candidates {
-                match self.decide(t as usize) {
+                match self.decide(t as usize, first_wave) {
                     Decision::Cull => {
                         self.status[t as usize] = Status::Culled;
                         self.progress.culled += 1;
@@ -393,7 +394,9 @@ impl Scheduler {
     }
 
     /// Cull task `t`, or cast it with the deterministic front (module documentation).
-    fn decide(&mut self, t: usize) -> Decision {
+    /// `first_wave`: `t` is in its dataset's first wave, so no piece in front is the
+    /// dataset's and that front is clear without looking.
+    fn decide(&mut self, t: usize, first_wave: bool) -> Decision {
         let task = &self.inter.tasks[t];
         let d = self.dataset_of_object[task.object as usize];
         let r = self.inter.local_ray(task.ray);
@@ -420,7 +423,7 @@ impl Scheduler {
         if stopped || bound.alpha >= cull_at {
             return Decision::Cull;
         }
-        if task.is_whole() {
+        if task.is_whole() || first_wave {
             return Decision::Cast(0.0);
         }
         // Pieces wholly of this dataset are in its earlier waves: all recorded, none culled
