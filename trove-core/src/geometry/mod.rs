@@ -9,5 +9,5 @@ mod placement;
 
 pub(crate) use camera::PixelRect;
 pub use camera::{Camera, CameraError, CameraField, Ray};
-pub use pieces::{split_into_pieces, Piece, Segment};
+pub use pieces::{count_pieces, split_into_pieces, Piece, PieceScratch, Segment};
 pub use placement::{sample_count, Extent, InversionPrecisionError, LineSamples, Placement, SampleWalk, Shape, VcLine};
