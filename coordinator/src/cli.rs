@@ -88,6 +88,16 @@ struct CoordinatorArgs {
     /// Bands of one job in flight at once, at most: more keep more datasets busy.
     #[arg(long, default_value_t = 8)]
     bands_in_flight: usize,
+    /// Jobs running at once, at most; later ones wait QUEUED, in order, their place in the
+    /// queue in their status.
+    #[arg(long, default_value_t = farm::DEFAULT_MAX_JOBS)]
+    max_jobs: usize,
+    /// Seconds a job may run before it fails with DEADLINE_EXCEEDED.
+    #[arg(long, default_value_t = 3600)]
+    job_deadline_s: u64,
+    /// Most pixels of a job that asks for a PFM; larger ones are refused at submission.
+    #[arg(long, default_value_t = render::limits::MAX_PFM_PIXELS)]
+    max_pfm_pixels: u64,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -132,6 +142,11 @@ fn render_command(args: RenderArgs) -> Result<()> {
     }
     let root = DataRoot::choose(args.data_root.clone(), std::env::var_os(DATA_ROOT_ENV));
     let mut scene = Scene::load_in(&args.scene, &root)?;
+    if is_pfm(&args.output) {
+        let (w, h) = (scene.image().width, scene.image().height);
+        render::limits::check_pfm(w, h, render::limits::MAX_PFM_PIXELS)
+            .with_context(|| format!("cannot write {}", args.output.display()))?;
+    }
     if let Some(mode) = args.distorted_sampling {
         scene.set_straight_distorted_sampling(matches!(mode, DistortedSampling::Straight));
     }
@@ -256,8 +271,11 @@ fn coordinator_command(args: CoordinatorArgs) -> Result<()> {
                 batch_deadline: std::time::Duration::from_secs(args.batch_deadline_s.max(1)),
                 memory_bound: args.band_memory,
                 max_bands: args.bands_in_flight.max(1),
+                job_deadline: std::time::Duration::from_secs(args.job_deadline_s.max(1)),
+                max_pfm_pixels: args.max_pfm_pixels,
                 ..farm::DriverConfig::default()
             },
+            max_jobs: args.max_jobs.max(1),
         };
         farm::run(listener, trove_proto::shutdown_signal(), config).await.context("coordinator")
     })

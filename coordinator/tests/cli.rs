@@ -297,3 +297,36 @@ fn trove_data_verify_takes_the_same_data_root() {
     let out = run_with_data(&[&"data", &"verify"], Some(&empty));
     failed(&out, &[&empty.display().to_string(), "missing"]);
 }
+
+#[test]
+fn renders_over_a_limit_exit_non_zero_naming_it_and_write_nothing() {
+    let dir = scratch("cli-limits");
+    // A 16384² PFM, refused before rendering (a PNG of that size is allowed).
+    let big = tiny_scene().replace("width = 7", "width = 16384").replace("height = 5", "height = 16384");
+    assert_ne!(big, tiny_scene());
+    let scene = write(&dir, "big.toml", &big);
+    let pfm = dir.join("big.pfm");
+    failed(&run(&[&"render", &scene, &"-o", &pfm]), &["big.pfm", "limit on PFM pixels is 16777216"]);
+    assert!(!pfm.exists());
+    // 300 nested boxes over one 2³ dataset at a huge step: about 90 000 piece tasks per ray.
+    let mut nested = String::from(
+        "[image]\nwidth = 512\nheight = 512\nbackground = [0, 0, 0]\n\
+         [camera]\neye = [0, 0, 4]\ntarget = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 30.0\n\
+         [[datasets]]\nname = \"d\"\ndims = [2, 2, 2]\n[datasets.channels.voxel]\n\
+         generator = { kind = \"constant\", value = 0.5 }\n",
+    );
+    for i in 0..300 {
+        let half = 1.0 - i as f64 / 301.0;
+        let (s, t) = (2.0 * half, -half);
+        nested += &format!(
+            "[[objects]]\nname = \"o{i}\"\ndataset = \"d\"\nsampling_distance = 1e9\n\
+             transform = {{ matrix = [[{s}, 0, 0, {t}], [0, {s}, 0, {t}], [0, 0, {s}, {t}], [0, 0, 0, 1]] }}\n\
+             colour = {{ type = \"ramp\", points = [[0, 1, 1, 1], [1, 1, 1, 1]] }}\n\
+             opacity = {{ type = \"ramp\", points = [[0, 0.01], [1, 0.01]] }}\n"
+        );
+    }
+    let scene = write(&dir, "nested.toml", &nested);
+    let png = dir.join("nested.png");
+    failed(&run(&[&"render", &scene, &"-o", &png]), &["nested.toml", "limit on piece tasks per render is 536870912"]);
+    assert!(!png.exists());
+}

@@ -9,6 +9,7 @@ use trove_core::dataset::{
     ChannelName, ChannelSource, DataFile, DatasetError, Dims, Encoding, Endian, FileInfo, FileKind, VoxelType,
 };
 use trove_core::error::with_causes;
+use trove_core::render::limits::LimitError;
 use trove_core::render::{CastError, StoreError};
 use trove_core::scene::{SceneError, SceneErrorKind};
 
@@ -34,6 +35,7 @@ pub fn failure_status(f: pb::Failure) -> Status {
         pb::Reason::WorkerLost => Code::Unavailable,
         pb::Reason::LimitExceeded => Code::ResourceExhausted,
         pb::Reason::NotFound => Code::NotFound,
+        pb::Reason::DeadlineExceeded => Code::DeadlineExceeded,
         pb::Reason::Internal | pb::Reason::Unspecified => Code::Internal,
     };
     Status::with_details(code, f.message.clone(), f.encode_to_vec().into())
@@ -71,6 +73,18 @@ pub fn scene_failure(e: &SceneError) -> pb::Failure {
     f.file = e.file.display().to_string();
     f.key = e.key.clone().unwrap_or_default();
     f
+}
+
+/// A render over one of `trove-core`'s limits on work or image size: never retryable.
+pub fn limit_failure(e: &LimitError) -> pb::Failure {
+    failure(pb::Reason::LimitExceeded, false, e.to_string())
+}
+
+/// The status that refuses a submitted scene over a limit: INVALID_ARGUMENT (the request
+/// cannot succeed as sent, unlike a RESOURCE_EXHAUSTED that may pass later), with `f`
+/// (reason `LIMIT_EXCEEDED`) in its details.
+pub fn limit_status(f: pb::Failure) -> Status {
+    Status::with_details(Code::InvalidArgument, f.message.clone(), f.encode_to_vec().into())
 }
 
 /// A dataset the store could not provide.

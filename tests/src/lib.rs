@@ -17,7 +17,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
-use trove_core::geometry::{split_into_pieces, Segment};
+use trove_core::geometry::{split_into_pieces, PieceScratch, Segment};
 use trove_core::render::{render, Algorithm, Image, RenderOptions, Rendered};
 use trove_core::scene::{DataRoot, Scene, SceneError, SceneErrorKind};
 use trove_core::RenderError;
@@ -132,7 +132,8 @@ pub fn render_with_cast_options(scene: &Scene, options: CastOptions) -> (Image, 
     let rows: Vec<(Vec<[f64; 3]>, u64)> = (0..h)
         .into_par_iter()
         .map(|row| {
-            let (mut segments, mut cuts, mut pieces, mut cover) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+            let (mut segments, mut scratch, mut pieces, mut cover) =
+                (Vec::new(), PieceScratch::default(), Vec::new(), Vec::new());
             let mut samples = 0;
             let pixels = (0..w)
                 .map(|col| {
@@ -145,7 +146,7 @@ pub fn render_with_cast_options(scene: &Scene, options: CastOptions) -> (Image, 
                             }
                         }
                     }
-                    split_into_pieces(&segments, &mut cuts, &mut pieces, &mut cover);
+                    split_into_pieces(&segments, &mut scratch, &mut pieces, &mut cover);
                     let mut acc = Rgba::CLEAR;
                     for piece in &pieces {
                         if acc.alpha >= termination {

@@ -8,12 +8,13 @@ use std::time::Duration;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
+use trove_core::render::limits::{check_pfm, LimitError, Work};
 use trove_core::scene::Scene;
 use trove_proto::convert;
 use trove_proto::v1 as pb;
 
 use super::driver::{self, DriverConfig, JobPlan};
-use super::jobs::{is_final, Jobs};
+use super::jobs::{is_final, Admission, Jobs};
 use super::registry::Registry;
 
 /// What both services share.
@@ -24,6 +25,8 @@ pub struct Farm {
     pub jobs: Arc<Jobs>,
     /// How jobs treat workers.
     pub driver: DriverConfig,
+    /// How many jobs run at once; the others wait in order.
+    pub admission: Arc<Admission>,
 }
 
 /// The client-facing service.
@@ -43,6 +46,20 @@ fn plan(farm: &Farm, request: pb::SubmitJobRequest) -> Result<JobPlan, Status> {
     let name = if request.scene_name.is_empty() { "scene.toml".to_string() } else { request.scene_name };
     let scene = Scene::parse_with(&request.scene_toml, std::path::Path::new(&name), &catalog)
         .map_err(|e| convert::failure_status(convert::scene_failure(&e)))?;
+    // The work and memory the job would take, checked before it is queued: its tasks
+    // counted without storing one, each band as the driver will size it, and its PFM.
+    let options = request.options.unwrap_or_default();
+    let limited = |e: LimitError| {
+        let mut f = convert::limit_failure(&e);
+        f.file = name.clone();
+        convert::limit_status(f)
+    };
+    let (w, h) = (scene.image().width, scene.image().height);
+    if options.want_pfm {
+        check_pfm(w, h, farm.driver.max_pfm_pixels).map_err(limited)?;
+    }
+    let work = Work::count(&scene).map_err(limited)?;
+    work.check_bands(farm.driver.band_rows(&scene, &options), farm.driver.memory_bound).map_err(limited)?;
     let dataset_keys: Vec<Vec<String>> = scene.datasets().iter().map(|d| d.file_keys()).collect();
     for d in scene.used_datasets() {
         if farm.registry.holders(&dataset_keys[d]).is_empty() {
@@ -69,7 +86,7 @@ fn plan(farm: &Farm, request: pb::SubmitJobRequest) -> Result<JobPlan, Status> {
         scene: Arc::new(scene),
         scene_toml: request.scene_toml,
         scene_name: name,
-        options: request.options.unwrap_or_default(),
+        options,
         headers,
         dataset_keys,
     })
@@ -91,12 +108,37 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
         };
         let plan = planned?;
         let job = farm.jobs.create();
-        tracing::info!(job = %job.id, scene = %plan.scene_name, "job submitted");
+        farm.admission.enqueue(job.clone());
+        tracing::info!(job = %job.id, scene = %plan.scene_name, queued = farm.admission.waiting(), "job submitted");
         let id = job.id.clone();
         let (registry, jobs, config) = (farm.registry.clone(), farm.jobs.clone(), farm.driver.clone());
+        let admission = farm.admission.clone();
         tokio::spawn(async move {
             let job_id = job.id.clone();
-            driver::run(plan, job, registry, config).await;
+            match admission.admit(&job).await {
+                Some(slot) => {
+                    // The driver runs as a task of its own, so that a panic in it fails this
+                    // job (and frees its room) instead of leaving it RUNNING.
+                    let ran = tokio::spawn(driver::run(plan, job.clone(), registry, config)).await;
+                    if let Err(e) = ran {
+                        let message = match e.try_into_panic() {
+                            Ok(payload) => format!("the job's driver panicked: {}", driver::panic_message(&*payload)),
+                            Err(e) => format!("the job's driver stopped: {e}"),
+                        };
+                        tracing::error!(job = %job_id, %message, "job ended");
+                        job.update(|s| {
+                            s.state = pb::JobState::Failed as i32;
+                            s.failure = Some(convert::failure(pb::Reason::Internal, false, message));
+                        });
+                    }
+                    drop(slot);
+                }
+                None => job.update(|s| {
+                    s.state = pb::JobState::Cancelled as i32;
+                    let message = "the job was cancelled while queued".to_string();
+                    s.failure = Some(convert::failure(pb::Reason::Cancelled, false, message));
+                }),
+            }
             jobs.finished(&job_id);
         });
         Ok(Response::new(pb::SubmitJobResponse { job_id: id }))

@@ -3,12 +3,14 @@
 //!
 //! Finished jobs are kept, most recent first, up to [`KEEP_FINISHED`]; older ones are
 //! forgotten (their results too), so a long-lived coordinator's memory stays bounded.
+//! [`Admission`] runs at most a configured number of jobs at once; the others wait QUEUED
+//! in submission order, each status saying its place.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
-use tokio::sync::watch;
+use tokio::sync::{watch, Notify};
 use trove_proto::v1 as pb;
 
 /// Finished jobs kept for `GetResult` and `WatchJob`.
@@ -126,5 +128,137 @@ impl Jobs {
                 state.jobs.remove(&old);
             }
         }
+    }
+}
+
+/// Admission control: at most `max_running` jobs run at once; the others wait, QUEUED, in
+/// the order they were submitted, their `queue_position` kept up to date (1 runs next).
+pub struct Admission {
+    state: Mutex<AdmissionState>,
+    changed: Notify,
+}
+
+struct AdmissionState {
+    max_running: usize,
+    running: usize,
+    waiting: VecDeque<Arc<Job>>,
+}
+
+impl AdmissionState {
+    /// Writes every waiting job's place into its status.
+    fn renumber(&self) {
+        for (i, job) in self.waiting.iter().enumerate() {
+            let position = i as u32 + 1;
+            if job.status().queue_position != position {
+                job.update(|s| s.queue_position = position);
+            }
+        }
+    }
+}
+
+/// A running job's place among the `max_running`; dropping it lets the next job in.
+pub struct Slot(Arc<Admission>);
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        lock(&self.0.state).running -= 1;
+        self.0.changed.notify_waiters();
+    }
+}
+
+impl Admission {
+    /// Room for `max_running` jobs at once (at least one).
+    pub fn new(max_running: usize) -> Arc<Admission> {
+        let state = AdmissionState { max_running: max_running.max(1), running: 0, waiting: VecDeque::new() };
+        Arc::new(Admission { state: Mutex::new(state), changed: Notify::new() })
+    }
+
+    /// Puts `job` at the back of the queue; called as the job is submitted, so that the
+    /// queue's order is the order of submission.
+    pub fn enqueue(&self, job: Arc<Job>) {
+        let mut state = lock(&self.state);
+        state.waiting.push_back(job);
+        state.renumber();
+    }
+
+    /// Jobs waiting now.
+    pub fn waiting(&self) -> usize {
+        lock(&self.state).waiting.len()
+    }
+
+    /// Waits until `job` (enqueued before) is at the front of the queue and a job's room is
+    /// free, then takes it; `None` when the job is cancelled while it waits (it leaves the
+    /// queue).
+    pub async fn admit(self: &Arc<Self>, job: &Arc<Job>) -> Option<Slot> {
+        let mut cancelled = job.cancelled();
+        loop {
+            let notified = self.changed.notified();
+            tokio::pin!(notified);
+            // Registered before the state is read, so a change between the two is not missed.
+            notified.as_mut().enable();
+            {
+                let mut state = lock(&self.state);
+                let first = state.waiting.front().is_some_and(|j| Arc::ptr_eq(j, job));
+                if first && state.running < state.max_running {
+                    state.waiting.pop_front();
+                    state.running += 1;
+                    job.update(|s| s.queue_position = 0);
+                    state.renumber();
+                    drop(state);
+                    self.changed.notify_waiters();
+                    return Some(Slot(self.clone()));
+                }
+            }
+            tokio::select! {
+                _ = &mut notified => {}
+                _ = cancelled.wait_for(|c| *c) => {
+                    let mut state = lock(&self.state);
+                    state.waiting.retain(|j| !Arc::ptr_eq(j, job));
+                    job.update(|s| s.queue_position = 0);
+                    state.renumber();
+                    drop(state);
+                    self.changed.notify_waiters();
+                    return None;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn jobs_wait_in_order_with_their_places_and_a_cancelled_one_leaves() {
+        let (jobs, admission) = (Jobs::default(), Admission::new(1));
+        let all: Vec<Arc<Job>> = (0..4).map(|_| jobs.create()).collect();
+        for job in &all {
+            admission.enqueue(job.clone());
+        }
+        let places = || all.iter().map(|j| j.status().queue_position).collect::<Vec<_>>();
+        assert_eq!(places(), [1, 2, 3, 4]);
+        let first = admission.admit(&all[0]).await.expect("room for one");
+        assert_eq!(places(), [0, 1, 2, 3]);
+        // The third cannot pass the second, and the second waits for room.
+        let third = tokio::spawn({
+            let (admission, job) = (admission.clone(), all[2].clone());
+            async move { admission.admit(&job).await.is_some() }
+        });
+        let fourth = tokio::spawn({
+            let (admission, job) = (admission.clone(), all[3].clone());
+            async move { admission.admit(&job).await.is_some() }
+        });
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        assert!(all[3].cancel());
+        assert!(!fourth.await.unwrap(), "a job cancelled while queued is not admitted");
+        assert_eq!(places(), [0, 1, 2, 0]);
+        assert!(!third.is_finished());
+        drop(first);
+        let second = admission.admit(&all[1]).await.expect("next in line");
+        assert_eq!(places(), [0, 0, 1, 0]);
+        drop(second);
+        assert!(third.await.unwrap());
+        assert_eq!(admission.waiting(), 0);
     }
 }

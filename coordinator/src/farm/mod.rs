@@ -26,6 +26,13 @@ use trove_proto::v1::coordinator_server::CoordinatorServer;
 use trove_proto::v1::membership_server::MembershipServer;
 
 pub use driver::DriverConfig;
+#[cfg(debug_assertions)]
+pub use driver::Fault;
+
+/// Jobs a coordinator runs at once when not told: enough to keep a small farm's workers
+/// busy across jobs, few enough that their bands and images (each bounded by
+/// [`DriverConfig`]) stay within a modest machine.
+pub const DEFAULT_MAX_JOBS: usize = 4;
 
 /// How a coordinator runs.
 #[derive(Clone, Debug)]
@@ -34,11 +41,13 @@ pub struct FarmConfig {
     pub heartbeat: Duration,
     /// How jobs treat workers.
     pub driver: DriverConfig,
+    /// Jobs running at once, at most; later ones wait QUEUED, in order.
+    pub max_jobs: usize,
 }
 
 impl Default for FarmConfig {
     fn default() -> Self {
-        FarmConfig { heartbeat: Duration::from_secs(1), driver: DriverConfig::default() }
+        FarmConfig { heartbeat: Duration::from_secs(1), driver: DriverConfig::default(), max_jobs: DEFAULT_MAX_JOBS }
     }
 }
 
@@ -52,6 +61,7 @@ pub async fn run(
         registry: Arc::new(registry::Registry::new(config.heartbeat)),
         jobs: Arc::new(jobs::Jobs::default()),
         driver: config.driver,
+        admission: jobs::Admission::new(config.max_jobs),
     });
     let limit = trove_proto::MAX_MESSAGE_BYTES;
     tonic::transport::Server::builder()

@@ -9,7 +9,7 @@ mod placement;
 
 pub(crate) use camera::PixelRect;
 pub use camera::{Camera, CameraError, CameraField, Ray};
-pub use pieces::{split_into_pieces, Piece, Segment};
+pub use pieces::{count_pieces, split_into_pieces, Piece, PieceScratch, Segment};
 pub use placement::{
     sample_count, BoxOrigin, Extent, InversionPrecisionError, LineSamples, Placement, SampleWalk, Shape, VcLine,
 };

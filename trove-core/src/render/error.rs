@@ -9,6 +9,7 @@ use std::sync::Arc;
 
 use thiserror::Error;
 
+use super::limits::LimitError;
 use crate::dataset::DatasetError;
 use crate::sampling::BindError;
 
@@ -25,6 +26,10 @@ pub enum RenderError {
     /// The scheduler refused a result; in a local render this is a bug, never bad input.
     #[error(transparent)]
     Schedule(#[from] ScheduleError),
+    /// The render would exceed a limit on its work or memory (`render::limits`); refused
+    /// before any of it is done.
+    #[error(transparent)]
+    Limit(#[from] LimitError),
     /// Writing the output failed.
     #[error("cannot write {}: {source}", path.display())]
     Output {
@@ -41,7 +46,7 @@ impl RenderError {
     pub fn is_retryable(&self) -> bool {
         match self {
             RenderError::Store(e) => e.is_retryable(),
-            RenderError::Cast(_) | RenderError::Schedule(_) => false,
+            RenderError::Cast(_) | RenderError::Schedule(_) | RenderError::Limit(_) => false,
             RenderError::Output { source: OutputError::Io(e), .. } => io_is_transient(e.kind()),
             RenderError::Output { .. } => false,
         }

@@ -12,10 +12,13 @@
 //! band at a time and hold only that band's pieces; tasks carry the pixel index in the
 //! whole image either way.
 
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+
 use rayon::prelude::*;
 
+use super::limits::LimitError;
 use super::workunit::PieceTask;
-use crate::geometry::{split_into_pieces, BoxOrigin, Piece, PixelRect, Ray, Segment};
+use crate::geometry::{count_pieces, split_into_pieces, BoxOrigin, Piece, PieceScratch, PixelRect, Ray, Segment};
 use crate::scene::Scene;
 
 /// Rows per parallel work item.
@@ -124,7 +127,7 @@ pub(crate) fn segments_of(
 #[derive(Default)]
 struct RayScratch {
     segments: Vec<Segment>,
-    cuts: Vec<f64>,
+    split: PieceScratch,
     pieces: Vec<Piece>,
     cover: Vec<u32>,
 }
@@ -136,38 +139,78 @@ impl RayScratch {
         let (w, h) = (scene.image().width, scene.image().height);
         let ray = scene.camera().ray(col, row, w, h);
         segments_of(scene, reach, (col, row), &ray, &mut self.segments);
-        split_into_pieces(&self.segments, &mut self.cuts, &mut self.pieces, &mut self.cover);
+        split_into_pieces(&self.segments, &mut self.split, &mut self.pieces, &mut self.cover);
         self.segments.len()
+    }
+
+    /// The pieces and tasks of the ray of pixel `(col, row)`, counted without storing them.
+    fn count(&mut self, scene: &Scene, reach: &Reach, (col, row): (u32, u32)) -> (u64, u64) {
+        let (w, h) = (scene.image().width, scene.image().height);
+        let ray = scene.camera().ray(col, row, w, h);
+        segments_of(scene, reach, (col, row), &ray, &mut self.segments);
+        count_pieces(&self.segments, &mut self.split)
+    }
+}
+
+/// Counts the pieces and tasks of whole image rows without storing any, for the limits
+/// checked before a render ([`super::limits::Work`]).
+pub(crate) struct RowCounter<'s> {
+    scene: &'s Scene,
+    reach: Reach,
+}
+
+impl<'s> RowCounter<'s> {
+    pub(crate) fn new(scene: &'s Scene) -> RowCounter<'s> {
+        RowCounter { scene, reach: Reach::new(scene) }
+    }
+
+    /// (pieces, tasks) of image row `row`; counting stops once the tasks pass `max`.
+    pub(crate) fn row(&self, row: u32, max: u64) -> (u64, u64) {
+        let mut scratch = RayScratch::default();
+        let (mut pieces, mut tasks) = (0, 0);
+        for col in 0..self.scene.image().width {
+            let (p, t) = scratch.count(self.scene, &self.reach, (col, row));
+            pieces += p;
+            tasks += t;
+            if tasks > max {
+                break;
+            }
+        }
+        (pieces, tasks)
     }
 }
 
 /// The tasks that image rows `rows` of `scene` make, counted without storing any: what
 /// sizes a driver's bands before it intersects them.
 pub fn count_tasks(scene: &Scene, rows: std::ops::Range<u32>) -> u64 {
-    let (w, h) = (scene.image().width, scene.image().height);
+    let h = scene.image().height;
     let rows = rows.start.min(h)..rows.end.min(h);
-    let reach = Reach::new(scene);
-    (rows.start..rows.end)
-        .into_par_iter()
-        .map(|row| {
-            let mut scratch = RayScratch::default();
-            (0..w)
-                .map(|col| {
-                    scratch.pieces(scene, &reach, (col, row));
-                    scratch.cover.len() as u64
-                })
-                .sum::<u64>()
-        })
-        .sum()
+    let counter = RowCounter::new(scene);
+    (rows.start..rows.end).into_par_iter().map(|row| counter.row(row, u64::MAX).1).sum()
 }
 
 /// Intersects every ray of image rows `rows` of `scene` with every object (the scene
 /// guarantees at most [`crate::scene::MAX_OBJECTS`] objects, so an object index fits the
-/// task's 16 bits).
+/// task's 16 bits). It holds every task of the rows: a driver that must stay within a
+/// memory bound calls [`intersect_within`].
 pub fn intersect(scene: &Scene, rows: std::ops::Range<u32>) -> Intersections {
+    intersect_within(scene, rows, u64::MAX, u64::MAX).expect("no limit")
+}
+
+/// As [`intersect`], refusing rows that make more than `max_tasks` tasks (what
+/// `band_memory` bytes hold, [`super::limits::max_band_tasks`], which the error quotes) as
+/// soon as the count passes it: no ray's tasks are stored once the total would exceed the
+/// limit, so a band denser than its sizing expected never allocates past it.
+pub fn intersect_within(
+    scene: &Scene,
+    rows: std::ops::Range<u32>,
+    max_tasks: u64,
+    band_memory: u64,
+) -> Result<Intersections, LimitError> {
     let (w, h) = (scene.image().width, scene.image().height);
     let rows = rows.start.min(h)..rows.end.min(h);
     let reach = Reach::new(scene);
+    let (total, over) = (AtomicU64::new(0), AtomicBool::new(false));
     let bands: Vec<Band> = (rows.start as usize..rows.end as usize)
         .into_par_iter()
         .step_by(BAND_ROWS)
@@ -176,8 +219,16 @@ pub fn intersect(scene: &Scene, rows: std::ops::Range<u32>) -> Intersections {
             let mut scratch = RayScratch::default();
             for row in first_row..(first_row + BAND_ROWS).min(rows.end as usize) {
                 for col in 0..w {
+                    if over.load(Ordering::Relaxed) {
+                        return band;
+                    }
                     let ray_index = row as u32 * w + col;
                     band.segments += scratch.pieces(scene, &reach, (col, row as u32)) as u64;
+                    let n = scratch.cover.len() as u64;
+                    if n > 0 && total.fetch_add(n, Ordering::Relaxed).saturating_add(n) > max_tasks {
+                        over.store(true, Ordering::Relaxed);
+                        return band;
+                    }
                     band.pieces_per_ray.push(scratch.pieces.len() as u32);
                     for p in &scratch.pieces {
                         let objects = &scratch.cover[p.cover.0 as usize..p.cover.1 as usize];
@@ -192,6 +243,10 @@ pub fn intersect(scene: &Scene, rows: std::ops::Range<u32>) -> Intersections {
             band
         })
         .collect();
+    let counted = total.into_inner();
+    if counted > max_tasks {
+        return Err(LimitError::TasksPerBand { rows, counted, max: max_tasks, band_memory });
+    }
 
     let n_tasks = bands.iter().map(|b| b.tasks.len()).sum();
     let n_pieces = bands.iter().map(|b| b.tasks_per_piece.len()).sum::<usize>();
@@ -216,7 +271,7 @@ pub fn intersect(scene: &Scene, rows: std::ops::Range<u32>) -> Intersections {
             out.ray_start.push(last + n as usize);
         }
     }
-    out
+    Ok(out)
 }
 
 /// The sample positions `object` takes over [t0, t1] of `ray` (SPEC §4.2): what a cast would
@@ -279,7 +334,12 @@ mod tests {
             }
         }
         // Counting stores no task and counts what intersecting makes.
-        assert_eq!(count_tasks(&scene, 3..40), intersect(&scene, 3..40).tasks.len() as u64);
+        let tasks = intersect(&scene, 3..40).tasks.len() as u64;
+        assert_eq!(count_tasks(&scene, 3..40), tasks);
+        // A limit below the count refuses the rows; one at it does not.
+        assert!(intersect_within(&scene, 3..40, tasks, 0).is_ok());
+        let err = intersect_within(&scene, 3..40, tasks - 1, 0).unwrap_err();
+        assert!(matches!(err, LimitError::TasksPerBand { counted, .. } if counted >= tasks), "{err}");
         // The test means something: objects are hit, and many rays are never tested.
         assert!(hits > 500 && culled > (w * h) as usize, "{hits} hits, {culled} culled");
         // Out of view: no pixel; partly behind the eye: every pixel.

@@ -24,6 +24,7 @@ mod error;
 mod grouped;
 mod image;
 pub mod intersection;
+pub mod limits;
 mod per_ray;
 pub mod schedule;
 mod stats;
@@ -102,14 +103,16 @@ pub fn render(scene: &Scene, options: &RenderOptions) -> Result<Rendered, Render
     let started = std::time::Instant::now();
     let store = VolumeStore::new(options.memory_budget);
     store.check_budget(scene)?;
+    // The work the geometry makes, counted before any is stored (limits.rs). Algorithm 2
+    // holds a band's tasks: `grouped` sizes its bands from sampled rows, so it is given a
+    // band memory narrow enough that every band fits by the exact count.
+    let work = limits::Work::count(scene)?;
     let mut rendered = match options.algorithm {
         Algorithm::PerRay => per_ray::render(scene, &store, options.progress.as_ref())?,
-        Algorithm::Grouped => grouped::render(
-            scene,
-            &store,
-            options.progress.as_ref(),
-            options.band_memory.unwrap_or(DEFAULT_BAND_MEMORY),
-        )?,
+        Algorithm::Grouped => {
+            let band_memory = work.sizing_memory(scene, options.band_memory.unwrap_or(DEFAULT_BAND_MEMORY))?;
+            grouped::render(scene, &store, options.progress.as_ref(), band_memory)?
+        }
     };
     let total = started.elapsed().as_secs_f64();
     rendered.stats.finish(scene, options.algorithm, &store.stats(), store.budget(), total);

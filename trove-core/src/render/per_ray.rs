@@ -13,7 +13,7 @@ use rayon::prelude::*;
 use super::intersection::{sample_positions, segments_of, Reach};
 use super::{CastError, Image, Pinned, Progress, RenderError, RenderStats, Rendered, VolumeStore};
 use crate::composite::Rgba;
-use crate::geometry::{split_into_pieces, Piece, Ray, Segment};
+use crate::geometry::{split_into_pieces, Piece, PieceScratch, Ray, Segment};
 use crate::sampling::ObjectCaster;
 use crate::scene::Scene;
 
@@ -24,7 +24,7 @@ const BAND_ROWS: usize = 4;
 #[derive(Default)]
 struct Band {
     segments: Vec<Segment>,
-    cuts: Vec<f64>,
+    scratch: PieceScratch,
     pieces: Vec<Piece>,
     cover: Vec<u32>,
     parts: Vec<Rgba>,
@@ -103,7 +103,7 @@ fn trace(
     let t = Instant::now();
     segments_of(scene, reach, pixel, ray, &mut band.segments);
     band.n_segments += band.segments.len() as u64;
-    split_into_pieces(&band.segments, &mut band.cuts, &mut band.pieces, &mut band.cover);
+    split_into_pieces(&band.segments, &mut band.scratch, &mut band.pieces, &mut band.cover);
     band.n_pieces += band.pieces.len() as u64;
     let t_cast = Instant::now();
     band.intersection_nanos += (t_cast - t).as_nanos() as u64;

@@ -2,7 +2,9 @@
 //! `pb::Failure` only where the job's status is written ([`JobError::to_failure`]).
 
 use std::ops::Range;
+use std::time::Duration;
 
+use trove_core::render::limits::LimitError;
 use trove_core::render::{OutputError, ScheduleError};
 use trove_proto::convert;
 use trove_proto::v1 as pb;
@@ -43,6 +45,23 @@ pub enum JobError {
         /// Its report.
         failure: Box<pb::Failure>,
     },
+    /// A band made more tasks than the memory bound holds (`render::limits`).
+    #[error(transparent)]
+    Limit(#[from] LimitError),
+    /// The job ran past its deadline.
+    #[error("the job ran past its deadline of {} s (trove coordinator --job-deadline-s)", deadline.as_secs_f64())]
+    DeadlineExceeded {
+        /// The deadline.
+        deadline: Duration,
+    },
+    /// A step of the job on a blocking thread panicked; only this job fails.
+    #[error("the job's {step} step panicked: {message}")]
+    Panicked {
+        /// `intersection`, `composition` or `encoding`.
+        step: &'static str,
+        /// The panic's message.
+        message: String,
+    },
     /// A client cancelled the job.
     #[error("the job was cancelled")]
     Cancelled,
@@ -70,6 +89,9 @@ impl JobError {
                 f
             }
             JobError::Band { .. } => convert::failure(pb::Reason::LimitExceeded, false, message),
+            JobError::Limit(e) => convert::limit_failure(e),
+            JobError::DeadlineExceeded { .. } => convert::failure(pb::Reason::DeadlineExceeded, false, message),
+            JobError::Panicked { .. } => convert::failure(pb::Reason::Internal, false, message),
             JobError::Worker { worker, failure } => {
                 let mut f = (**failure).clone();
                 f.worker_id = worker.clone();
@@ -105,5 +127,9 @@ mod tests {
         let f = JobError::TooManyAttempts { dataset: "d".into(), attempts: 5 }.to_failure();
         assert!(!f.retryable && f.message.contains("5 times"), "{f:?}");
         assert_eq!(JobError::Cancelled.to_failure().reason(), pb::Reason::Cancelled);
+        let f = JobError::DeadlineExceeded { deadline: Duration::from_secs(2) }.to_failure();
+        assert!(f.reason() == pb::Reason::DeadlineExceeded && !f.retryable && f.message.contains("2 s"), "{f:?}");
+        let f = JobError::Panicked { step: "composition", message: "boom".into() }.to_failure();
+        assert!(f.reason() == pb::Reason::Internal && f.message.contains("composition step panicked: boom"), "{f:?}");
     }
 }

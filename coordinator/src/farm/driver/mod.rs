@@ -24,8 +24,10 @@
 //! A worker that stops answering (its stream breaks, it misses heartbeats, or a batch
 //! outlives [`DriverConfig::batch_deadline`]) has its batches handed to another holder of
 //! the dataset; a job fails only when no holder is left, when a batch has been given up
-//! [`DriverConfig::max_attempts`] times, or when a worker reports a failure that retrying
-//! cannot fix.
+//! [`DriverConfig::max_attempts`] times, when a worker reports a failure that retrying
+//! cannot fix, when it runs past [`DriverConfig::job_deadline`], when a band makes more
+//! tasks than the memory bound holds (`intersect_within`), or when a step on a blocking
+//! thread panics: each fails this job only.
 
 mod dispatch;
 mod error;
@@ -33,6 +35,7 @@ mod raster;
 mod tally;
 
 use std::collections::BTreeSet;
+use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -42,7 +45,8 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::Status;
 use trove_core::render::bands::Bands;
 use trove_core::render::dispatch::Admission;
-use trove_core::render::intersection::intersect;
+use trove_core::render::intersection::intersect_within;
+use trove_core::render::limits::{max_band_tasks, MAX_PFM_PIXELS};
 use trove_core::render::wire::{decode_results, encode_tasks};
 use trove_core::render::{Algorithm, Batch, Scheduler};
 use trove_core::scene::Scene;
@@ -73,6 +77,28 @@ pub struct DriverConfig {
     pub memory_bound: u64,
     /// Dispatches of one batch before the job fails.
     pub max_attempts: u32,
+    /// Longest a job may run (from leaving the queue to its files); past it the job fails
+    /// with `DEADLINE_EXCEEDED`, so no job stays RUNNING forever.
+    pub job_deadline: Duration,
+    /// Most pixels of a job that asks for a PFM (the coordinator holds its floats and the
+    /// file's bytes): a larger one is refused at submission.
+    pub max_pfm_pixels: u64,
+    /// Debug builds only, for tests: a blocking step that panics in every job, to show that
+    /// a panic fails its job only.
+    #[cfg(debug_assertions)]
+    pub fault: Option<Fault>,
+}
+
+/// A step made to panic (debug builds only): [`DriverConfig::fault`].
+#[cfg(debug_assertions)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Fault {
+    /// Intersecting a band.
+    Intersection,
+    /// Compositing a band.
+    Composition,
+    /// Encoding the image.
+    Encoding,
 }
 
 impl Default for DriverConfig {
@@ -82,7 +108,53 @@ impl Default for DriverConfig {
             max_bands: 8,
             memory_bound: 256 << 20,
             max_attempts: 5,
+            job_deadline: Duration::from_secs(3600),
+            max_pfm_pixels: MAX_PFM_PIXELS,
+            #[cfg(debug_assertions)]
+            fault: None,
         }
+    }
+}
+
+impl DriverConfig {
+    /// Rows per band of a job of `scene` with `options`: as the job asks, else sized from
+    /// sampled rows so that [`DriverConfig::max_bands`] bands fit the memory bound. The
+    /// submission check and the driver both size bands here, so a scene refused for a band
+    /// over its limit is refused before it runs.
+    pub fn band_rows(&self, scene: &Scene, options: &pb::JobOptions) -> u32 {
+        let (w, h) = (scene.image().width, scene.image().height);
+        let within = Bands::rows_within(scene, self.memory_bound / self.max_bands.max(1) as u64);
+        raster::rows_per_band(options.band_rows, w, h, within)
+    }
+
+    /// Panics if this step is the configured fault (debug builds only).
+    #[cfg_attr(not(debug_assertions), allow(unused_variables))]
+    fn inject(&self, step: &'static str) {
+        #[cfg(debug_assertions)]
+        {
+            let fault = match step {
+                "intersection" => Fault::Intersection,
+                "composition" => Fault::Composition,
+                _ => Fault::Encoding,
+            };
+            if self.fault == Some(fault) {
+                panic!("injected fault in {step}");
+            }
+        }
+    }
+}
+
+/// Runs `f` on a blocking thread's stack, turning a panic into the job's error.
+fn unwinding<T>(step: &'static str, f: impl FnOnce() -> T) -> Result<T, JobError> {
+    catch_unwind(AssertUnwindSafe(f)).map_err(|payload| JobError::Panicked { step, message: panic_message(&*payload) })
+}
+
+/// The text of a panic's payload.
+pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    match (payload.downcast_ref::<&str>(), payload.downcast_ref::<String>()) {
+        (Some(s), _) => s.to_string(),
+        (_, Some(s)) => s.clone(),
+        _ => "a panic without a message".to_string(),
     }
 }
 
@@ -161,8 +233,7 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     let (events, mut inbox) = mpsc::channel(1024);
     let (w, h) = (plan.scene.image().width, plan.scene.image().height);
     let max_bands = config.max_bands.max(1);
-    let within = Bands::rows_within(&plan.scene, config.memory_bound / max_bands as u64);
-    let band_rows = raster::rows_per_band(plan.options.band_rows, w, h, within);
+    let band_rows = config.band_rows(&plan.scene, &plan.options);
     let batch_tasks = match plan.options.batch_tasks {
         0 => DEFAULT_BATCH_TASKS,
         n => (n as usize).min(trove_proto::MAX_BATCH_TASKS),
@@ -188,6 +259,9 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         s.rows_total = h;
     });
     let mut cancelled = job.cancelled();
+    let deadline = tokio::time::Instant::now() + driver.config.job_deadline;
+    let past_deadline = tokio::time::sleep_until(deadline);
+    tokio::pin!(past_deadline);
     let mut tick = tokio::time::interval(Duration::from_millis(250));
     let outcome = loop {
         if let Err(e) = driver.advance() {
@@ -204,6 +278,7 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
                 }
             }
             _ = cancelled.changed() => break Err(JobError::Cancelled),
+            _ = &mut past_deadline => break Err(JobError::DeadlineExceeded { deadline: driver.config.job_deadline }),
             _ = tick.tick() => driver.check_workers(),
         }
     };
@@ -214,7 +289,13 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         driver.lose_stream(stream);
     }
     let outcome = match outcome {
-        Ok(()) => driver.finish(started).await,
+        Ok(()) => {
+            let job_deadline = driver.config.job_deadline;
+            match tokio::time::timeout_at(deadline, driver.finish(started)).await {
+                Ok(finished) => finished,
+                Err(_) => Err(JobError::DeadlineExceeded { deadline: job_deadline }),
+            }
+        }
         Err(e) => Err(e),
     };
     if let Err(e) = outcome {
@@ -238,15 +319,23 @@ impl Driver {
     fn advance(&mut self) -> Result<(), JobError> {
         while let Some((band, rows)) = self.bands.start_next() {
             let (scene, events, batch_tasks) = (self.scene().clone(), self.events.clone(), self.batch_tasks);
+            let config = self.config.clone();
             tokio::task::spawn_blocking(move || {
                 let started = Instant::now();
-                let inter = intersect(&scene, rows.clone());
-                let event = match Scheduler::new(&scene, inter, batch_tasks) {
+                let intersected = unwinding("intersection", || {
+                    config.inject("intersection");
+                    // The band's share of the bound: a band denser than its sizing expected is
+                    // refused as it is intersected, before its tasks are stored.
+                    let bound = config.memory_bound;
+                    let inter = intersect_within(&scene, rows.clone(), max_band_tasks(bound), bound)?;
+                    Scheduler::new(&scene, inter, batch_tasks).map_err(|source| JobError::Band { rows, source })
+                });
+                let event = match intersected.and_then(|r| r) {
                     Ok(scheduler) => {
                         let seconds = started.elapsed().as_secs_f64();
                         Event::Intersected { band, scheduler: Box::new(scheduler), seconds }
                     }
-                    Err(source) => Event::Failed(JobError::Band { rows, source }),
+                    Err(e) => Event::Failed(e),
                 };
                 let _ = events.blocking_send(event);
             });
@@ -526,17 +615,25 @@ impl Driver {
         let Some((rows, scheduler)) = self.bands.take_complete(band) else { return };
         self.job.update(|s| s.phase = pb::Phase::Composition as i32);
         let (scene, events, want_pfm) = (self.scene().clone(), self.events.clone(), self.plan.options.want_pfm);
+        let config = self.config.clone();
         tokio::task::spawn_blocking(move || {
-            let part = Composited::of(&scene, rows, &scheduler, want_pfm);
+            let composited = unwinding("composition", || {
+                config.inject("composition");
+                Composited::of(&scene, rows, &scheduler, want_pfm)
+            });
             drop(scheduler);
-            let _ = events.blocking_send(Event::Composited { band, part: Box::new(part) });
+            let event = match composited {
+                Ok(part) => Event::Composited { band, part: Box::new(part) },
+                Err(e) => Event::Failed(e),
+            };
+            let _ = events.blocking_send(event);
         });
     }
 
     /// Encodes the image and statistics and marks the job succeeded.
     async fn finish(self, started: Instant) -> Result<(), JobError> {
         self.job.update(|s| s.phase = pb::Phase::Encoding as i32);
-        let Driver { plan, job, bands, raster, mut tally, .. } = self;
+        let Driver { plan, job, bands, raster, mut tally, config, .. } = self;
         if let Some(cast) = tally.cast_started {
             tally.stats.seconds.volume_rendering =
                 (cast.elapsed().as_secs_f64() - tally.stats.seconds.composition).max(0.0);
@@ -545,12 +642,15 @@ impl Driver {
         let tasks = bands.tasks_composited();
         let Raster { rgb8, rgb32f, .. } = raster;
         let encoded = tokio::task::spawn_blocking(move || {
-            let png = trove_core::render::encode_png(w, h, &rgb8);
-            let pfm = rgb32f.map(|f| trove_core::render::encode_pfm(w, h, &f));
-            (png, pfm)
+            unwinding("encoding", || {
+                config.inject("encoding");
+                let png = trove_core::render::encode_png(w, h, &rgb8);
+                let pfm = rgb32f.map(|f| trove_core::render::encode_pfm(w, h, &f));
+                (png, pfm)
+            })
         })
         .await
-        .map_err(|e| JobError::Internal(format!("encoding the image: {e}")))?;
+        .map_err(|e| JobError::Internal(format!("encoding the image: {e}")))??;
         let png = encoded.0.map_err(JobError::Encode)?;
         let pfm = encoded.1;
         let mut stats = std::mem::take(&mut tally.stats);
