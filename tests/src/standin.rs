@@ -142,13 +142,13 @@ impl Answers {
         job: &SceneAnswers,
         d: usize,
         tasks: &[PieceTask],
-    ) -> Result<(Vec<PieceRgba>, u64), pb::Failure> {
+    ) -> Result<(Vec<PieceRgba>, u64), Box<pb::Failure>> {
         let missing: Vec<PieceTask> = {
             let table = job.tables[d].read().unwrap_or_else(|e| e.into_inner());
             tasks.iter().filter(|t| !table.contains_key(&key(t))).copied().collect()
         };
-        let pinned = self.store.get(&job.scene.datasets()[d]).map_err(|e| convert::store_failure(&e))?;
-        let caster = BatchCaster::new(&job.scene, d, &pinned).map_err(|e| convert::cast_failure(&e))?;
+        let pinned = self.store.get(&job.scene.datasets()[d]).map_err(|e| Box::new(convert::store_failure(&e)))?;
+        let caster = BatchCaster::new(&job.scene, d, &pinned).map_err(|e| Box::new(convert::cast_failure(&e)))?;
         let cast: Vec<Answer> = self
             .pool
             .install(|| {
@@ -161,7 +161,7 @@ impl Answers {
                     })
                     .collect::<Result<Vec<Answer>, CastError>>()
             })
-            .map_err(|e| convert::cast_failure(&e))?;
+            .map_err(|e| Box::new(convert::cast_failure(&e)))?;
         self.cast.fetch_add(missing.len() as u64, Ordering::Relaxed);
         {
             let mut table = job.tables[d].write().unwrap_or_else(|e| e.into_inner());
@@ -210,7 +210,7 @@ async fn answer(answers: &Arc<Answers>, job: &Arc<SceneAnswers>, d: usize, batch
                     let (answers, job) = (answers.clone(), job.clone());
                     tokio::task::spawn_blocking(move || answers.cast_and_look_up(&job, d, &tasks))
                         .await
-                        .unwrap_or_else(|e| Err(convert::failure(pb::Reason::Internal, false, e.to_string())))
+                        .unwrap_or_else(|e| Err(Box::new(convert::failure(pb::Reason::Internal, false, e.to_string()))))
                 }
             };
             match found {
@@ -223,7 +223,7 @@ async fn answer(answers: &Arc<Answers>, job: &Arc<SceneAnswers>, d: usize, batch
                     loading_nanos: 0,
                     casting_nanos: 0,
                 }),
-                Err(f) => failure(f),
+                Err(f) => failure(*f),
             }
         }
     };
