@@ -6,6 +6,7 @@
 //! `mod` line and a match arm.
 
 mod accuracy;
+mod coordinator;
 mod distorted;
 mod farm;
 mod farm_sim;
@@ -46,6 +47,10 @@ enum Command {
     /// The farm on this machine: a coordinator and 1–3 worker processes on loopback
     /// against local mode, in time, bytes on the wire and coordinator memory.
     Farm(farm::Args),
+    /// The coordinator alone: the real coordinator in this process with stand-in workers
+    /// that answer each batch at once from recorded results; pieces per second, CPU per
+    /// piece by stage, and throughput on 1 and 2 coordinator cores.
+    Coordinator(coordinator::Args),
     /// Issue 10: TROVE against VTK's fixed-point CPU ray caster on the CT head and the
     /// synthetic 256³ volume, same view, step and threads, alternating runs; medians, the
     /// time ratio, samples per second and each image's error against a converged TROVE image.
@@ -63,6 +68,7 @@ fn main() -> ExitCode {
         Command::Accuracy(args) => accuracy::run(args),
         Command::FarmSim(args) => farm_sim::run(args),
         Command::Farm(args) => farm::run(args),
+        Command::Coordinator(args) => coordinator::run(args),
         Command::Peers(args) => peers::run(args),
     };
     match result {

@@ -51,12 +51,50 @@ pub struct FarmStats {
     pub wire_bytes_from_workers: u64,
     /// Each worker's share.
     pub workers: Vec<WorkerStats>,
+    /// Where the coordinator's own time went, by stage.
+    pub coordinator_seconds: CoordinatorSeconds,
+}
+
+/// The coordinator's time by stage (seconds, summed over the job). Blocking steps are timed
+/// by wall clock on the thread that runs them (intersection runs rayon threads within, so its
+/// CPU can exceed its wall time); the event-loop steps by wall clock on the job's one task,
+/// where wall time is CPU time unless the thread is preempted. `event_loop` holds every step
+/// the job's task took (dispatch, encoding, decoding and recording included); what gRPC,
+/// HTTP/2 and protobuf cost outside it is not here.
+#[derive(Clone, Debug, Default, Serialize, PartialEq)]
+pub struct CoordinatorSeconds {
+    /// `intersect`: rays to piece tasks (blocking thread, rayon within).
+    pub intersection: f64,
+    /// `Scheduler::new`: waves and fronts (blocking thread).
+    pub planning: f64,
+    /// `Scheduler::next_batch` on the event loop.
+    pub dispatch: f64,
+    /// `encode_tasks` and the batch's message, on the event loop.
+    pub encoding: f64,
+    /// `decode_results` on the event loop.
+    pub decoding: f64,
+    /// `Scheduler::record` on the event loop.
+    pub recording: f64,
+    /// Every step of the job's task: advancing, handling events, the tick.
+    pub event_loop: f64,
+    /// Compositing bands (blocking thread, rayon within).
+    pub composition: f64,
+    /// Encoding the PNG (and PFM) at the end (blocking thread).
+    pub image_encoding: f64,
 }
 
 impl FarmStats {
     /// Wraps a finished render's statistics with the farm's.
     pub fn new(render: RenderStats, batches: u64, to: u64, from: u64, workers: Vec<WorkerStats>) -> FarmStats {
-        FarmStats { render, mode: "farm", batches, wire_bytes_to_workers: to, wire_bytes_from_workers: from, workers }
+        FarmStats {
+            render,
+            mode: "farm",
+            batches,
+            wire_bytes_to_workers: to,
+            wire_bytes_from_workers: from,
+            workers,
+            coordinator_seconds: CoordinatorSeconds::default(),
+        }
     }
 
     /// Pretty JSON with a final newline, as local mode writes its statistics.

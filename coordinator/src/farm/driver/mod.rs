@@ -183,6 +183,8 @@ enum Event {
         band: usize,
         scheduler: Box<Scheduler>,
         seconds: f64,
+        /// Of `seconds`, what `Scheduler::new` took.
+        planning: f64,
     },
     Composited {
         band: usize,
@@ -264,7 +266,10 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     tokio::pin!(past_deadline);
     let mut tick = tokio::time::interval(Duration::from_millis(250));
     let outcome = loop {
-        if let Err(e) = driver.advance() {
+        let step = Instant::now();
+        let advanced = driver.advance();
+        driver.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
+        if let Err(e) = advanced {
             break Err(e);
         }
         if driver.bands.is_done() {
@@ -273,13 +278,20 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         tokio::select! {
             event = inbox.recv() => {
                 let Some(event) = event else { break Err(JobError::Internal("the job's event channel closed".into())) };
-                if let Err(e) = driver.handle(event) {
+                let step = Instant::now();
+                let handled = driver.handle(event);
+                driver.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
+                if let Err(e) = handled {
                     break Err(e);
                 }
             }
             _ = cancelled.changed() => break Err(JobError::Cancelled),
             _ = &mut past_deadline => break Err(JobError::DeadlineExceeded { deadline: driver.config.job_deadline }),
-            _ = tick.tick() => driver.check_workers(),
+            _ = tick.tick() => {
+                let step = Instant::now();
+                driver.check_workers();
+                driver.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
+            }
         }
     };
     // Closing every stream tells the workers to drop what they still hold for this job, and
@@ -328,12 +340,16 @@ impl Driver {
                     // refused as it is intersected, before its tasks are stored.
                     let bound = config.memory_bound;
                     let inter = intersect_within(&scene, rows.clone(), max_band_tasks(bound), bound)?;
-                    Scheduler::new(&scene, inter, batch_tasks).map_err(|source| JobError::Band { rows, source })
+                    let planned = Instant::now();
+                    Scheduler::new(&scene, inter, batch_tasks)
+                        .map(|s| (s, planned))
+                        .map_err(|source| JobError::Band { rows, source })
                 });
                 let event = match intersected.and_then(|r| r) {
-                    Ok(scheduler) => {
+                    Ok((scheduler, planned)) => {
                         let seconds = started.elapsed().as_secs_f64();
-                        Event::Intersected { band, scheduler: Box::new(scheduler), seconds }
+                        let planning = planned.elapsed().as_secs_f64();
+                        Event::Intersected { band, scheduler: Box::new(scheduler), seconds, planning }
                     }
                     Err(e) => Event::Failed(e),
                 };
@@ -367,7 +383,10 @@ impl Driver {
                 }
                 let Some(worker) = self.dispatch.pick(d).cloned() else { break };
                 let Some((_, scheduler)) = self.bands.casting(band) else { break };
-                let Some(batch) = scheduler.next_batch(d) else {
+                let asked = Instant::now();
+                let next = scheduler.next_batch(d);
+                self.tally.coordinator.dispatch += asked.elapsed().as_secs_f64();
+                let Some(batch) = next else {
                     self.ready.remove(&pair);
                     touched.push(band);
                     break;
@@ -403,6 +422,7 @@ impl Driver {
         }
         let wire = self.dispatch.next_wire();
         let _span = tracing::debug_span!("batch", wire, dataset = batch.dataset, attempt = batch.attempt, worker = %worker.id, tasks = batch.tasks.len()).entered();
+        let encoding = Instant::now();
         let request = pb::CastRequest {
             kind: Some(pb::cast_request::Kind::Batch(pb::CastBatch {
                 batch_id: wire,
@@ -411,6 +431,7 @@ impl Driver {
             })),
         };
         self.tally.wire_to += request.encoded_len() as u64;
+        self.tally.coordinator.encoding += encoding.elapsed().as_secs_f64();
         let stream = self.streams.get(&key).expect("opened above");
         if stream.tx.try_send(request).is_err() {
             // The stream's reader is gone or its queue is full: give the batch back.
@@ -489,11 +510,13 @@ impl Driver {
     fn handle(&mut self, event: Event) -> Result<(), JobError> {
         match event {
             Event::Failed(e) => Err(e),
-            Event::Intersected { band, scheduler, seconds } => {
+            Event::Intersected { band, scheduler, seconds, planning } => {
                 let inter = scheduler.intersections();
                 self.tally.stats.segments += inter.segments;
                 self.tally.stats.pieces += inter.pieces() as u64;
                 self.tally.stats.seconds.intersection += seconds;
+                self.tally.coordinator.intersection += seconds - planning;
+                self.tally.coordinator.planning += planning;
                 let total = scheduler.progress().total;
                 self.job.update(|s| s.pieces_total += total);
                 self.bands.intersected(band, scheduler);
@@ -506,6 +529,7 @@ impl Driver {
                 self.bands.composited(band);
                 self.tally.stats.samples_skipped += part.samples_skipped;
                 self.tally.stats.seconds.composition += part.seconds;
+                self.tally.coordinator.composition += part.seconds;
                 let rows_done = self.bands.rows_done();
                 self.job.update(|s| s.rows_done = rows_done);
                 self.tally.publish(&self.job, self.bands.tasks_done());
@@ -551,10 +575,15 @@ impl Driver {
         };
         let _span = tracing::debug_span!("batch", wire = result.batch_id, worker = %stream.0).entered();
         let Some((seq, scheduler)) = self.bands.casting(batch.band) else { return };
-        let recorded = match decode_results(&result.results) {
+        let decoding = Instant::now();
+        let decoded = decode_results(&result.results);
+        let recording = Instant::now();
+        self.tally.coordinator.decoding += (recording - decoding).as_secs_f64();
+        let recorded = match decoded {
             Ok(results) => scheduler.record(batch.id, &results).map_err(|e| e.to_string()),
             Err(e) => Err(format!("undecodable results: {e}")),
         };
+        self.tally.coordinator.recording += recording.elapsed().as_secs_f64();
         if let Err(e) = recorded {
             // A worker that answers nonsense is not trusted with more of this job.
             tracing::warn!(worker = %stream.0, error = %e, "refused an answer");
@@ -644,13 +673,15 @@ impl Driver {
         let encoded = tokio::task::spawn_blocking(move || {
             unwinding("encoding", || {
                 config.inject("encoding");
+                let started = Instant::now();
                 let png = trove_core::render::encode_png(w, h, &rgb8);
                 let pfm = rgb32f.map(|f| trove_core::render::encode_pfm(w, h, &f));
-                (png, pfm)
+                (png, pfm, started.elapsed().as_secs_f64())
             })
         })
         .await
         .map_err(|e| JobError::Internal(format!("encoding the image: {e}")))??;
+        tally.coordinator.image_encoding += encoded.2;
         let png = encoded.0.map_err(JobError::Encode)?;
         let pfm = encoded.1;
         let mut stats = std::mem::take(&mut tally.stats);

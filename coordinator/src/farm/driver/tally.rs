@@ -10,7 +10,7 @@ use trove_core::render::{RenderStats, StoreStats};
 use trove_proto::v1 as pb;
 
 use super::super::jobs::Job;
-use super::super::stats::{FarmStats, WorkerStats};
+use super::super::stats::{CoordinatorSeconds, FarmStats, WorkerStats};
 
 /// A job's counters.
 #[derive(Default)]
@@ -22,6 +22,8 @@ pub(super) struct Tally {
     pub wire_from: u64,
     workers: BTreeMap<String, WorkerStats>,
     pub cast_started: Option<Instant>,
+    /// The coordinator's own time by stage.
+    pub coordinator: CoordinatorSeconds,
 }
 
 impl Tally {
@@ -51,6 +53,9 @@ impl Tally {
 
     /// The finished job's statistics.
     pub fn into_stats(self, render: RenderStats) -> FarmStats {
-        FarmStats::new(render, self.batches, self.wire_to, self.wire_from, self.workers.into_values().collect())
+        let mut stats =
+            FarmStats::new(render, self.batches, self.wire_to, self.wire_from, self.workers.into_values().collect());
+        stats.coordinator_seconds = self.coordinator;
+        stats
     }
 }

@@ -1,0 +1,315 @@
+//! A stand-in worker: it speaks the worker's side of the farm's protocol — registers with
+//! `Membership.Register` and heartbeats, serves `Worker.Cast` (a `CastOpen` with the scene,
+//! then batches in `render::wire` form) — but answers each batch at once from a table of
+//! results recorded from a real cast, so that a farm of them costs the coordinator what real
+//! workers would while costing almost nothing itself. `trove-bench coordinator` measures the
+//! coordinator alone this way.
+//!
+//! The table is honest: a task seen for the first time is cast for real, by `trove-core`'s
+//! [`BatchCaster`] over the stand-ins' own [`VolumeStore`], and its result and samples are
+//! kept, keyed by the whole task (pixel, object, front and both bounds, bit for bit). A
+//! task's result depends on nothing else — not on the batch it comes in, nor on timing (its
+//! front is the scheduler's deterministic bound) — so a table filled by one render answers
+//! the next render of the same job with the real results, and the image the coordinator
+//! composites stays local mode's byte for byte (`tests/tests/standin.rs`, and
+//! `trove-bench coordinator` checks every scene it measures). A task not in the table is cast
+//! then, and counted ([`Answers::counts`]), so a measurement can say whether any casting
+//! happened during it.
+//!
+//! Every stand-in of a process shares one [`Answers`] (one data root, one table, one rayon
+//! pool for the casting of misses), so a job's table is recorded once whichever stand-in a
+//! batch goes to.
+
+use std::collections::HashMap;
+use std::future::Future;
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::Duration;
+
+use rayon::prelude::*;
+use tokio::net::TcpListener;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::{ReceiverStream, TcpListenerStream};
+use tonic::{Request, Response, Status, Streaming};
+use trove_core::dataset::{Catalog, DatasetError, FileInfo, FileKind};
+use trove_core::render::wire::{decode_tasks, encode_results};
+use trove_core::render::CastError;
+use trove_core::render::{BatchCaster, PieceRgba, PieceTask, VolumeStore};
+use trove_core::scene::Scene;
+use trove_proto::convert;
+use trove_proto::v1 as pb;
+use trove_proto::v1::membership_client::MembershipClient;
+use trove_proto::v1::worker_server::{Worker, WorkerServer};
+use trove_worker::files::{DataFiles, ScanError};
+
+/// A task as the table knows it: every field, the bounds by their bits.
+type TaskKey = (u32, u16, u16, u64, u64);
+
+fn key(t: &PieceTask) -> TaskKey {
+    (t.ray, t.object, t.front, t.t0.to_bits(), t.t1.to_bits())
+}
+
+/// A task's recorded answer.
+#[derive(Clone, Copy)]
+struct Answer {
+    rgba: PieceRgba,
+    samples: u64,
+}
+
+/// One job's scene as the stand-ins parsed it, and per dataset its recorded answers.
+struct SceneAnswers {
+    scene: Arc<Scene>,
+    tables: Vec<RwLock<HashMap<TaskKey, Answer>>>,
+}
+
+/// The recorded answers shared by the stand-ins of one data root.
+pub struct Answers {
+    files: Arc<DataFiles>,
+    store: VolumeStore,
+    pool: Arc<rayon::ThreadPool>,
+    /// By scene name and text.
+    scenes: Mutex<HashMap<(String, String), Arc<SceneAnswers>>>,
+    answered: AtomicU64,
+    cast: AtomicU64,
+}
+
+impl Answers {
+    /// Answers over the files under `root` (scanned now, blocking), casting what is not yet
+    /// recorded on `pool`.
+    pub fn new(root: &Path, pool: Arc<rayon::ThreadPool>) -> Result<Answers, ScanError> {
+        Ok(Answers {
+            files: Arc::new(DataFiles::scan(root)?),
+            store: VolumeStore::new(None),
+            pool,
+            scenes: Mutex::new(HashMap::new()),
+            answered: AtomicU64::new(0),
+            cast: AtomicU64::new(0),
+        })
+    }
+
+    /// Tasks answered so far, and how many of them had to be cast (were not recorded yet).
+    pub fn counts(&self) -> (u64, u64) {
+        (self.answered.load(Ordering::Relaxed), self.cast.load(Ordering::Relaxed))
+    }
+
+    /// The job's scene and its tables, parsed on the first stream that names it.
+    fn open(&self, open: &pb::CastOpen) -> Result<(Arc<SceneAnswers>, usize), Status> {
+        let mut scenes = self.scenes.lock().unwrap_or_else(|e| e.into_inner());
+        let id = (open.scene_name.clone(), open.scene_toml.clone());
+        let answers = match scenes.get(&id) {
+            Some(a) => a.clone(),
+            None => {
+                let others = open.headers.iter().map(|f| (f.key.clone(), f)).collect();
+                let catalog = JobCatalog { files: &self.files, others };
+                let scene = Scene::parse_with(&open.scene_toml, Path::new(&open.scene_name), &catalog)
+                    .map_err(|e| convert::failure_status(convert::scene_failure(&e)))?;
+                let tables = scene.datasets().iter().map(|_| RwLock::new(HashMap::new())).collect();
+                let a = Arc::new(SceneAnswers { scene: Arc::new(scene), tables });
+                scenes.insert(id, a.clone());
+                a
+            }
+        };
+        let d = open.dataset as usize;
+        match answers.scene.datasets().get(d) {
+            Some(info) if info.is_local() => Ok((answers, d)),
+            _ => Err(convert::failure_status(convert::failure(
+                pb::Reason::DatasetNotHeld,
+                true,
+                format!("the stand-in cannot cast dataset {d}"),
+            ))),
+        }
+    }
+
+    /// The recorded results of `tasks`, or `None` when one of them is not recorded yet.
+    fn look_up(&self, job: &SceneAnswers, d: usize, tasks: &[PieceTask]) -> Option<(Vec<PieceRgba>, u64)> {
+        let table = job.tables[d].read().unwrap_or_else(|e| e.into_inner());
+        let mut samples = 0;
+        let mut out = Vec::with_capacity(tasks.len());
+        for t in tasks {
+            let a = table.get(&key(t))?;
+            samples += a.samples;
+            out.push(a.rgba);
+        }
+        self.answered.fetch_add(tasks.len() as u64, Ordering::Relaxed);
+        Some((out, samples))
+    }
+
+    /// Casts the tasks not recorded yet, one task at a time (so each has its own sample
+    /// count), records them, and answers every task (blocking).
+    fn cast_and_look_up(
+        &self,
+        job: &SceneAnswers,
+        d: usize,
+        tasks: &[PieceTask],
+    ) -> Result<(Vec<PieceRgba>, u64), Box<pb::Failure>> {
+        let missing: Vec<PieceTask> = {
+            let table = job.tables[d].read().unwrap_or_else(|e| e.into_inner());
+            tasks.iter().filter(|t| !table.contains_key(&key(t))).copied().collect()
+        };
+        let pinned = self.store.get(&job.scene.datasets()[d]).map_err(|e| Box::new(convert::store_failure(&e)))?;
+        let caster = BatchCaster::new(&job.scene, d, &pinned).map_err(|e| Box::new(convert::cast_failure(&e)))?;
+        let cast: Vec<Answer> = self
+            .pool
+            .install(|| {
+                missing
+                    .par_iter()
+                    .map(|t| {
+                        let mut out = [PieceRgba::default()];
+                        let samples = caster.cast(std::slice::from_ref(t), &mut out)?;
+                        Ok(Answer { rgba: out[0], samples })
+                    })
+                    .collect::<Result<Vec<Answer>, CastError>>()
+            })
+            .map_err(|e| Box::new(convert::cast_failure(&e)))?;
+        self.cast.fetch_add(missing.len() as u64, Ordering::Relaxed);
+        {
+            let mut table = job.tables[d].write().unwrap_or_else(|e| e.into_inner());
+            table.extend(missing.iter().map(key).zip(cast));
+        }
+        Ok(self.look_up(job, d, tasks).expect("every task was recorded above"))
+    }
+}
+
+/// A scene's files as the stand-ins see them: their own through the sandbox, the others as
+/// the coordinator described them (as `trove-worker` sees them).
+struct JobCatalog<'a> {
+    files: &'a DataFiles,
+    others: HashMap<String, &'a pb::DatasetFile>,
+}
+
+impl Catalog for JobCatalog<'_> {
+    fn describe(&self, key: &str, kind: FileKind) -> Result<FileInfo, DatasetError> {
+        if self.files.holds(key) {
+            return self.files.catalog().describe(key, kind);
+        }
+        match self.others.get(key) {
+            Some(file) => convert::describe_remote(file, kind),
+            None => Err(DatasetError::not_held(key)),
+        }
+    }
+}
+
+/// The `Worker` service of a stand-in.
+struct StandInService {
+    answers: Arc<Answers>,
+}
+
+/// One batch's answer (blocking only when something must be cast).
+async fn answer(answers: &Arc<Answers>, job: &Arc<SceneAnswers>, d: usize, batch: pb::CastBatch) -> pb::CastResponse {
+    let failure = |mut f: pb::Failure| {
+        f.batch_id = batch.batch_id;
+        pb::cast_response::Kind::Failure(f)
+    };
+    let kind = match decode_tasks(&batch.tasks) {
+        Err(e) => failure(convert::failure(pb::Reason::BadBatch, false, format!("batch {}: {e}", batch.batch_id))),
+        Ok(tasks) => {
+            let found = match answers.look_up(job, d, &tasks) {
+                Some(found) => Ok(found),
+                None => {
+                    let (answers, job) = (answers.clone(), job.clone());
+                    tokio::task::spawn_blocking(move || answers.cast_and_look_up(&job, d, &tasks))
+                        .await
+                        .unwrap_or_else(|e| Err(Box::new(convert::failure(pb::Reason::Internal, false, e.to_string()))))
+                }
+            };
+            match found {
+                Ok((results, samples)) => pb::cast_response::Kind::Result(pb::BatchResult {
+                    batch_id: batch.batch_id,
+                    attempt: batch.attempt,
+                    results: encode_results(&results),
+                    samples,
+                    bytes_loaded: 0,
+                    loading_nanos: 0,
+                    casting_nanos: 0,
+                }),
+                Err(f) => failure(*f),
+            }
+        }
+    };
+    pb::CastResponse { kind: Some(kind) }
+}
+
+#[tonic::async_trait]
+impl Worker for StandInService {
+    type CastStream = ReceiverStream<Result<pb::CastResponse, Status>>;
+
+    async fn cast(&self, request: Request<Streaming<pb::CastRequest>>) -> Result<Response<Self::CastStream>, Status> {
+        let mut inbound = request.into_inner();
+        let open = match inbound.message().await? {
+            Some(pb::CastRequest { kind: Some(pb::cast_request::Kind::Open(open)) }) => open,
+            _ => return Err(Status::invalid_argument("a cast stream starts with an `open` message")),
+        };
+        let answers = self.answers.clone();
+        let (job, d) = tokio::task::spawn_blocking(move || answers.open(&open))
+            .await
+            .map_err(|e| Status::internal(format!("opening the job failed: {e}")))??;
+        let (out, out_rx) = mpsc::channel(64);
+        let answers = self.answers.clone();
+        tokio::spawn(async move {
+            while let Ok(Some(request)) = inbound.message().await {
+                let Some(pb::cast_request::Kind::Batch(batch)) = request.kind else { break };
+                if out.send(Ok(answer(&answers, &job, d, batch).await)).await.is_err() {
+                    break;
+                }
+            }
+        });
+        Ok(Response::new(ReceiverStream::new(out_rx)))
+    }
+}
+
+/// Serves one stand-in on `listener` until `shutdown` resolves, registered with the
+/// coordinator at `coordinator` (a URL) as a worker of `threads` threads that holds every
+/// file of `answers`' data root, at the listener's address.
+pub async fn serve(
+    listener: TcpListener,
+    shutdown: impl Future<Output = ()>,
+    coordinator: &str,
+    threads: u32,
+    answers: Arc<Answers>,
+) -> Result<(), tonic::transport::Error> {
+    let address = listener.local_addr().map(|a| a.to_string()).unwrap_or_default();
+    let channel = trove_worker::membership::channel(coordinator)?;
+    let files = answers.files.registration();
+    let serve = tonic::transport::Server::builder()
+        .add_service(
+            WorkerServer::new(StandInService { answers })
+                .max_decoding_message_size(trove_proto::MAX_MESSAGE_BYTES)
+                .max_encoding_message_size(trove_proto::MAX_MESSAGE_BYTES),
+        )
+        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown);
+    tokio::select! {
+        served = serve => served,
+        () = stay_registered(MembershipClient::new(channel), address, files, threads) => Ok(()),
+    }
+}
+
+/// Registers, then heartbeats, registering again whenever the coordinator forgets it
+/// (`trove-worker`'s membership, with the thread count given rather than rayon's).
+async fn stay_registered(
+    mut client: MembershipClient<tonic::transport::Channel>,
+    address: String,
+    files: Vec<pb::DatasetFile>,
+    threads: u32,
+) {
+    loop {
+        let request = pb::RegisterRequest { address: address.clone(), files: files.clone(), threads, memory_budget: 0 };
+        let registered = match client.register(request).await {
+            Ok(r) => r.into_inner(),
+            Err(_) => {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+                continue;
+            }
+        };
+        let every = Duration::from_millis(registered.heartbeat_millis.max(10) as u64);
+        loop {
+            tokio::time::sleep(every).await;
+            let beat = pb::HeartbeatRequest { worker_id: registered.worker_id.clone(), batches_in_flight: 0 };
+            match client.heartbeat(beat).await {
+                Ok(r) if r.get_ref().known => {}
+                Ok(_) => break,
+                Err(_) => {}
+            }
+        }
+    }
+}
