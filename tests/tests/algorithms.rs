@@ -243,8 +243,10 @@ fn with_no_budget_each_dataset_is_loaded_once() {
         assert_eq!(r.stats.bytes_loaded, total, "{}", r.stats.algorithm);
         assert_eq!(r.stats.memory_budget, None);
     }
-    // Algorithm 2 unloads each dataset after its turn.
-    assert_eq!(b.stats.peak_resident_bytes, total / 4);
+    // Algorithm 2 unloads each dataset after its turn: one dataset at a time, with the
+    // macrocell classification of its objects kept beside it (a few hundred bytes here).
+    let one = total / 4;
+    assert!((one..one + one / 16).contains(&b.stats.peak_resident_bytes), "{} of {one}", b.stats.peak_resident_bytes);
     assert_eq!(a.stats.peak_resident_bytes, total);
     assert!(a.image.max_byte_difference(&b.image) <= 1);
 }
@@ -372,5 +374,11 @@ fn grouped_renders_in_bands_of_rows_give_the_image_of_one_band() {
         let banded = render(&scene, &options).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert!(banded.image.pixels() == whole.image.pixels(), "{name}: banded pixels differ");
         assert_eq!((banded.stats.pieces, banded.stats.samples), (whole.stats.pieces, whole.stats.samples), "{name}");
+        // Each band binds again; the classifications the first band kept serve the others.
+        let s = &banded.stats;
+        assert_eq!(s.classification_misses, whole.stats.classification_misses, "{name}: a later band classified");
+        if s.classification_misses > 0 {
+            assert!(s.classification_hits > 0, "{name}: no later band found the kept classification");
+        }
     }
 }

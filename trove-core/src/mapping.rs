@@ -389,6 +389,13 @@ impl ZeroSet {
         self.runs.is_empty()
     }
 
+    /// The set exactly, as bits (each run's bounds and whether its upper end is closed), so
+    /// that a classification worked
+    /// out from one can be kept under them (two sets with the same bits are the same set).
+    pub(crate) fn bits(&self) -> Vec<[u64; 3]> {
+        self.runs.iter().map(|r| [r.lo.to_bits(), r.hi.to_bits(), u64::from(r.hi_closed)]).collect()
+    }
+
     /// Whether every value in `[lo, hi]` yields nothing.
     #[inline]
     pub fn covers(&self, lo: f64, hi: f64) -> bool {

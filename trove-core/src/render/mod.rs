@@ -39,7 +39,7 @@ pub use image::{encode_pfm, encode_png, quantize, Image};
 pub use schedule::{Batch, Scheduler};
 pub use stats::{RenderStats, Seconds};
 pub use store::{Pinned, StoreStats, VolumeStore};
-pub use workunit::{BatchCaster, PieceRgba, PieceTask};
+pub use workunit::{BatchCaster, BindTarget, PieceRgba, PieceTask};
 
 use crate::scene::Scene;
 

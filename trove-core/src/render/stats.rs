@@ -55,8 +55,15 @@ pub struct RenderStats {
     /// The memory budget, in bytes (`null`: none).
     pub memory_budget: Option<u64>,
     /// The most voxel bytes resident at once, from the store's own accounting (loads in
-    /// flight included); never above `memory_budget`.
+    /// flight and the macrocell classifications kept with datasets included); never above
+    /// `memory_budget`.
     pub peak_resident_bytes: u64,
+    /// Objects bound with the macrocell classification an earlier bind kept with their
+    /// resident dataset (a later band of the image), instead of classifying again. A farm's
+    /// workers keep their own and do not report them: 0 there.
+    pub classification_hits: u64,
+    /// Objects bound through the store that found none kept.
+    pub classification_misses: u64,
     /// Per-phase timings.
     pub seconds: Seconds,
 }
@@ -74,6 +81,8 @@ impl RenderStats {
         self.bytes_loaded = store.bytes_loaded;
         self.memory_budget = budget;
         self.peak_resident_bytes = store.peak_resident_bytes;
+        self.classification_hits = store.classification_hits;
+        self.classification_misses = store.classification_misses;
         let s = &mut self.seconds;
         s.total = total;
         s.other = (total - s.intersection - s.volume_rendering - s.composition - s.loading).max(0.0);
@@ -89,6 +98,8 @@ impl RenderStats {
         self.dataset_loads += other.dataset_loads;
         self.bytes_loaded += other.bytes_loaded;
         self.peak_resident_bytes = self.peak_resident_bytes.max(other.peak_resident_bytes);
+        self.classification_hits += other.classification_hits;
+        self.classification_misses += other.classification_misses;
         let (s, o) = (&mut self.seconds, &other.seconds);
         s.intersection += o.intersection;
         s.volume_rendering += o.volume_rendering;
@@ -111,6 +122,8 @@ mod tests {
             dataset_loads: 5 * n,
             bytes_loaded: 6 * n,
             peak_resident_bytes: 7 * n,
+            classification_hits: 8 * n,
+            classification_misses: 9 * n,
             seconds: Seconds { intersection: n as f64, volume_rendering: 1.0, ..Seconds::default() },
             ..RenderStats::default()
         };

@@ -23,6 +23,21 @@
 //! Under a budget the store copies mapped bytes into memory it owns, so a load really reads
 //! the file and an eviction really frees it: `bytes_loaded` and the resident count are then
 //! honest. A generated dataset counts as loaded when it is generated.
+//!
+//! # Classifications kept with a dataset
+//! Binding an object for many pieces classifies every macrocell of its dataset for it
+//! (`sampling::skip`: one bit per cell and each cell's distance to the nearest non-empty
+//! one). The store keeps those classifications with the resident dataset they were worked
+//! out from, keyed by everything else they depend on (channel, interpolation, the opacity
+//! map's zero set: [`ClassKey`]), so that a later bind over the same load — the next band
+//! of an image, the next job on a farm worker — uses them instead of classifying again.
+//! They are part of the dataset's residency: their bytes count as resident bytes from the
+//! moment they are kept until the dataset is evicted or unloaded, which drops them too; a
+//! reload starts with none. They are only kept in room the budget has free (never by
+//! evicting a dataset), at most a quarter of their dataset's own bytes per dataset (the
+//! least recently used dropped first), and when room is needed for a load, those of
+//! datasets nobody reads go before any dataset does. A classification the store declines
+//! is still worked out and used by the caster that asked, as without a store.
 
 use std::collections::HashMap;
 use std::ops::Deref;
@@ -32,6 +47,7 @@ use std::time::Instant;
 
 use super::error::StoreError;
 use crate::dataset::{DatasetId, DatasetInfo, Volume};
+use crate::sampling::{ClassKey, Classes, ClassificationCache};
 use crate::scene::Scene;
 
 /// What identifies a dataset's voxels across scenes and jobs ([`DatasetInfo::id`]): two
@@ -54,16 +70,21 @@ struct Inner {
     loads: AtomicU64,
     bytes_loaded: AtomicU64,
     loading_nanos: AtomicU64,
+    class_hits: AtomicU64,
+    class_misses: AtomicU64,
 }
 
 struct State {
     /// Datasets resident or being loaded; absent ones have no entry.
     slots: HashMap<DatasetKey, Slot>,
-    /// Bytes of resident datasets plus loads in flight.
+    /// Bytes of resident datasets (their kept classifications included) plus loads in
+    /// flight.
     resident: u64,
     peak: u64,
     /// Logical clock for least-recently-used order.
     clock: u64,
+    /// Counts loads, so that a reload is never taken for the load before it.
+    generation: u64,
 }
 
 enum Slot {
@@ -71,10 +92,23 @@ enum Slot {
     Loading,
     Resident {
         volume: Arc<Volume>,
+        /// The dataset's own bytes.
         bytes: u64,
         pins: u32,
         last_used: u64,
+        /// Which load this is.
+        generation: u64,
+        /// Classifications worked out from this load.
+        kept: Kept,
     },
+}
+
+/// Classifications kept with one resident dataset, and their bytes (counted in
+/// `State::resident`).
+#[derive(Default)]
+struct Kept {
+    classes: HashMap<ClassKey, (Arc<Classes>, u64)>,
+    bytes: u64,
 }
 
 /// What a store did, for statistics: a snapshot that merges with others (the farm sums its
@@ -89,6 +123,10 @@ pub struct StoreStats {
     pub peak_resident_bytes: u64,
     /// Seconds spent loading, summed over threads.
     pub loading_seconds: f64,
+    /// Binds that found their object's macrocell classification kept with the dataset.
+    pub classification_hits: u64,
+    /// Binds through the store that did not (and classified, or bound lazily).
+    pub classification_misses: u64,
 }
 
 impl StoreStats {
@@ -98,6 +136,8 @@ impl StoreStats {
         self.bytes_loaded += other.bytes_loaded;
         self.peak_resident_bytes = self.peak_resident_bytes.max(other.peak_resident_bytes);
         self.loading_seconds += other.loading_seconds;
+        self.classification_hits += other.classification_hits;
+        self.classification_misses += other.classification_misses;
     }
 }
 
@@ -105,6 +145,8 @@ impl StoreStats {
 pub struct Pinned {
     inner: Arc<Inner>,
     key: DatasetKey,
+    /// The load it pins (see `State::generation`).
+    generation: u64,
     volume: Arc<Volume>,
     loaded: bool,
 }
@@ -114,6 +156,79 @@ impl Pinned {
     /// farm worker reports as its loads.
     pub fn was_loaded(&self) -> bool {
         self.loaded
+    }
+}
+
+impl Pinned {
+    /// The pinned load's kept classifications, under the store's lock.
+    /// With the dataset's own bytes. While pinned, the load is resident (never evicted), so
+    /// the generation only guards against a mistake.
+    fn kept<'s>(&self, state: &'s mut State) -> Option<(&'s mut Kept, u64)> {
+        match state.slots.get_mut(&self.key) {
+            Some(Slot::Resident { generation, kept, bytes, .. }) if *generation == self.generation => {
+                Some((kept, *bytes))
+            }
+            _ => None,
+        }
+    }
+}
+
+/// Most bytes of classifications kept per dataset, as a fraction of its own bytes.
+const KEPT_PER_DATASET_BYTES: u64 = 4;
+
+impl ClassificationCache for Pinned {
+    fn find(&self, key: &ClassKey) -> Option<Arc<Classes>> {
+        let mut state = lock(&self.inner.state);
+        state.clock += 1;
+        let now = state.clock;
+        let found = self.kept(&mut state).and_then(|(kept, _)| {
+            let (classes, last_used) = kept.classes.get_mut(key)?;
+            *last_used = now;
+            Some(classes.clone())
+        });
+        drop(state);
+        let counter = if found.is_some() { &self.inner.class_hits } else { &self.inner.class_misses };
+        counter.fetch_add(1, Ordering::Relaxed);
+        found
+    }
+
+    fn has_room(&self, bytes: u64) -> bool {
+        let mut state = lock(&self.inner.state);
+        let free = self.inner.budget.map_or(u64::MAX, |b| b.saturating_sub(state.resident));
+        self.kept(&mut state)
+            .is_some_and(|(kept, dataset)| bytes <= free && kept.bytes + bytes <= dataset / KEPT_PER_DATASET_BYTES)
+    }
+
+    fn keep(&self, key: ClassKey, classes: &Arc<Classes>) {
+        let bytes = classes.bytes();
+        let mut state = lock(&self.inner.state);
+        state.clock += 1;
+        let now = state.clock;
+        let budget = self.inner.budget;
+        let resident = state.resident;
+        let Some((kept, dataset)) = self.kept(&mut state) else { return };
+        let cap = dataset / KEPT_PER_DATASET_BYTES;
+        if kept.classes.contains_key(&key) || bytes > cap {
+            return;
+        }
+        // Make room within the dataset's share by dropping its least recently used.
+        let mut freed = 0;
+        while kept.bytes + bytes > cap {
+            let Some(oldest) = kept.classes.iter().min_by_key(|(_, (_, used))| *used).map(|(k, _)| k.clone()) else {
+                break;
+            };
+            if let Some((c, _)) = kept.classes.remove(&oldest) {
+                kept.bytes -= c.bytes();
+                freed += c.bytes();
+            }
+        }
+        let fits = budget.is_none_or(|b| resident - freed + bytes <= b);
+        if fits {
+            kept.classes.insert(key, (classes.clone(), now));
+            kept.bytes += bytes;
+        }
+        state.resident = state.resident - freed + if fits { bytes } else { 0 };
+        state.peak = state.peak.max(state.resident);
     }
 }
 
@@ -147,11 +262,13 @@ impl VolumeStore {
         VolumeStore {
             inner: Arc::new(Inner {
                 budget,
-                state: Mutex::new(State { slots: HashMap::new(), resident: 0, peak: 0, clock: 0 }),
+                state: Mutex::new(State { slots: HashMap::new(), resident: 0, peak: 0, clock: 0, generation: 0 }),
                 changed: Condvar::new(),
                 loads: AtomicU64::new(0),
                 bytes_loaded: AtomicU64::new(0),
                 loading_nanos: AtomicU64::new(0),
+                class_hits: AtomicU64::new(0),
+                class_misses: AtomicU64::new(0),
             }),
         }
     }
@@ -191,11 +308,11 @@ impl VolumeStore {
             state.clock += 1;
             let now = state.clock;
             match state.slots.get_mut(&key) {
-                Some(Slot::Resident { volume, pins, last_used, .. }) => {
+                Some(Slot::Resident { volume, pins, last_used, generation, .. }) => {
                     *pins += 1;
                     *last_used = now;
-                    let volume = volume.clone();
-                    return Ok(Pinned { inner: inner.clone(), key, volume, loaded: false });
+                    let (volume, generation) = (volume.clone(), *generation);
+                    return Ok(Pinned { inner: inner.clone(), key, generation, volume, loaded: false });
                 }
                 Some(Slot::Loading) => {
                     state = inner.changed.wait(state).unwrap_or_else(|e| e.into_inner());
@@ -233,9 +350,18 @@ impl VolumeStore {
                 inner.bytes_loaded.fetch_add(needed, Ordering::Relaxed);
                 tracing::debug!(dataset = %info.name(), bytes = needed, "loaded");
                 let now = state.clock;
-                let slot = Slot::Resident { volume: volume.clone(), bytes: needed, pins: 1, last_used: now };
+                state.generation += 1;
+                let generation = state.generation;
+                let slot = Slot::Resident {
+                    volume: volume.clone(),
+                    bytes: needed,
+                    pins: 1,
+                    last_used: now,
+                    generation,
+                    kept: Kept::default(),
+                };
                 state.slots.insert(key.clone(), slot);
-                Ok(Pinned { inner: inner.clone(), key, volume, loaded: true })
+                Ok(Pinned { inner: inner.clone(), key, generation, volume, loaded: true })
             }
             Err(e) => {
                 state.resident -= needed;
@@ -252,8 +378,8 @@ impl VolumeStore {
     pub fn unload(&self, info: &DatasetInfo) {
         let key = info.id().clone();
         let mut state = lock(&self.inner.state);
-        if let Some(Slot::Resident { pins: 0, bytes, .. }) = state.slots.get(&key) {
-            let bytes = *bytes;
+        if let Some(Slot::Resident { pins: 0, bytes, kept, .. }) = state.slots.get(&key) {
+            let bytes = bytes + kept.bytes;
             state.slots.remove(&key);
             state.resident -= bytes;
             drop(state);
@@ -268,18 +394,21 @@ impl VolumeStore {
             bytes_loaded: self.inner.bytes_loaded.load(Ordering::Relaxed),
             peak_resident_bytes: lock(&self.inner.state).peak,
             loading_seconds: self.inner.loading_nanos.load(Ordering::Relaxed) as f64 * 1e-9,
+            classification_hits: self.inner.class_hits.load(Ordering::Relaxed),
+            classification_misses: self.inner.class_misses.load(Ordering::Relaxed),
         }
     }
 
-    /// Bytes resident now (including loads in flight).
+    /// Bytes resident now (including loads in flight and kept classifications).
     pub fn resident_bytes(&self) -> u64 {
         lock(&self.inner.state).resident
     }
 }
 
 /// Evicts unpinned datasets, least recently used first, until `needed` more bytes fit in
-/// `budget`. Returns false (having evicted nothing) when even evicting every unpinned one
-/// would not make room: the caller must wait for pins to be released.
+/// `budget`; the classifications kept with unpinned datasets go first, datasets only if
+/// that is not enough. Returns false (having evicted nothing) when even evicting every
+/// unpinned one would not make room: the caller must wait for pins to be released.
 fn evict_until_fits(state: &mut State, needed: u64, budget: u64) -> bool {
     let free = |s: &State| budget.saturating_sub(s.resident);
     if free(state) >= needed {
@@ -289,12 +418,33 @@ fn evict_until_fits(state: &mut State, needed: u64, budget: u64) -> bool {
         .slots
         .values()
         .map(|s| match s {
-            Slot::Resident { pins: 0, bytes, .. } => *bytes,
+            Slot::Resident { pins: 0, bytes, kept, .. } => bytes + kept.bytes,
             _ => 0,
         })
         .sum();
     if free(state) + evictable < needed {
         return false;
+    }
+    // Classifications of datasets nobody reads go first, least recently used dataset first:
+    // working one out again costs milliseconds, loading a dataset again much more.
+    while free(state) < needed {
+        let Some(victim) = state
+            .slots
+            .iter()
+            .filter_map(|(k, s)| match s {
+                Slot::Resident { pins: 0, last_used, kept, .. } if kept.bytes > 0 => Some((*last_used, k)),
+                _ => None,
+            })
+            .min_by_key(|(last_used, _)| *last_used)
+            .map(|(_, k)| k.clone())
+        else {
+            break;
+        };
+        let freed = match state.slots.get_mut(&victim) {
+            Some(Slot::Resident { kept, .. }) => std::mem::take(kept).bytes,
+            _ => 0,
+        };
+        state.resident -= freed;
     }
     while free(state) < needed {
         let Some(victim) = state
@@ -310,8 +460,8 @@ fn evict_until_fits(state: &mut State, needed: u64, budget: u64) -> bool {
             // Counted above; unreachable while the lock is held.
             return false;
         };
-        if let Some(Slot::Resident { bytes, .. }) = state.slots.remove(&victim) {
-            state.resident -= bytes;
+        if let Some(Slot::Resident { bytes, kept, .. }) = state.slots.remove(&victim) {
+            state.resident -= bytes + kept.bytes;
             tracing::debug!(bytes, "evicted");
         }
     }
@@ -475,10 +625,186 @@ mod tests {
         assert_eq!(store.stats().loads, 2);
     }
 
+    /// One 32³ u8 dataset, a radial sphere (255 at the centre, 0 beyond the radius), seen
+    /// by two objects with `opacity` (points of a ramp): one in front, one behind.
+    fn sphere_scene(opacity: &str) -> Scene {
+        let text = format!(
+            "[image]\nwidth = 24\nheight = 20\nbackground = [0, 0, 0]\n\
+             [camera]\neye = [0.6, 0.7, 3.0]\ntarget = [0.5, 0.5, 0.0]\nup = [0, 1, 0]\nfov_y = 40.0\n\
+             [[datasets]]\nname = \"ball\"\ndims = [32, 32, 32]\n[datasets.channels.voxel]\n\
+             generator = {{ kind = \"sphere\", radius = 0.45, profile = \"radial\", value = 255 }}\n\
+             [[objects]]\nname = \"front\"\ndataset = \"ball\"\n\
+             colour = {{ type = \"ramp\", points = [[0, 1, 0.5, 0], [255, 1, 1, 1]] }}\n\
+             opacity = {{ type = \"ramp\", points = {opacity} }}\n\
+             [[objects]]\nname = \"back\"\ndataset = \"ball\"\n\
+             colour = {{ type = \"ramp\", points = [[0, 0, 0.5, 1], [255, 1, 1, 1]] }}\n\
+             opacity = {{ type = \"ramp\", points = {opacity} }}\n\
+             transform = {{ matrix = [[1, 0, 0, 0.4], [0, 1, 0, 0.1], [0, 0, 1, -1.2], [0, 0, 0, 1]] }}\n"
+        );
+        Scene::parse(&text, "kept.toml").unwrap()
+    }
+
+    const SOFT: &str = "[[0, 0], [60, 0], [255, 0.3]]";
+
+    /// Renders `scene` as a farm worker casts it: one scheduler over the whole image, each
+    /// dataset pinned in `store` and bound with [`BatchCaster::new`] per queue of batches
+    /// (here per batch, the worst case for a worker).
+    fn render_through(store: &VolumeStore, scene: &Scene) -> Vec<[f64; 3]> {
+        use crate::render::intersection::intersect;
+        use crate::render::schedule::Scheduler;
+        use crate::render::{BatchCaster, PieceRgba};
+        let h = scene.image().height;
+        let mut s = Scheduler::new(scene, intersect(scene, 0..h), 64).unwrap();
+        for d in s.datasets().to_vec() {
+            while let Some(batch) = s.next_batch(d) {
+                let volume = store.get(&scene.datasets()[d]).unwrap();
+                let caster = BatchCaster::new(scene, d, &volume).unwrap();
+                let mut out = vec![PieceRgba::default(); batch.tasks.len()];
+                caster.cast(&batch.tasks, &mut out).unwrap();
+                s.record(batch.id, &out).unwrap();
+            }
+            assert!(s.is_dataset_done(d));
+        }
+        s.composite_pixels(scene.image().background)
+    }
+
+    /// The image a fresh local render gives (its own store, every object classified anew).
+    fn fresh(scene: &Scene) -> Vec<[f64; 3]> {
+        crate::render::render(scene, &crate::render::RenderOptions::default()).unwrap().image.pixels().to_vec()
+    }
+
+    fn hits_and_misses(store: &VolumeStore) -> (u64, u64) {
+        let s = store.stats();
+        (s.classification_hits, s.classification_misses)
+    }
+
+    #[test]
+    fn a_second_render_through_one_store_binds_with_the_kept_classification() {
+        let scene = sphere_scene(SOFT);
+        let store = VolumeStore::new(None);
+        let first = render_through(&store, &scene);
+        // The first bind classifies the two objects' cells (one key: the same map and
+        // interpolation) and keeps that; every later bind, here one per batch, finds it.
+        let (hits, misses) = hits_and_misses(&store);
+        assert_eq!(misses, 1);
+        assert!(hits >= 3, "{hits} hits");
+        let dataset = scene.datasets()[0].resident_bytes();
+        assert!(store.resident_bytes() > dataset, "the classification counts as resident");
+        let second = render_through(&store, &scene);
+        assert_eq!(hits_and_misses(&store).1, 1, "no bind of the second render classified again");
+        assert_eq!(store.stats().loads, 1);
+        assert_eq!(first, second);
+        assert_eq!(first, fresh(&scene), "a kept classification renders what a fresh one does");
+        assert!(first.iter().any(|p| p[0] > 0.1), "the sphere is visible");
+    }
+
+    #[test]
+    fn a_changed_opacity_map_or_a_reload_classifies_again() {
+        let store = VolumeStore::new(None);
+        let soft = sphere_scene(SOFT);
+        let before = render_through(&store, &soft);
+        assert_eq!(hits_and_misses(&store).1, 1);
+        // Zero over more values: another classification, and the image of the new map.
+        let hard = sphere_scene("[[0, 0], [150, 0], [255, 0.6]]");
+        let after = render_through(&store, &hard);
+        assert_eq!(hits_and_misses(&store).1, 2, "the changed map missed");
+        assert_eq!(store.stats().loads, 1, "the same dataset, still resident");
+        assert_eq!(after, fresh(&hard));
+        assert_ne!(after, before);
+        // Other opacities over the same zero set: the classification still holds.
+        let brighter = sphere_scene("[[0, 0], [60, 0], [255, 0.9]]");
+        let (hits, misses) = hits_and_misses(&store);
+        let brighter_image = render_through(&store, &brighter);
+        assert_eq!(hits_and_misses(&store).1, misses, "the same zero set hit");
+        assert!(hits_and_misses(&store).0 > hits);
+        assert_eq!(brighter_image, fresh(&brighter));
+        // Another load of the dataset starts with nothing kept.
+        store.unload(&soft.datasets()[0]);
+        assert_eq!(store.resident_bytes(), 0, "its classifications went with it");
+        assert_eq!(render_through(&store, &soft), before);
+        assert_eq!((store.stats().loads, hits_and_misses(&store).1), (2, misses + 1));
+    }
+
+    #[test]
+    fn classifications_are_kept_only_in_room_the_budget_has_free() {
+        let scene = sphere_scene(SOFT);
+        let info = &scene.datasets()[0];
+        let dataset = info.resident_bytes();
+        // A budget of the dataset alone: nothing kept, every bind classifies, nothing over.
+        let store = VolumeStore::new(Some(dataset));
+        let image = render_through(&store, &scene);
+        let (hits, misses) = hits_and_misses(&store);
+        assert_eq!(hits, 0);
+        assert!(misses >= 2);
+        assert_eq!((store.resident_bytes(), store.stats().peak_resident_bytes), (dataset, dataset));
+        assert_eq!(image, fresh(&scene));
+        // Room for it: kept, counted, within the budget.
+        let roomy = VolumeStore::new(Some(2 * dataset));
+        assert_eq!(render_through(&roomy, &scene), image);
+        let kept = roomy.resident_bytes() - dataset;
+        assert!(kept > 0 && kept <= dataset / KEPT_PER_DATASET_BYTES);
+        assert_eq!(roomy.stats().peak_resident_bytes, dataset + kept);
+        assert_eq!(hits_and_misses(&roomy).1, 1);
+    }
+
+    #[test]
+    fn a_load_drops_kept_classifications_before_any_dataset() {
+        // Datasets "ball" and "other" with a budget of both and a little: the ball's kept
+        // classification goes, not the ball, when the other dataset needs its room.
+        let scene = sphere_scene(SOFT);
+        let ball = scene.datasets()[0].resident_bytes();
+        let others = super::tests::scene(1);
+        let other = &others.datasets()[0];
+        let store = VolumeStore::new(Some(ball + other.resident_bytes() + 8));
+        render_through(&store, &scene);
+        assert!(store.resident_bytes() > ball + 8, "kept");
+        drop(store.get(other).unwrap());
+        assert_eq!(store.resident_bytes(), ball + other.resident_bytes());
+        render_through(&store, &scene);
+        assert_eq!(store.stats().loads, 2, "the ball stayed resident");
+        assert!(store.stats().peak_resident_bytes <= store.budget().unwrap());
+    }
+
+    #[test]
+    fn many_threads_binding_through_the_store_never_exceed_the_budget() {
+        let scene = sphere_scene(SOFT);
+        let others = super::tests::scene(3);
+        let ball = &scene.datasets()[0];
+        let budget = ball.resident_bytes() + 2 * BYTES + 600;
+        let store = VolumeStore::new(Some(budget));
+        std::thread::scope(|scope| {
+            for thread in 0..4usize {
+                let (store, scene, others) = (&store, &scene, &others);
+                scope.spawn(move || {
+                    for i in 0..60usize {
+                        if (i + thread) % 2 == 0 {
+                            let v = store.get(ball).unwrap();
+                            let caster = crate::render::BatchCaster::for_dataset_turn(scene, 0, &v).unwrap();
+                            assert_eq!(caster.dataset(), 0);
+                        } else {
+                            drop(store.get(&others.datasets()[(i * 7 + thread) % 3]).unwrap());
+                        }
+                        assert!(store.resident_bytes() <= budget);
+                    }
+                });
+            }
+        });
+        assert!(store.stats().peak_resident_bytes <= budget);
+        assert!(store.stats().classification_hits > 0);
+    }
+
     #[test]
     fn store_statistics_merge_by_summing_work_and_keeping_the_largest_peak() {
-        let mut a = StoreStats { loads: 2, bytes_loaded: 10, peak_resident_bytes: 7, loading_seconds: 0.5 };
-        a.merge(&StoreStats { loads: 1, bytes_loaded: 5, peak_resident_bytes: 9, loading_seconds: 0.25 });
-        assert_eq!(a, StoreStats { loads: 3, bytes_loaded: 15, peak_resident_bytes: 9, loading_seconds: 0.75 });
+        let stats = |loads, bytes_loaded, peak_resident_bytes, loading_seconds, hits| StoreStats {
+            loads,
+            bytes_loaded,
+            peak_resident_bytes,
+            loading_seconds,
+            classification_hits: hits,
+            classification_misses: 2 * hits,
+        };
+        let mut a = stats(2, 10, 7, 0.5, 1);
+        a.merge(&stats(1, 5, 9, 0.25, 3));
+        assert_eq!(a, stats(3, 15, 9, 0.75, 4));
     }
 }

@@ -25,10 +25,13 @@
 //! fewer. So it is stored as a 16-bit fraction rounded down, which keeps the task at 24
 //! bytes.
 
+use std::sync::Arc;
+
 use super::error::CastError;
+use super::store::Pinned;
 use crate::composite::Rgba;
 use crate::dataset::Volume;
-use crate::sampling::{ObjectCaster, PieceRequest, PieceResult};
+use crate::sampling::{CastOptions, ObjectCaster, PieceRequest, PieceResult};
 use crate::scene::Scene;
 
 /// One object over one piece of one ray: the unit of volume-rendering work (24 bytes).
@@ -122,6 +125,35 @@ impl From<PieceRgba> for Rgba {
     }
 }
 
+/// The voxels a [`BatchCaster`] binds to: a dataset's [`Volume`] and, when it is pinned in
+/// a [`super::VolumeStore`], the store, which keeps the macrocell classifications binding
+/// works out with the resident dataset, so that the next bind over the same load and the
+/// same opacity map finds them instead of classifying again (`render::store`). Made from a
+/// `&Pinned`, a `&Volume` or an `&Arc<Volume>` (nothing kept: every bind classifies).
+#[derive(Clone, Copy)]
+pub struct BindTarget<'a> {
+    volume: &'a Volume,
+    store: Option<&'a Pinned>,
+}
+
+impl<'a> From<&'a Volume> for BindTarget<'a> {
+    fn from(volume: &'a Volume) -> BindTarget<'a> {
+        BindTarget { volume, store: None }
+    }
+}
+
+impl<'a> From<&'a Arc<Volume>> for BindTarget<'a> {
+    fn from(volume: &'a Arc<Volume>) -> BindTarget<'a> {
+        BindTarget { volume, store: None }
+    }
+}
+
+impl<'a> From<&'a Pinned> for BindTarget<'a> {
+    fn from(pinned: &'a Pinned) -> BindTarget<'a> {
+        BindTarget { volume: pinned, store: Some(pinned) }
+    }
+}
+
 /// Casts batches of tasks for one dataset while its volume is resident: the worker side of
 /// Algorithm 2's volume-rendering phase, in every mode (local threads or farm workers).
 ///
@@ -138,27 +170,38 @@ pub struct BatchCaster<'a> {
 }
 
 impl<'a> BatchCaster<'a> {
-    /// Binds every object of `dataset` to `volume`, that dataset's voxels.
-    pub fn new(scene: &'a Scene, dataset: usize, volume: &'a Volume) -> Result<BatchCaster<'a>, CastError> {
-        BatchCaster::bind(scene, dataset, volume, ObjectCaster::new)
+    /// Binds every object of `dataset` to `volume`, that dataset's voxels. Cells are
+    /// classified when a ray first enters them ([`ObjectCaster::new`]), unless the volume
+    /// is pinned in a store that keeps the object's classification or has room to: then it
+    /// is used, or worked out now and kept, as [`BatchCaster::for_dataset_turn`] does (a
+    /// farm worker binds per queue of batches, so a kept classification serves every
+    /// queue and job while the dataset stays resident).
+    pub fn new(
+        scene: &'a Scene,
+        dataset: usize,
+        volume: impl Into<BindTarget<'a>>,
+    ) -> Result<BatchCaster<'a>, CastError> {
+        BatchCaster::bind(scene, dataset, volume.into(), CastOptions::default())
     }
 
     /// [`BatchCaster::new`] for a dataset's whole turn (Algorithm 2 binds once per
     /// dataset): every macrocell is classified for each object now
-    /// ([`ObjectCaster::for_many_pieces`]), which pays back over many batches, not over one.
+    /// ([`ObjectCaster::for_many_pieces`]), which pays back over many batches, not over one,
+    /// or taken from the store that keeps the volume, where an earlier bind left it.
     pub fn for_dataset_turn(
         scene: &'a Scene,
         dataset: usize,
-        volume: &'a Volume,
+        volume: impl Into<BindTarget<'a>>,
     ) -> Result<BatchCaster<'a>, CastError> {
-        BatchCaster::bind(scene, dataset, volume, ObjectCaster::for_many_pieces)
+        let options = CastOptions { classify_upfront: true, ..CastOptions::default() };
+        BatchCaster::bind(scene, dataset, volume.into(), options)
     }
 
     fn bind(
         scene: &'a Scene,
         dataset: usize,
-        volume: &'a Volume,
-        bind: fn(&'a crate::scene::Object, &'a Volume, bool) -> Result<ObjectCaster<'a>, crate::sampling::BindError>,
+        target: BindTarget<'a>,
+        options: CastOptions,
     ) -> Result<BatchCaster<'a>, CastError> {
         if dataset >= scene.datasets().len() {
             return Err(CastError::DatasetOutOfRange { dataset, datasets: scene.datasets().len() });
@@ -171,8 +214,11 @@ impl<'a> BatchCaster<'a> {
                 if object.dataset() != dataset {
                     return Ok(None);
                 }
-                let caster = bind(object, volume, correction)
-                    .map_err(|source| CastError::Bind { object: object.name().to_string(), source })?;
+                let caster = match target.store {
+                    Some(store) => ObjectCaster::with_cache(object, target.volume, correction, options, store),
+                    None => ObjectCaster::with_options(object, target.volume, correction, options),
+                };
+                let caster = caster.map_err(|source| CastError::Bind { object: object.name().to_string(), source })?;
                 Ok(Some((caster, longest_piece(object))))
             })
             .collect::<Result<_, CastError>>()?;

@@ -16,7 +16,10 @@ use super::kernel::{
     Read, Separate,
 };
 use super::lanes::{Stored, Trilinear4};
+use std::sync::Arc;
+
 use super::skip::Skipper;
+use super::ClassificationCache;
 use crate::dataset::{ChannelReader, F32LeVoxels, U16LeVoxels, U8Voxels};
 use crate::interp::{Cubic, DynInterp, Identity, Interp, Interpolation, Linear, Nearest, NoInterp, Omega};
 use crate::mapping::{ColourMap, JointPiecewise, OpacityMap, Piecewise, RawColour};
@@ -38,15 +41,30 @@ pub(super) struct Parts<'a> {
     pub correction: bool,
     /// Classify every macrocell now ([`Skipper::classified`]).
     pub classify_upfront: bool,
+    /// Where the volume's classifications are kept, if anywhere.
+    pub cache: Option<&'a dyn ClassificationCache>,
 }
 
 impl<'a> Parts<'a> {
-    /// `skip` as the loop over `interp` will use it.
+    /// `skip` as the loop over `interp` will use it: classified up front when asked, or
+    /// when a cache holds the classification or has room to keep it (a classification
+    /// found kept is what classifying now would give: its key holds everything it depends
+    /// on besides the volume's macrocells).
     fn prepared<I: Interp>(&self, interp: &I, skip: Option<Skipper<'a>>) -> Option<Skipper<'a>> {
-        match skip {
-            Some(skip) if self.classify_upfront => Some(skip.classified(interp)),
-            skip => skip,
+        let skip = skip?;
+        let Some(cache) = self.cache else {
+            return Some(if self.classify_upfront { skip.classified(interp) } else { skip });
+        };
+        let key = skip.key(self.object.interpolation());
+        if let Some(classes) = cache.find(&key) {
+            return Some(skip.with_classes(classes));
         }
+        if !self.classify_upfront && !cache.has_room(skip.classes_bytes()) {
+            return Some(skip);
+        }
+        let classes = Arc::new(skip.classify(interp));
+        cache.keep(key, &classes);
+        Some(skip.with_classes(classes))
     }
 
     fn kernel<I, V, M>(&self, interp: I, voxels: V, maps: M, skip: Option<Skipper<'a>>) -> Bound<'a>

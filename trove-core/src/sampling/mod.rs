@@ -42,6 +42,10 @@ mod lanes;
 mod packet;
 mod skip;
 
+use std::sync::Arc;
+
+pub(crate) use skip::{ClassKey, Classes};
+
 use crate::composite::Rgba;
 use crate::dataset::{ChannelName, Volume, VoxelType};
 use crate::geometry::Ray;
@@ -113,6 +117,19 @@ impl Default for CastOptions {
     }
 }
 
+/// Where classifications worked out at bind are kept for later binds of objects over the
+/// same loaded dataset (a [`crate::render::VolumeStore`]'s resident dataset, through its
+/// [`crate::render::Pinned`] guard): a caster that finds its object's classification there
+/// uses it instead of classifying again, and gets the same classes and distances.
+pub(crate) trait ClassificationCache {
+    /// The classification kept under `key`, if any (counted as a hit or a miss).
+    fn find(&self, key: &ClassKey) -> Option<Arc<Classes>>;
+    /// Whether a classification of `bytes` would be kept now.
+    fn has_room(&self, bytes: u64) -> bool;
+    /// Offers `classes`, worked out for `key`, for keeping; the cache may decline.
+    fn keep(&self, key: ClassKey, classes: &Arc<Classes>);
+}
+
 /// An object bound to its resident volume: the loop for its combination of interpolation,
 /// stored type and maps chosen once, the channel readers its maps need resolved once (a map
 /// that does not read a channel never touches it), and its empty-space classification
@@ -155,6 +172,29 @@ impl<'a> ObjectCaster<'a> {
         opacity_correction: bool,
         options: CastOptions,
     ) -> Result<ObjectCaster<'a>, BindError> {
+        ObjectCaster::bind(object, volume, opacity_correction, options, None)
+    }
+
+    /// [`ObjectCaster::with_options`] for a volume whose classifications `cache` keeps: the
+    /// kept classification is used when there is one; otherwise the cells are classified
+    /// now, and kept, if `options` asks for it or the cache has room to keep them.
+    pub(crate) fn with_cache(
+        object: &'a Object,
+        volume: &'a Volume,
+        opacity_correction: bool,
+        options: CastOptions,
+        cache: &'a dyn ClassificationCache,
+    ) -> Result<ObjectCaster<'a>, BindError> {
+        ObjectCaster::bind(object, volume, opacity_correction, options, Some(cache))
+    }
+
+    fn bind(
+        object: &'a Object,
+        volume: &'a Volume,
+        opacity_correction: bool,
+        options: CastOptions,
+        cache: Option<&'a dyn ClassificationCache>,
+    ) -> Result<ObjectCaster<'a>, BindError> {
         let expected = object.placement().dims();
         if volume.dims() != expected {
             return Err(BindError::DimsMismatch { expected, found: volume.dims() });
@@ -178,6 +218,7 @@ impl<'a> ObjectCaster<'a> {
             alpha: if matches!(object.opacity(), OpacityMap::Raw) { Some(reader(ChannelName::Alpha)?) } else { None },
             correction: opacity_correction,
             classify_upfront: options.classify_upfront,
+            cache,
         };
         let skip = if options.skip_empty_space { skipper(object, volume) } else { None };
         let kernel = if options.specialise {
@@ -258,7 +299,7 @@ fn skipper<'a>(object: &'a Object, volume: &'a Volume) -> Option<skip::Skipper<'
     };
     let cells = volume.macrocells(channel)?;
     let integer = volume.channel(channel)?.ty() != VoxelType::F32;
-    skip::Skipper::new(cells, object.opacity().zero_set(), integer)
+    skip::Skipper::new(cells, channel, object.opacity().zero_set(), integer)
 }
 
 /// α = 1 − (1 − O)^ℓ (SPEC §4.3), computed as −expm1(ℓ·ln(1 − O)) so small opacities and

@@ -21,10 +21,12 @@
 //! lie on a line; they are tested one by one.
 
 use std::borrow::Cow;
+use std::sync::Arc;
 
 use crate::dataset::macrocell::{Level, Macrocells, COARSE_SHIFT, MACROCELL_SHIFT};
+use crate::dataset::ChannelName;
 use crate::geometry::LineSamples;
-use crate::interp::Interp;
+use crate::interp::{Interp, Interpolation};
 use crate::mapping::ZeroSet;
 
 /// One object's view of its dataset's macrocells: the ranges of the channel its opacity
@@ -32,18 +34,36 @@ use crate::mapping::ZeroSet;
 #[derive(Debug)]
 pub(super) struct Skipper<'a> {
     cells: &'a Macrocells,
+    /// The channel whose ranges `cells` are.
+    channel: ChannelName,
     zero: Cow<'a, ZeroSet>,
     /// Whether the channel holds integers (bit, u8, u16, u32): convex interpolation of them
     /// stays inside a cell's range exactly.
     integer: bool,
     /// Every cell's answer, when the caster will serve many pieces
-    /// ([`Skipper::classified`]).
-    classes: Option<Classes>,
+    /// ([`Skipper::classified`]); shared with the casters that found it kept
+    /// ([`super::ClassificationCache`]).
+    classes: Option<Arc<Classes>>,
 }
 
-/// Every cell's answer worked out at bind.
+/// Everything an object's classification of one loaded dataset's macrocells depends on
+/// besides those macrocells: the channel, whether it holds integers, the interpolation
+/// (which bounds how far a sample's value can leave its cell's range) and the opacity map's
+/// zero set, all by their exact bits. Two objects of one load with equal keys have the same
+/// classes and distances, bit for bit, whatever else their maps say.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub(crate) struct ClassKey {
+    channel: ChannelName,
+    integer: bool,
+    /// The interpolation's kind and its ω (0 for the others).
+    interpolation: (u8, [u64; 3]),
+    zero: Vec<[u64; 3]>,
+}
+
+/// Every cell's answer worked out at bind: an object's classification of one loaded
+/// dataset, which a [`super::ClassificationCache`] may keep for later binds.
 #[derive(Debug)]
-struct Classes {
+pub(crate) struct Classes {
     /// One bit per cell of each level (set: empty), x fastest.
     bits: [Vec<u64>; 2],
     /// Per macrocell, its chessboard distance in cells to the nearest non-empty one (0 for
@@ -51,6 +71,20 @@ struct Classes {
     /// at once ([`Jumps::skip`]); three bytes of padding after the last cell, so that
     /// reading four bytes at any cell stays inside.
     distance: Vec<u8>,
+}
+
+impl Classes {
+    /// Bytes of its tables (what a cache that keeps it counts).
+    pub(crate) fn bytes(&self) -> u64 {
+        (8 * (self.bits[0].len() + self.bits[1].len()) + self.distance.len()) as u64
+    }
+
+    /// [`Classes::bytes`] of the classification of `cells`, before working it out.
+    fn bytes_for(cells: &Macrocells) -> u64 {
+        let count = |level| cells.cells(level).iter().map(|&n| n as usize).product::<usize>();
+        let (fine, coarse) = (count(Level::Fine), count(Level::Coarse));
+        (8 * (fine.div_ceil(64) + coarse.div_ceil(64)) + fine + 3) as u64
+    }
 }
 
 /// The macrocells' answers as a vector loop reads them ([`Skipper::fine_classes`]).
@@ -72,8 +106,13 @@ fn cell_index(dims: [u32; 3], cell: [u32; 3]) -> usize {
 impl<'a> Skipper<'a> {
     /// `None` when the map is non-zero everywhere: nothing could ever be skipped, so the
     /// cast does not even look at cells.
-    pub(super) fn new(cells: &'a Macrocells, zero: Cow<'a, ZeroSet>, integer: bool) -> Option<Skipper<'a>> {
-        (!zero.is_empty()).then_some(Skipper { cells, zero, integer, classes: None })
+    pub(super) fn new(
+        cells: &'a Macrocells,
+        channel: ChannelName,
+        zero: Cow<'a, ZeroSet>,
+        integer: bool,
+    ) -> Option<Skipper<'a>> {
+        (!zero.is_empty()).then_some(Skipper { cells, channel, zero, integer, classes: None })
     }
 
     /// This classification with every cell's answer for `interp` worked out now, one bit per
@@ -81,7 +120,39 @@ impl<'a> Skipper<'a> {
     /// of fetching a range, bounding the interpolation and searching the zero set each time
     /// a ray enters a cell. Worth it for a caster that serves a dataset's whole turn (about
     /// 10 ns per cell, once); a caster bound for one piece does without.
-    pub(super) fn classified<I: Interp>(mut self, interp: &I) -> Skipper<'a> {
+    pub(super) fn classified<I: Interp>(self, interp: &I) -> Skipper<'a> {
+        let classes = Arc::new(self.classify(interp));
+        self.with_classes(classes)
+    }
+
+    /// This classification with `classes`, which must be what [`Skipper::classify`] gives
+    /// for the interpolation the cast uses (found kept under [`Skipper::key`]).
+    pub(super) fn with_classes(mut self, classes: Arc<Classes>) -> Skipper<'a> {
+        debug_assert_eq!(classes.bytes(), Classes::bytes_for(self.cells));
+        self.classes = Some(classes);
+        self
+    }
+
+    /// What the classification depends on besides the macrocells, for `interpolation`, the
+    /// function `interp` implements.
+    pub(super) fn key(&self, interpolation: Interpolation) -> ClassKey {
+        let interpolation = match interpolation {
+            Interpolation::Nearest => (0, [0; 3]),
+            Interpolation::Trilinear => (1, [0; 3]),
+            Interpolation::Nonlinear { omega } => (2, omega.map(f64::to_bits)),
+            Interpolation::Cubic => (3, [0; 3]),
+        };
+        ClassKey { channel: self.channel, integer: self.integer, interpolation, zero: self.zero.bits() }
+    }
+
+    /// The bytes [`Skipper::classify`] will take.
+    pub(super) fn classes_bytes(&self) -> u64 {
+        Classes::bytes_for(self.cells)
+    }
+
+    /// Every cell's answer for `interp` and each macrocell's distance to the nearest
+    /// non-empty one ([`Skipper::classified`]).
+    pub(super) fn classify<I: Interp>(&self, interp: &I) -> Classes {
         let bits = [Level::Fine, Level::Coarse].map(|level| {
             let [nx, ny, nz] = self.cells.cells(level);
             let mut bits = vec![0u64; (nx as usize * ny as usize * nz as usize).div_ceil(64)];
@@ -98,8 +169,7 @@ impl<'a> Skipper<'a> {
         });
         let mut distance = chessboard_distance(&bits[Level::Fine as usize], self.cells.cells(Level::Fine));
         distance.extend([0; 3]);
-        self.classes = Some(Classes { bits, distance });
-        self
+        Classes { bits, distance }
     }
 
     /// The macrocells' answers and distances, if they were worked out at bind

@@ -410,7 +410,9 @@ fn a_map_that_is_non_zero_everywhere_turns_skipping_off() {
 /// lines through `object`'s box.
 fn jumps_pass_only_empty_samples<I: Interp>(interp: &I, object: &Object, volume: &Volume, rays: &[Ray]) -> (u64, u64) {
     let cells = volume.macrocells(ChannelName::Voxel).unwrap();
-    let skipper = || Skipper::new(cells, object.opacity().zero_set(), true).expect("the map is zero somewhere");
+    let skipper = || {
+        Skipper::new(cells, ChannelName::Voxel, object.opacity().zero_set(), true).expect("the map is zero somewhere")
+    };
     // Walking cell by cell (cells classified on entry) and leaping over cubes of empty cells
     // (cells classified, and their distances worked out, at bind).
     let (mut passed, mut looked) = (0, 0);
