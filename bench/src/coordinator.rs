@@ -121,7 +121,7 @@ fn write_cases(args: &Args, dir: &Path) -> Result<()> {
         eprintln!("SKIPPED Fig. 1: {} is not a folder (pass --data-root)", args.data_root.display());
         return Ok(());
     }
-    copy_files(&args.data_root, &root)?;
+    crate::farm::copy_files(&args.data_root, &root)?;
     let mut table: toml::Table = std::fs::read_to_string(&fig01)?.parse()?;
     let image = table.get_mut("image").and_then(|v| v.as_table_mut()).context("fig01: no [image]")?;
     let side = |key: &str| image[key].as_integer().unwrap_or(1).max(1);
@@ -141,20 +141,6 @@ fn cases(dir: &Path, size: u32) -> Vec<Case> {
         cases.push(Case { name: format!("Fig. 1, {size}²"), scene: root.join("fig01.toml") });
     }
     cases
-}
-
-fn copy_files(from: &Path, to: &Path) -> Result<()> {
-    std::fs::create_dir_all(to)?;
-    for entry in std::fs::read_dir(from).with_context(|| format!("reading {}", from.display()))? {
-        let entry = entry?;
-        let target = to.join(entry.file_name());
-        if entry.file_type()?.is_dir() {
-            copy_files(&entry.path(), &target)?;
-        } else {
-            std::fs::copy(entry.path(), &target).with_context(|| format!("copying {}", entry.path().display()))?;
-        }
-    }
-    Ok(())
 }
 
 /// One core count, in this process: see the module's doc.

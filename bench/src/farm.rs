@@ -131,7 +131,9 @@ fn fig01_case(data: &Path, size: u32, dir: &Path) -> Result<Case> {
     Ok(Case { name: format!("Fig. 1, {w}×{h}"), scene, root })
 }
 
-fn copy_files(from: &Path, to: &Path) -> Result<()> {
+/// Copies the folder `from` into `to`, recursively (copies, not links: a worker refuses
+/// links that leave its root).
+pub(crate) fn copy_files(from: &Path, to: &Path) -> Result<()> {
     std::fs::create_dir_all(to)?;
     for entry in std::fs::read_dir(from).with_context(|| format!("reading {}", from.display()))? {
         let entry = entry?;

@@ -32,7 +32,6 @@ use tokio::net::TcpListener;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::{ReceiverStream, TcpListenerStream};
 use tonic::{Request, Response, Status, Streaming};
-use trove_core::dataset::{Catalog, DatasetError, FileInfo, FileKind};
 use trove_core::render::wire::{decode_tasks, encode_results};
 use trove_core::render::CastError;
 use trove_core::render::{BatchCaster, PieceRgba, PieceTask, VolumeStore};
@@ -100,10 +99,7 @@ impl Answers {
         let answers = match scenes.get(&id) {
             Some(a) => a.clone(),
             None => {
-                let others = open.headers.iter().map(|f| (f.key.clone(), f)).collect();
-                let catalog = JobCatalog { files: &self.files, others };
-                let scene = Scene::parse_with(&open.scene_toml, Path::new(&open.scene_name), &catalog)
-                    .map_err(|e| convert::failure_status(convert::scene_failure(&e)))?;
+                let scene = trove_worker::cast::parse_job_scene(&self.files, open)?;
                 let tables = scene.datasets().iter().map(|_| RwLock::new(HashMap::new())).collect();
                 let a = Arc::new(SceneAnswers { scene: Arc::new(scene), tables });
                 scenes.insert(id, a.clone());
@@ -171,30 +167,6 @@ impl Answers {
     }
 }
 
-/// A scene's files as the stand-ins see them: their own through the sandbox, the others as
-/// the coordinator described them (as `trove-worker` sees them).
-struct JobCatalog<'a> {
-    files: &'a DataFiles,
-    others: HashMap<String, &'a pb::DatasetFile>,
-}
-
-impl Catalog for JobCatalog<'_> {
-    fn describe(&self, key: &str, kind: FileKind) -> Result<FileInfo, DatasetError> {
-        if self.files.holds(key) {
-            return self.files.catalog().describe(key, kind);
-        }
-        match self.others.get(key) {
-            Some(file) => convert::describe_remote(file, kind),
-            None => Err(DatasetError::not_held(key)),
-        }
-    }
-}
-
-/// The `Worker` service of a stand-in.
-struct StandInService {
-    answers: Arc<Answers>,
-}
-
 /// One batch's answer (blocking only when something must be cast).
 async fn answer(answers: &Arc<Answers>, job: &Arc<SceneAnswers>, d: usize, batch: pb::CastBatch) -> pb::CastResponse {
     let failure = |mut f: pb::Failure| {
@@ -228,6 +200,11 @@ async fn answer(answers: &Arc<Answers>, job: &Arc<SceneAnswers>, d: usize, batch
         }
     };
     pb::CastResponse { kind: Some(kind) }
+}
+
+/// The `Worker` service of a stand-in.
+struct StandInService {
+    answers: Arc<Answers>,
 }
 
 #[tonic::async_trait]

@@ -65,13 +65,20 @@ impl Catalog for JobCatalog<'_> {
     }
 }
 
+/// The job's scene as a worker holding `files` sees it: its own files through the
+/// sandbox, the others as the coordinator described them in `open`; a refusal is a `Status`
+/// carrying the typed failure. What every server of the `Worker` service parses with.
+pub fn parse_job_scene(files: &DataFiles, open: &pb::CastOpen) -> Result<Scene, Status> {
+    let others = open.headers.iter().map(|f| (f.key.clone(), f)).collect();
+    let catalog = JobCatalog { files, others };
+    Scene::parse_with(&open.scene_toml, std::path::Path::new(&open.scene_name), &catalog)
+        .map_err(|e| convert::failure_status(convert::scene_failure(&e)))
+}
+
 /// Validates the job's scene and checks that this worker can cast `open.dataset`;
 /// a refusal is a `Status` carrying the typed failure.
 fn open_job(files: &DataFiles, open: &pb::CastOpen) -> Result<(Arc<Scene>, usize), Status> {
-    let others = open.headers.iter().map(|f| (f.key.clone(), f)).collect();
-    let catalog = JobCatalog { files, others };
-    let scene = Scene::parse_with(&open.scene_toml, std::path::Path::new(&open.scene_name), &catalog)
-        .map_err(|e| convert::failure_status(convert::scene_failure(&e)))?;
+    let scene = parse_job_scene(files, open)?;
     let d = open.dataset as usize;
     let Some(info) = scene.datasets().get(d) else {
         return Err(convert::failure_status(convert::failure(

@@ -59,7 +59,8 @@ fn plan(farm: &Farm, request: pb::SubmitJobRequest) -> Result<JobPlan, Status> {
         check_pfm(w, h, farm.driver.max_pfm_pixels).map_err(limited)?;
     }
     let work = Work::count(&scene).map_err(limited)?;
-    work.check_bands(farm.driver.band_rows(&scene, &options), farm.driver.memory_bound).map_err(limited)?;
+    let band_rows = farm.driver.band_rows(&scene, &work, &options).map_err(limited)?;
+    work.check_bands(band_rows, farm.driver.memory_bound).map_err(limited)?;
     let dataset_keys: Vec<Vec<String>> = scene.datasets().iter().map(|d| d.file_keys()).collect();
     for d in scene.used_datasets() {
         if farm.registry.holders(&dataset_keys[d]).is_empty() {
@@ -89,6 +90,7 @@ fn plan(farm: &Farm, request: pb::SubmitJobRequest) -> Result<JobPlan, Status> {
         options,
         headers,
         dataset_keys,
+        band_rows,
     })
 }
 

@@ -10,18 +10,7 @@ use std::collections::BTreeMap;
 use std::ops::Range;
 
 use super::dispatch::{band_order, Admission};
-use super::intersection::count_tasks;
 use super::schedule::Scheduler;
-use crate::scene::Scene;
-
-/// Heap bytes a band's scheduler takes per task and per ray, for sizing bands before any is
-/// intersected: a task (24 bytes), its status, result and wave entry (1 + 16 + 4) and a
-/// share of the piece index; a ray's start index and known front (8 + 40).
-const BYTES_PER_TASK: u64 = 24 + 1 + 16 + 4 + 8;
-const BYTES_PER_RAY: u64 = 8 + 40;
-
-/// Rows sampled to size bands.
-const SAMPLED_ROWS: u32 = 16;
 
 /// Where a band stands.
 pub enum Stage {
@@ -70,24 +59,6 @@ impl Bands {
             rows_done: 0,
             tasks_composited: 0,
         }
-    }
-
-    /// Rows per band such that a band's scheduler takes about `bytes` at most, from the
-    /// tasks counted on a sample of rows (the densest sampled row, doubled for the rows
-    /// between samples that are denser still). Counting stores no task, so a scene of very
-    /// many pieces is measured without allocating them.
-    pub fn rows_within(scene: &Scene, bytes: u64) -> u32 {
-        let (w, h) = (scene.image().width, scene.image().height);
-        let samples = SAMPLED_ROWS.min(h).max(1);
-        let densest = (0..samples)
-            .map(|i| {
-                let row = (i * h + h / 2) / samples;
-                count_tasks(scene, row..row + 1)
-            })
-            .max()
-            .unwrap_or(0);
-        let row_bytes = 2 * densest * BYTES_PER_TASK + w as u64 * BYTES_PER_RAY;
-        (bytes / row_bytes.max(1)).clamp(1, h.max(1) as u64) as u32
     }
 
     /// Whether every band is done.

@@ -37,14 +37,11 @@ pub(super) fn render(
     scene: &Scene,
     store: &VolumeStore,
     progress: Option<&Progress>,
-    band_memory: u64,
+    (band_rows, band_memory): (u32, u64),
 ) -> Result<Rendered, RenderError> {
     let (w, h) = (scene.image().width, scene.image().height);
     let mut stats = RenderStats::default();
-    let started = Instant::now();
-    let band_rows = Bands::rows_within(scene, band_memory);
     let mut bands = Bands::new(h, band_rows, Admission { max_bands: 1, memory_bound: band_memory });
-    stats.seconds.intersection += started.elapsed().as_secs_f64();
     let mut pixels = vec![[0.0; 3]; w as usize * h as usize];
     let mut loading = Duration::ZERO;
     let mut casting = Duration::ZERO;

@@ -180,15 +180,6 @@ impl<'s> RowCounter<'s> {
     }
 }
 
-/// The tasks that image rows `rows` of `scene` make, counted without storing any: what
-/// sizes a driver's bands before it intersects them.
-pub fn count_tasks(scene: &Scene, rows: std::ops::Range<u32>) -> u64 {
-    let h = scene.image().height;
-    let rows = rows.start.min(h)..rows.end.min(h);
-    let counter = RowCounter::new(scene);
-    (rows.start..rows.end).into_par_iter().map(|row| counter.row(row, u64::MAX).1).sum()
-}
-
 /// Intersects every ray of image rows `rows` of `scene` with every object (the scene
 /// guarantees at most [`crate::scene::MAX_OBJECTS`] objects, so an object index fits the
 /// task's 16 bits). It holds every task of the rows: a driver that must stay within a
@@ -335,7 +326,8 @@ mod tests {
         }
         // Counting stores no task and counts what intersecting makes.
         let tasks = intersect(&scene, 3..40).tasks.len() as u64;
-        assert_eq!(count_tasks(&scene, 3..40), tasks);
+        let counter = RowCounter::new(&scene);
+        assert_eq!((3..40).map(|row| counter.row(row, u64::MAX).1).sum::<u64>(), tasks);
         // A limit below the count refuses the rows; one at it does not.
         assert!(intersect_within(&scene, 3..40, tasks, 0).is_ok());
         let err = intersect_within(&scene, 3..40, tasks - 1, 0).unwrap_err();

@@ -13,7 +13,6 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use rayon::prelude::*;
 use thiserror::Error;
 
-use super::bands::Bands;
 use super::intersection::RowCounter;
 use crate::scene::Scene;
 
@@ -195,28 +194,26 @@ impl Work {
         Ok(())
     }
 
-    /// The band memory that Algorithm 2's local driver sizes its bands with
-    /// ([`Bands::rows_within`], from sampled rows) so that every band also fits
-    /// [`max_band_tasks`] of `band_memory` by this exact count: `band_memory` itself when
-    /// its bands fit, else the largest smaller value whose narrower bands do. Refused only
-    /// when a band of one row is over the limit.
-    pub fn sizing_memory(&self, scene: &Scene, band_memory: u64) -> Result<u64, LimitError> {
-        let fits = |m: u64| self.check_bands(Bands::rows_within(scene, m), band_memory);
-        if fits(band_memory).is_ok() {
-            return Ok(band_memory);
-        }
-        fits(1)?;
-        // rows_within grows with the memory: the largest that fits lies in [lo, hi).
-        let (mut lo, mut hi) = (1, band_memory);
-        while hi - lo > 1 {
-            let mid = lo + (hi - lo) / 2;
-            if fits(mid).is_ok() {
-                lo = mid;
-            } else {
-                hi = mid;
-            }
-        }
-        Ok(lo)
+    /// The rows per band that keep every band of the image within `band_memory` bytes of
+    /// tasks by this exact count: the whole image when it fits, else the tallest halving of
+    /// it that does, and at least the rows its densest row guarantees (one row at the
+    /// least). Refused only when one row is over [`max_band_tasks`]. Both drivers size
+    /// their bands with it, so no band is estimated from samples.
+    pub fn rows_within(&self, band_memory: u64) -> Result<u32, LimitError> {
+        self.check_bands(1, band_memory)?;
+        let height = (self.tasks_per_row.len() as u32).max(1);
+        // Sizing aims at the memory itself; the floor of `max_band_tasks` only keeps a
+        // small band memory from refusing scenes.
+        let target = (band_memory / BYTES_PER_BAND_TASK).max(1);
+        let fits = |r: u32| {
+            (0..height).step_by(r as usize).all(|start| self.tasks_in(start..(start + r).min(height)) <= target)
+        };
+        let densest = self.tasks_per_row.iter().copied().max().unwrap_or(0).max(1);
+        let guaranteed = (target / densest).clamp(1, height as u64) as u32;
+        let halving = std::iter::successors(Some(height), |&r| (r > 1).then_some(r.div_ceil(2)))
+            .take_while(|&r| r > guaranteed)
+            .find(|&r| fits(r));
+        Ok(halving.unwrap_or(guaranteed))
     }
 }
 
@@ -282,8 +279,8 @@ mod tests {
         work.check_bands(1, 1).unwrap();
         work.check_bands(64, work.tasks * BYTES_PER_BAND_TASK).unwrap();
         // Local mode narrows its bands until each fits rather than refusing.
-        let sizing = work.sizing_memory(&scene, 1 << 20).unwrap();
-        work.check_bands(Bands::rows_within(&scene, sizing), 1 << 20).unwrap();
+        let rows = work.rows_within(1 << 20).unwrap();
+        work.check_bands(rows, 1 << 20).unwrap();
     }
 
     #[test]

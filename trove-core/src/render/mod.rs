@@ -103,15 +103,15 @@ pub fn render(scene: &Scene, options: &RenderOptions) -> Result<Rendered, Render
     let started = std::time::Instant::now();
     let store = VolumeStore::new(options.memory_budget);
     store.check_budget(scene)?;
-    // The work the geometry makes, counted before any is stored (limits.rs). Algorithm 2
-    // holds a band's tasks: `grouped` sizes its bands from sampled rows, so it is given a
-    // band memory narrow enough that every band fits by the exact count.
+    // The work the geometry makes, counted before any is stored (limits.rs); Algorithm 2's
+    // bands are sized from that exact count, so each fits the band memory.
     let work = limits::Work::count(scene)?;
     let mut rendered = match options.algorithm {
         Algorithm::PerRay => per_ray::render(scene, &store, options.progress.as_ref())?,
         Algorithm::Grouped => {
-            let band_memory = work.sizing_memory(scene, options.band_memory.unwrap_or(DEFAULT_BAND_MEMORY))?;
-            grouped::render(scene, &store, options.progress.as_ref(), band_memory)?
+            let band_memory = options.band_memory.unwrap_or(DEFAULT_BAND_MEMORY);
+            let band_rows = work.rows_within(band_memory)?;
+            grouped::render(scene, &store, options.progress.as_ref(), (band_rows, band_memory))?
         }
     };
     let total = started.elapsed().as_secs_f64();

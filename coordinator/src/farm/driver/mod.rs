@@ -46,7 +46,7 @@ use tonic::Status;
 use trove_core::render::bands::Bands;
 use trove_core::render::dispatch::Admission;
 use trove_core::render::intersection::intersect_within;
-use trove_core::render::limits::{max_band_tasks, MAX_PFM_PIXELS};
+use trove_core::render::limits::{max_band_tasks, LimitError, Work, MAX_PFM_PIXELS};
 use trove_core::render::wire::{decode_results, encode_tasks};
 use trove_core::render::{Algorithm, Batch, Scheduler};
 use trove_core::scene::Scene;
@@ -117,14 +117,15 @@ impl Default for DriverConfig {
 }
 
 impl DriverConfig {
-    /// Rows per band of a job of `scene` with `options`: as the job asks, else sized from
-    /// sampled rows so that [`DriverConfig::max_bands`] bands fit the memory bound. The
-    /// submission check and the driver both size bands here, so a scene refused for a band
-    /// over its limit is refused before it runs.
-    pub fn band_rows(&self, scene: &Scene, options: &pb::JobOptions) -> u32 {
+    /// Rows per band of a job of `scene` with `options`, whose work is `work`: as the job
+    /// asks, else sized from the exact count so that [`DriverConfig::max_bands`] bands fit
+    /// the memory bound. The submission check sizes bands here once and hands the result
+    /// to the driver in its [`JobPlan`], so a scene refused for a band over its limit is
+    /// refused before it runs.
+    pub fn band_rows(&self, scene: &Scene, work: &Work, options: &pb::JobOptions) -> Result<u32, LimitError> {
         let (w, h) = (scene.image().width, scene.image().height);
-        let within = Bands::rows_within(scene, self.memory_bound / self.max_bands.max(1) as u64);
-        raster::rows_per_band(options.band_rows, w, h, within)
+        let within = work.rows_within(self.memory_bound / self.max_bands.max(1) as u64)?;
+        Ok(raster::rows_per_band(options.band_rows, w, h, within))
     }
 
     /// Panics if this step is the configured fault (debug builds only).
@@ -172,6 +173,8 @@ pub struct JobPlan {
     pub headers: Vec<pb::DatasetFile>,
     /// Per dataset: the keys of its files (empty for generated datasets).
     pub dataset_keys: Vec<Vec<String>>,
+    /// Rows per band ([`DriverConfig::band_rows`]), checked against the band limit.
+    pub band_rows: u32,
 }
 
 /// A `Cast` stream: (worker id, dataset).
@@ -235,7 +238,7 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     let (events, mut inbox) = mpsc::channel(1024);
     let (w, h) = (plan.scene.image().width, plan.scene.image().height);
     let max_bands = config.max_bands.max(1);
-    let band_rows = config.band_rows(&plan.scene, &plan.options);
+    let band_rows = plan.band_rows;
     let batch_tasks = match plan.options.batch_tasks {
         0 => DEFAULT_BATCH_TASKS,
         n => (n as usize).min(trove_proto::MAX_BATCH_TASKS),
