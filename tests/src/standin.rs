@@ -71,6 +71,8 @@ pub struct Answers {
     scenes: Mutex<HashMap<(String, String), Arc<SceneAnswers>>>,
     answered: AtomicU64,
     cast: AtomicU64,
+    /// Batches answered after a batch of their stream that was sent later.
+    overtaken: AtomicU64,
 }
 
 impl Answers {
@@ -84,12 +86,19 @@ impl Answers {
             scenes: Mutex::new(HashMap::new()),
             answered: AtomicU64::new(0),
             cast: AtomicU64::new(0),
+            overtaken: AtomicU64::new(0),
         })
     }
 
     /// Tasks answered so far, and how many of them had to be cast (were not recorded yet).
     pub fn counts(&self) -> (u64, u64) {
         (self.answered.load(Ordering::Relaxed), self.cast.load(Ordering::Relaxed))
+    }
+
+    /// Batches answered after a later batch of the same stream ([`Order::Shuffled`]): a
+    /// test of arrival order can check that the order really changed.
+    pub fn overtaken(&self) -> u64 {
+        self.overtaken.load(Ordering::Relaxed)
     }
 
     /// The job's scene and its tables, parsed on the first stream that names it.
@@ -202,9 +211,39 @@ async fn answer(answers: &Arc<Answers>, job: &Arc<SceneAnswers>, d: usize, batch
     pb::CastResponse { kind: Some(kind) }
 }
 
+/// In what order a stand-in answers the batches of one stream.
+#[derive(Clone, Copy, Debug)]
+pub enum Order {
+    /// Each batch as it arrives (a worker with one thread).
+    AsReceived,
+    /// Batches held until `hold` have arrived (or none arrives for a millisecond), then
+    /// answered in an order drawn from `seed`: what a worker of many threads does, and the
+    /// harshest arrival order a coordinator may meet. The order is the only thing timing
+    /// changes; a correct coordinator composites the same image whatever it is.
+    Shuffled {
+        /// Seeds the order (per stream, mixed with its dataset).
+        seed: u64,
+        /// Batches held before answering.
+        hold: usize,
+    },
+}
+
+/// A small deterministic generator for [`Order::Shuffled`] (xorshift64*).
+struct Draws(u64);
+
+impl Draws {
+    fn below(&mut self, n: usize) -> usize {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        (self.0.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 33) as usize % n.max(1)
+    }
+}
+
 /// The `Worker` service of a stand-in.
 struct StandInService {
     answers: Arc<Answers>,
+    order: Order,
 }
 
 #[tonic::async_trait]
@@ -222,12 +261,46 @@ impl Worker for StandInService {
             .await
             .map_err(|e| Status::internal(format!("opening the job failed: {e}")))??;
         let (out, out_rx) = mpsc::channel(64);
-        let answers = self.answers.clone();
+        let (answers, order) = (self.answers.clone(), self.order);
         tokio::spawn(async move {
-            while let Ok(Some(request)) = inbound.message().await {
-                let Some(pb::cast_request::Kind::Batch(batch)) = request.kind else { break };
-                if out.send(Ok(answer(&answers, &job, d, batch).await)).await.is_err() {
-                    break;
+            let (hold, mut draws) = match order {
+                Order::AsReceived => (1, Draws(1)),
+                Order::Shuffled { seed, hold } => (hold.max(1), Draws((seed ^ (d as u64 + 1) << 32) | 1)),
+            };
+            let mut held = Vec::new();
+            let mut latest = 0;
+            loop {
+                // Held batches wait for more only briefly: a coordinator with nothing more
+                // to send waits for these answers.
+                let next = if held.is_empty() {
+                    Some(inbound.message().await)
+                } else {
+                    tokio::time::timeout(Duration::from_millis(1), inbound.message()).await.ok()
+                };
+                let timed_out = next.is_none();
+                let ended = match next {
+                    Some(Ok(Some(pb::CastRequest { kind: Some(pb::cast_request::Kind::Batch(batch)) }))) => {
+                        held.push(batch);
+                        false
+                    }
+                    // Nothing arrived in time: answer what is held.
+                    None => false,
+                    _ => true,
+                };
+                if held.len() >= hold || timed_out || ended {
+                    while !held.is_empty() {
+                        let batch = held.swap_remove(draws.below(held.len()));
+                        if batch.batch_id < latest {
+                            answers.overtaken.fetch_add(1, Ordering::Relaxed);
+                        }
+                        latest = latest.max(batch.batch_id);
+                        if out.send(Ok(answer(&answers, &job, d, batch).await)).await.is_err() {
+                            return;
+                        }
+                    }
+                }
+                if ended {
+                    return;
                 }
             }
         });
@@ -245,12 +318,24 @@ pub async fn serve(
     threads: u32,
     answers: Arc<Answers>,
 ) -> Result<(), tonic::transport::Error> {
+    serve_in_order(listener, shutdown, coordinator, threads, answers, Order::AsReceived).await
+}
+
+/// As [`serve`], answering each stream's batches in `order`.
+pub async fn serve_in_order(
+    listener: TcpListener,
+    shutdown: impl Future<Output = ()>,
+    coordinator: &str,
+    threads: u32,
+    answers: Arc<Answers>,
+    order: Order,
+) -> Result<(), tonic::transport::Error> {
     let address = listener.local_addr().map(|a| a.to_string()).unwrap_or_default();
     let channel = trove_worker::membership::channel(coordinator)?;
     let files = answers.files.registration();
     let serve = tonic::transport::Server::builder()
         .add_service(
-            WorkerServer::new(StandInService { answers })
+            WorkerServer::new(StandInService { answers, order })
                 .max_decoding_message_size(trove_proto::MAX_MESSAGE_BYTES)
                 .max_encoding_message_size(trove_proto::MAX_MESSAGE_BYTES),
         )

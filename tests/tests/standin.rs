@@ -1,21 +1,30 @@
 //! The stand-in worker (`trove_tests::standin`): a coordinator fed by two stand-ins that
 //! answer from recorded results composites local mode's image byte for byte — on the render
-//! that records the answers and on the next, answered from the table alone.
+//! that records the answers and on the next, answered from the table alone; whatever order
+//! the answers come back in; and with several jobs sharing one worker, each taking the room
+//! the others' answers free as it frees, without waiting for the driver's tick.
 
 use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::sync::oneshot;
+use trove_coordinator::farm::{DriverConfig, FarmConfig};
 use trove_core::render::{render, RenderOptions};
 use trove_core::scene::Scene;
 use trove_proto::v1 as pb;
-use trove_tests::farm::TestFarm;
+use trove_tests::farm::{TestFarm, TEST_HEARTBEAT};
 use trove_tests::scratch;
-use trove_tests::standin::{self, Answers};
+use trove_tests::standin::{self, Answers, Order};
 
 /// Two generated datasets, translucent (no ray terminates, so nothing is culled and the
 /// second render sends exactly the tasks of the first).
 fn scene(size: u32) -> String {
+    scene_with_opacity(size, 0.2)
+}
+
+/// [`scene`] with the ball's opacity ramping to `ball`: at 1 its rays terminate inside it,
+/// so the slab behind is culled by fronts that depend on which answers came first.
+fn scene_with_opacity(size: u32, ball: f64) -> String {
     format!(
         "[image]\nwidth = {size}\nheight = {size}\nbackground = [0.1, 0.1, 0.2]\n\
          [camera]\neye = [0.5, 0.6, 3.0]\ntarget = [0.5, 0.5, 0.5]\nup = [0, 1, 0]\nfov_y = 40.0\n\
@@ -25,7 +34,7 @@ fn scene(size: u32) -> String {
          generator = {{ kind = \"ramp\", axis = \"x\" }}\n\
          [[objects]]\nname = \"ball\"\ndataset = \"ball\"\n\
          colour = {{ type = \"ramp\", points = [[0.0, 0.9, 0.3, 0.1], [1.0, 0.2, 0.5, 1.0]] }}\n\
-         opacity = {{ type = \"ramp\", points = [[0.0, 0.0], [1.0, 0.2]] }}\n\
+         opacity = {{ type = \"ramp\", points = [[0.0, 0.0], [1.0, {ball}]] }}\n\
          [[objects]]\nname = \"slab\"\ndataset = \"ramp\"\n\
          transform = {{ matrix = [[1.2, 0, 0, -0.1], [0, 1.2, 0, -0.1], [0, 0, 0.3, 0.2], [0, 0, 0, 1]] }}\n\
          colour = {{ type = \"ramp\", points = [[0.0, 0.0, 0.0, 1.0], [1.0, 1.0, 1.0, 0.0]] }}\n\
@@ -78,4 +87,101 @@ fn stand_ins_answer_what_real_workers_would() {
         let _ = stop.send(());
     }
     std::thread::sleep(Duration::from_millis(10));
+}
+
+fn local_png(text: &str, name: &str) -> Vec<u8> {
+    let scene = Scene::parse(text, std::path::Path::new(name)).unwrap_or_else(|e| panic!("{e}"));
+    render(&scene, &RenderOptions::default()).unwrap().image.encode_png().unwrap()
+}
+
+/// Starts `n` stand-ins of `threads` threads each, over one table, answering in `order`;
+/// returns what stops them.
+fn stand_ins(
+    farm: &TestFarm,
+    answers: &Arc<Answers>,
+    n: usize,
+    threads: u32,
+    order: Order,
+) -> Vec<oneshot::Sender<()>> {
+    let mut stops = Vec::new();
+    for _ in 0..n {
+        let (stop, stopped) = oneshot::channel::<()>();
+        let (url, answers) = (farm.url.clone(), answers.clone());
+        farm.block_on(async move {
+            let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+            tokio::spawn(async move {
+                let shutdown = async {
+                    let _ = stopped.await;
+                };
+                standin::serve_in_order(listener, shutdown, &url, threads, answers, order).await.unwrap();
+            });
+        });
+        stops.push(stop);
+    }
+    farm.wait_for_workers(n);
+    stops
+}
+
+#[test]
+fn answers_in_any_order_composite_the_local_image_byte_for_byte() {
+    let dir = scratch("standin-shuffled");
+    let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
+    let answers = Arc::new(Answers::new(&dir, pool).unwrap());
+    // Translucent (nothing culled) and opaque (the slab behind the ball culled by fronts).
+    let scenes = [("translucent.toml", scene_with_opacity(36, 0.2)), ("opaque.toml", scene_with_opacity(36, 1.0))];
+    for seed in [1, 7, 1234] {
+        let farm = TestFarm::start(&[]);
+        let stops = stand_ins(&farm, &answers, 2, 2, Order::Shuffled { seed, hold: 3 });
+        for (name, text) in &scenes {
+            let options = pb::JobOptions { band_rows: 5, batch_tasks: 40, ..Default::default() };
+            let got = farm.render_with(text, name, options).unwrap();
+            assert!(got.png == local_png(text, name), "{name}, seed {seed}: the farm's PNG differs from local mode's");
+        }
+        for stop in stops {
+            let _ = stop.send(());
+        }
+    }
+    assert!(answers.overtaken() > 0, "no answer came back out of order: the test tested nothing");
+}
+
+#[test]
+fn jobs_sharing_one_worker_take_the_room_each_other_frees_without_waiting_for_a_tick() {
+    let dir = scratch("standin-sharing");
+    let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
+    let answers = Arc::new(Answers::new(&dir, pool).unwrap());
+    // The tick never comes during the test: a job whose worker is full of another job's
+    // batches goes on only if that job's answers wake it. Without that wake-up the test
+    // fails (its jobs stop), it never merely slows down.
+    let driver = DriverConfig { tick: Duration::from_secs(3600), ..DriverConfig::default() };
+    let config = FarmConfig { heartbeat: TEST_HEARTBEAT, driver, max_jobs: 3 };
+    let farm = TestFarm::start_with(&[], config, None);
+    // One worker of one thread: room for four batches, over every job.
+    let stops = stand_ins(&farm, &answers, 1, 1, Order::AsReceived);
+    let jobs: Vec<(String, String)> = (0..3)
+        .map(|i| (format!("shared-{i}.toml"), scene_with_opacity(30 + 2 * i, if i == 1 { 1.0 } else { 0.3 })))
+        .collect();
+    let got = farm.block_on(async {
+        let mut running = Vec::new();
+        for (name, text) in jobs.clone() {
+            let mut client = farm.client().await;
+            running.push(tokio::spawn(async move {
+                let options = pb::JobOptions { band_rows: 4, batch_tasks: 30, ..Default::default() };
+                client.render(text, name, options, |_| {}).await
+            }));
+        }
+        let mut got = Vec::new();
+        for job in running {
+            let files = tokio::time::timeout(Duration::from_secs(60), job)
+                .await
+                .expect("a job stopped: a worker was left idle while it had work ready");
+            got.push(files.expect("the job's task").expect("the job"));
+        }
+        got
+    });
+    for ((name, text), files) in jobs.iter().zip(got) {
+        assert!(files.png == local_png(text, name), "{name}: the farm's PNG differs from local mode's");
+    }
+    for stop in stops {
+        let _ = stop.send(());
+    }
 }

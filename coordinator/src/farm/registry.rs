@@ -42,6 +42,12 @@ pub struct Registry {
     /// Changes whenever a worker registers, so a job's dispatcher knows when to look its
     /// datasets' holders up again instead of on every batch.
     generation: AtomicU64,
+    /// Counts the times a worker's batches in flight went down, over all jobs. Room that one
+    /// job's answer freed may be taken by another job waiting for it: each driver watches
+    /// this, so a worker shared by several jobs is never left idle while one of them has a
+    /// batch ready (a `watch`, not a `Notify`: a driver busy at the moment of the change
+    /// still sees it when it next waits).
+    room: tokio::sync::watch::Sender<u64>,
 }
 
 #[derive(Default)]
@@ -67,6 +73,7 @@ impl Registry {
             heartbeat,
             next_id: AtomicU64::new(1),
             generation: AtomicU64::new(0),
+            room: tokio::sync::watch::channel(0).0,
         }
     }
 
@@ -102,7 +109,20 @@ impl Registry {
         tracing::info!(worker = %id, address = %entry.address, files = entry.files.len(), "worker registered");
         state.workers.insert(id.clone(), entry);
         self.generation.fetch_add(1, Ordering::Release);
+        drop(state);
+        // A new worker is room: jobs waiting for a holder with room look again at once.
+        self.room_freed();
         Ok(id)
+    }
+
+    /// Tells every job that a worker has room again (its batches in flight went down).
+    pub fn room_freed(&self) {
+        self.room.send_modify(|n| *n = n.wrapping_add(1));
+    }
+
+    /// A receiver that changes whenever some worker has room again ([`Registry::room_freed`]).
+    pub fn watch_room(&self) -> tokio::sync::watch::Receiver<u64> {
+        self.room.subscribe()
     }
 
     /// A number that changes whenever the set of registered workers does.

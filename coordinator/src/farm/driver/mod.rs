@@ -83,6 +83,10 @@ pub struct DriverConfig {
     /// Most pixels of a job that asks for a PFM (the coordinator holds its floats and the
     /// file's bytes): a larger one is refused at submission.
     pub max_pfm_pixels: u64,
+    /// How often the driver looks for silent workers and overdue batches, looks holders up
+    /// again and publishes progress. Nothing else waits for it: batches are handed out as
+    /// answers, new workers and room freed by other jobs arrive.
+    pub tick: Duration,
     /// Debug builds only, for tests: a blocking step that panics in every job, to show that
     /// a panic fails its job only.
     #[cfg(debug_assertions)]
@@ -110,6 +114,7 @@ impl Default for DriverConfig {
             max_attempts: 5,
             job_deadline: Duration::from_secs(3600),
             max_pfm_pixels: MAX_PFM_PIXELS,
+            tick: Duration::from_millis(250),
             #[cfg(debug_assertions)]
             fault: None,
         }
@@ -267,8 +272,11 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     let deadline = tokio::time::Instant::now() + driver.config.job_deadline;
     let past_deadline = tokio::time::sleep_until(deadline);
     tokio::pin!(past_deadline);
-    let mut tick = tokio::time::interval(Duration::from_millis(250));
+    let mut tick = tokio::time::interval(driver.config.tick);
+    let mut room = driver.registry.watch_room();
     let outcome = loop {
+        // Whatever room was freed before this point, the dispatch below sees.
+        room.borrow_and_update();
         let step = Instant::now();
         let advanced = driver.advance();
         driver.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
@@ -288,6 +296,8 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
                     break Err(e);
                 }
             }
+            // Another job's answer (or lost stream) freed room on a worker this job may use.
+            _ = room.changed() => {}
             _ = cancelled.changed() => break Err(JobError::Cancelled),
             _ = &mut past_deadline => break Err(JobError::DeadlineExceeded { deadline: driver.config.job_deadline }),
             _ = tick.tick() => {
@@ -576,6 +586,7 @@ impl Driver {
                 return;
             }
         };
+        self.registry.room_freed();
         let _span = tracing::debug_span!("batch", wire = result.batch_id, worker = %stream.0).entered();
         let Some((seq, scheduler)) = self.bands.casting(batch.band) else { return };
         let decoding = Instant::now();
@@ -614,7 +625,11 @@ impl Driver {
     /// handed to another holder.
     fn lose_stream(&mut self, stream: &StreamKey) {
         let worker = self.streams.remove(stream).map(|s| s.worker);
-        for batch in self.dispatch.lose(stream, worker.as_ref()) {
+        let lost = self.dispatch.lose(stream, worker.as_ref());
+        if !lost.is_empty() {
+            self.registry.room_freed();
+        }
+        for batch in lost {
             if let Some((seq, scheduler)) = self.bands.casting(batch.band) {
                 let _ = scheduler.abandon(batch.id);
                 self.ready.insert((seq, batch.band, batch.dataset));
