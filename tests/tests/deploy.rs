@@ -1,5 +1,5 @@
-//! `deploy/` against its schemas, offline: every Kubernetes manifest with
-//! `kubernetes-validate --strict` (the schemas ship in the package) at the oldest and the
+//! `deploy/` against its schemas, offline: every Kubernetes manifest (the shard loader's too)
+//! with `kubernetes-validate --strict` (the schemas ship in the package) at the oldest and the
 //! newest Kubernetes the manifests are written for, the compose file with `check-jsonschema`'s
 //! vendored compose-spec schema, and, where `kubectl` is at hand, what `kubectl kustomize`
 //! renders of `deploy/k8s` and `deploy/k8s-tls`. Each tool is also shown a broken copy, which
@@ -111,7 +111,7 @@ fn kustomization_resources(text: &str) -> Vec<String> {
 }
 
 /// The Kubernetes manifests of `deploy/k8s`: every YAML file there but the kustomization.
-fn manifests() -> Vec<PathBuf> {
+fn farm_manifests() -> Vec<PathBuf> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(deploy().join("k8s"))
         .unwrap()
         .map(|e| e.unwrap().path())
@@ -144,7 +144,8 @@ fn kubernetes_validate(files: &[PathBuf]) -> Vec<String> {
 #[test]
 fn the_kustomization_lists_every_manifest_and_the_tls_overlay_builds_on_it() {
     let listed = kustomization_resources(&std::fs::read_to_string(deploy().join("k8s/kustomization.yaml")).unwrap());
-    let present: Vec<String> = manifests().iter().map(|p| p.file_name().unwrap().to_str().unwrap().to_string()).collect();
+    let present: Vec<String> =
+        farm_manifests().iter().map(|p| p.file_name().unwrap().to_str().unwrap().to_string()).collect();
     let mut sorted = listed.clone();
     sorted.sort();
     assert_eq!(sorted, present, "deploy/k8s/kustomization.yaml must list exactly the manifests beside it");
@@ -164,8 +165,9 @@ fn the_kubernetes_manifests_validate_strictly() {
     if !have("kubernetes-validate") {
         return skip("kubernetes-validate is not installed");
     }
-    let files = manifests();
+    let mut files = farm_manifests();
     assert!(files.len() >= 3, "deploy/k8s has {} manifests", files.len());
+    files.push(deploy().join("shard-loader.yaml"));
     let failures = kubernetes_validate(&files);
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 
@@ -211,7 +213,9 @@ fn the_compose_file_validates_against_the_compose_spec() {
     if !have("check-jsonschema") {
         return skip("check-jsonschema is not installed");
     }
-    let check = |path: &Path| run("check-jsonschema", &["--builtin-schema", "vendor.compose-spec", path.to_str().unwrap()]).unwrap();
+    let check = |path: &Path| {
+        run("check-jsonschema", &["--builtin-schema", "vendor.compose-spec", path.to_str().unwrap()]).unwrap()
+    };
     let compose = deploy().join("docker-compose.yml");
     let out = check(&compose);
     assert!(out.success, "{}:\n{}", compose.display(), out.output);
