@@ -29,7 +29,15 @@ struct Args {
     /// address; on a cluster, the pod's address and port).
     #[arg(long)]
     advertise: Option<String>,
+    /// The id this worker registers under; keep it across restarts of this worker (e.g. a
+    /// StatefulSet pod's name). Default: the TROVE_WORKER_ID environment variable, else a
+    /// fresh random id per process. Letters, digits, '-', '_', '.'; at most 128.
+    #[arg(long, value_name = "ID")]
+    worker_id: Option<String>,
 }
+
+/// The environment variable a worker's id is read from when `--worker-id` is not given.
+const WORKER_ID_ENV: &str = "TROVE_WORKER_ID";
 
 fn main() -> ExitCode {
     trove_proto::init_logging();
@@ -55,6 +63,7 @@ async fn run() -> Result<()> {
         advertise: args.advertise,
         data_root: args.data_root,
         memory_budget: args.memory_budget,
+        worker_id: args.worker_id.or_else(|| std::env::var(WORKER_ID_ENV).ok().filter(|id| !id.is_empty())),
     };
     trove_worker::run(listener, trove_proto::shutdown_signal(), config).await.context("worker")?;
     Ok(())

@@ -23,6 +23,8 @@ const MAX_BACKOFF: Duration = Duration::from_secs(5);
 
 /// What the worker tells the coordinator about itself.
 pub struct Announcement {
+    /// Its stable id: the same across coordinator restarts, so it gets its entry back.
+    pub worker_id: String,
     /// Where the coordinator reaches this worker.
     pub address: String,
     /// The files it holds.
@@ -52,9 +54,17 @@ pub async fn stay_registered(channel: Channel, me: Announcement) {
             files: me.files.registration(),
             threads: rayon::current_num_threads() as u32,
             memory_budget: me.memory_budget.unwrap_or(0),
+            worker_id: me.worker_id.clone(),
         };
         let registered = match client.register(request).await {
             Ok(r) => r.into_inner(),
+            Err(status) if status.code() == tonic::Code::AlreadyExists => {
+                // Another live worker holds this id: an operator's mistake, not a network
+                // one. Said loudly, and retried slowly in case the other one goes away.
+                tracing::error!(worker = %me.worker_id, message = status.message(), "registration refused; retrying");
+                tokio::time::sleep(MAX_BACKOFF).await;
+                continue;
+            }
             Err(status) => {
                 tracing::warn!(code = ?status.code(), message = status.message(), "cannot register; retrying");
                 tokio::time::sleep(backoff).await;
