@@ -201,6 +201,14 @@ impl FarmClient {
         last.ok_or(ClientError::Incomplete)
     }
 
+    /// Job `id`'s status now.
+    pub async fn status(&mut self, id: &str) -> Result<pb::JobStatus, ClientError> {
+        let mut request = tonic::Request::new(pb::WatchJobRequest { job_id: id.to_string() });
+        request.set_timeout(CALL_DEADLINE);
+        let mut stream = self.inner.watch_job(request).await?.into_inner();
+        stream.message().await?.ok_or(ClientError::Incomplete)
+    }
+
     /// The files of finished job `id`.
     pub async fn result(&mut self, id: &str) -> Result<JobFiles, ClientError> {
         let mut request = tonic::Request::new(pb::GetResultRequest { job_id: id.to_string() });

@@ -396,6 +396,66 @@ impl Admission {
 mod tests {
     use super::*;
 
+    fn succeed(jobs: &Jobs, job: &Job, tag: u8) {
+        job.set_output(JobOutput { png: vec![tag; 64], pfm: None, stats_json: b"{}".to_vec() });
+        job.update(|s| s.state = pb::JobState::Succeeded as i32);
+        jobs.finished(&job.id);
+    }
+
+    #[test]
+    fn finished_jobs_are_served_from_the_store_across_restarts_until_swept() {
+        let dir = std::env::temp_dir().join(format!("trove-jobs-store-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let options = pb::JobOptions::default();
+        let (first_id, ids) = {
+            let store = Arc::new(StateStore::open(&dir).unwrap());
+            let jobs = Jobs::new(store.claim_epoch(now_unix_ms()).unwrap(), store.last_job_seq().unwrap(), Some(store));
+            let first = jobs.submit("# first", "first.toml", &options).unwrap();
+            succeed(&jobs, &first, 1);
+            assert!(first.output().is_none(), "a stored job's files leave memory");
+            assert_eq!(jobs.output(&first).unwrap().unwrap().png, vec![1; 64], "and are read from the store");
+            let mut ids = vec![first.id.clone()];
+            for i in 0..KEEP_FINISHED {
+                let job = jobs.submit("# more", "more.toml", &options).unwrap();
+                succeed(&jobs, &job, i as u8);
+                ids.push(job.id.clone());
+            }
+            // Out of memory, still in the store.
+            let again = jobs.get(&first.id).expect("a finished job beyond memory");
+            assert!(!Arc::ptr_eq(&again, &first));
+            assert_eq!(again.status().state(), pb::JobState::Succeeded);
+            assert_eq!(jobs.output(&again).unwrap().unwrap().png, vec![1; 64]);
+            (first.id.clone(), ids)
+        };
+        // A restarted coordinator over the same store.
+        let store = Arc::new(StateStore::open(&dir).unwrap());
+        let jobs = Jobs::new(store.claim_epoch(now_unix_ms()).unwrap(), store.last_job_seq().unwrap(), Some(store));
+        assert_eq!(jobs.get(&first_id).expect("served after a restart").status().state(), pb::JobState::Succeeded);
+        let next = jobs.submit("# next", "next.toml", &options).unwrap();
+        assert!(!ids.contains(&next.id), "{} was handed out before the restart", next.id);
+        let number = |id: &str| id.rsplit('-').next().unwrap().parse::<u64>().unwrap();
+        assert_eq!(number(&next.id), KEEP_FINISHED as u64 + 2, "the counter went on");
+        // The sweep removes only what has ended, from store and memory.
+        std::thread::sleep(Duration::from_millis(5));
+        assert_eq!(jobs.sweep(Duration::from_millis(1)).unwrap(), ids.len());
+        assert!(jobs.get(&first_id).is_none());
+        assert_eq!(jobs.get(&next.id).expect("a queued job is kept").status().state(), pb::JobState::Queued);
+    }
+
+    #[test]
+    fn without_a_store_the_sweep_forgets_jobs_past_their_time() {
+        let jobs = Jobs::default();
+        let (old, fresh) = (jobs.create(), jobs.create());
+        assert_ne!(old.id, fresh.id);
+        succeed(&jobs, &old, 1);
+        assert!(old.output().is_some(), "without a store the files stay in memory");
+        std::thread::sleep(Duration::from_millis(5));
+        assert_eq!(jobs.sweep(Duration::from_millis(1)).unwrap(), 1);
+        assert!(jobs.get(&old.id).is_none());
+        assert!(jobs.get(&fresh.id).is_some(), "a job that has not ended stays");
+        assert_eq!(jobs.sweep(Duration::from_secs(3600)).unwrap(), 0);
+    }
+
     #[tokio::test]
     async fn jobs_wait_in_order_with_their_places_and_a_cancelled_one_leaves() {
         let (jobs, admission) = (Jobs::default(), Admission::new(1));
