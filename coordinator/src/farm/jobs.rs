@@ -188,7 +188,7 @@ impl Jobs {
                 seq,
                 scene_toml: scene_toml.to_string(),
                 scene_name: scene_name.to_string(),
-                options: Some(options.clone()),
+                options: Some(*options),
                 status: Some(status),
                 submitted_unix_ms: submitted,
                 finished_unix_ms: 0,

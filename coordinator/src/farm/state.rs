@@ -313,7 +313,7 @@ mod tests {
             seq,
             scene_toml: format!("# scene of {id}\n"),
             scene_name: format!("{id}.toml"),
-            options: Some(pb::JobOptions { want_pfm: seq % 2 == 0, band_rows: 7, ..Default::default() }),
+            options: Some(pb::JobOptions { want_pfm: seq.is_multiple_of(2), band_rows: 7, ..Default::default() }),
             status: Some(pb::JobStatus { job_id: id.to_string(), state: state as i32, ..Default::default() }),
             submitted_unix_ms: 1000 + seq,
             finished_unix_ms: 0,
