@@ -43,6 +43,27 @@ const WAIT: Duration = Duration::from_secs(40);
 /// A scene over a file dataset (which only the workers hold) and a generated one; each job
 /// its own size and background, so that no job's image could pass for another's.
 fn scene(width: u32, height: u32, red: f64) -> String {
+    generated(width, height, red) + SLAB
+}
+
+/// A dataset file and its object, added to [`generated`]'s.
+const SLAB: &str = r#"
+[[datasets]]
+name = "slab"
+dims = [4, 4, 2]
+[datasets.channels.voxel]
+raw = "slab.raw"
+type = "u8"
+[[objects]]
+name = "slab"
+dataset = "slab"
+colour = { type = "ramp", points = [[0, 0.2, 0.3, 0.9], [255, 1, 1, 1]] }
+opacity = { type = "ramp", points = [[0, 0.05], [255, 0.5]] }
+transform = { matrix = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0.1, 0.9], [0, 0, 0, 1]] }
+"#;
+
+/// A scene over a generated dataset only: any worker casts it.
+fn generated(width: u32, height: u32, red: f64) -> String {
     format!(
         r#"
 [image]
@@ -55,22 +76,10 @@ target = [0.5, 0.5, 0.5]
 up = [0, 1, 0]
 fov_y = 35.0
 [[datasets]]
-name = "slab"
-dims = [4, 4, 2]
-[datasets.channels.voxel]
-raw = "slab.raw"
-type = "u8"
-[[datasets]]
 name = "ball"
 dims = [20, 20, 20]
 [datasets.channels.voxel]
 generator = {{ kind = "sphere", radius = 0.5, profile = "radial", value = 1.0, type = "f32" }}
-[[objects]]
-name = "slab"
-dataset = "slab"
-colour = {{ type = "ramp", points = [[0, 0.2, 0.3, 0.9], [255, 1, 1, 1]] }}
-opacity = {{ type = "ramp", points = [[0, 0.05], [255, 0.5]] }}
-transform = {{ matrix = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0.1, 0.9], [0, 0, 0, 1]] }}
 [[objects]]
 name = "ball"
 dataset = "ball"
@@ -324,4 +333,59 @@ fn a_coordinator_killed_mid_queue_and_restarted_loses_no_job_and_no_worker() {
         "restart recovery: coordinator up {up:.2?}, 3 workers registered {registered:.2?}, resumed job running \
          {running_again:.2?}, first resumed job finished {first_done:.2?}, all 4 finished {all_done:.2?} after the kill"
     );
+}
+
+/// Jobs a store holds unfinished are resumed in order; one whose dataset no worker comes
+/// back with waits out the grace (not less: workers re-register within heartbeats) and then
+/// fails as its submission would have, with a typed failure the client does not retry, and
+/// leaves the queue to the next, which renders what a fresh submission does.
+#[test]
+fn a_resumed_job_whose_dataset_never_returns_fails_after_the_grace_and_the_next_runs() {
+    use trove_coordinator::farm::state::{JobRecord, StateStore};
+    use trove_coordinator::farm::FarmConfig;
+    use trove_tests::farm::{TestFarm, TEST_HEARTBEAT};
+
+    let dir = scratch("resume-grace");
+    let state = dir.join("state");
+    let missing = scene(24, 18, 0.3);
+    let generated = generated(24, 18, 0.4);
+    {
+        let store = StateStore::open(&state).unwrap();
+        for (seq, (id, text)) in [("job-old-1", &missing), ("job-old-2", &generated)].into_iter().enumerate() {
+            let status = pb::JobStatus { job_id: id.into(), state: pb::JobState::Running as i32, ..Default::default() };
+            store
+                .put_job(&JobRecord {
+                    job_id: id.into(),
+                    seq: seq as u64 + 1,
+                    scene_toml: text.clone(),
+                    scene_name: format!("{id}.toml"),
+                    options: Some(pb::JobOptions::default()),
+                    status: Some(status),
+                    submitted_unix_ms: 1,
+                    finished_unix_ms: 0,
+                })
+                .unwrap();
+        }
+    }
+    let empty = dir.join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let config = FarmConfig { heartbeat: TEST_HEARTBEAT, max_jobs: 1, state_dir: Some(state), ..FarmConfig::default() };
+    let started = Instant::now();
+    let farm = TestFarm::start_with(&[empty], config, None);
+    farm.block_on(async {
+        let mut client = farm.client().await;
+        let refused = within("the resumed job", client.follow("job-old-1", |_| {})).await.unwrap_err();
+        let waited = started.elapsed();
+        let failure = refused.failure().unwrap_or_else(|| panic!("an untyped error: {refused}"));
+        assert_eq!(failure.reason(), pb::Reason::DatasetNotHeld, "{}", failure.message);
+        assert!(failure.message.contains("slab"), "{}", failure.message);
+        assert!(waited >= Duration::from_millis(4500), "failed after {waited:?}, before the grace");
+        let resumed = within("the next resumed job", client.follow("job-old-2", |_| {})).await.unwrap();
+        let id = client.submit(generated.clone(), "fresh.toml".into(), pb::JobOptions::default()).await.unwrap();
+        assert!(id.starts_with("job-") && id.ends_with("-3"), "{id}: numbers go on from the store's");
+        let fresh = within("a fresh job", client.follow(&id, |_| {})).await.unwrap();
+        assert_eq!(resumed.png, fresh.png, "a resumed job renders what a fresh submission does");
+        // The failure was written down: a restart would not resume it again.
+        assert_eq!(client.status("job-old-1").await.unwrap().state(), pb::JobState::Failed);
+    });
 }
