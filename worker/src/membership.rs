@@ -21,6 +21,22 @@ const CALL_DEADLINE: Duration = Duration::from_secs(5);
 /// Longest wait between attempts to reach an unreachable coordinator.
 const MAX_BACKOFF: Duration = Duration::from_secs(5);
 
+/// The longest worker id a coordinator accepts.
+pub const MAX_WORKER_ID_BYTES: usize = 128;
+
+/// Checks a worker id as the coordinator will (1 to [`MAX_WORKER_ID_BYTES`] letters,
+/// digits, `-`, `_`, `.`), so a bad `--worker-id` stops the worker at start instead of
+/// being refused at every registration.
+pub fn check_worker_id(id: &str) -> Result<(), String> {
+    let usable = |b: u8| b.is_ascii_alphanumeric() || b"-_.".contains(&b);
+    if id.is_empty() || id.len() > MAX_WORKER_ID_BYTES || !id.bytes().all(usable) {
+        return Err(format!(
+            "worker id `{id}` is not usable: expected 1 to {MAX_WORKER_ID_BYTES} letters, digits, '-', '_' or '.'"
+        ));
+    }
+    Ok(())
+}
+
 /// What the worker tells the coordinator about itself.
 pub struct Announcement {
     /// Its stable id: the same across coordinator restarts, so it gets its entry back.
@@ -89,6 +105,22 @@ pub async fn stay_registered(channel: Channel, me: Announcement) {
                 }
                 Err(status) => tracing::warn!(code = ?status.code(), "heartbeat failed"),
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn worker_ids_are_checked_as_the_coordinator_checks_them() {
+        for good in ["trove-worker-0", "w.1_a", &"x".repeat(MAX_WORKER_ID_BYTES)] {
+            assert!(check_worker_id(good).is_ok(), "{good}");
+        }
+        for bad in ["", "has space", "a/b", "ü", &"x".repeat(MAX_WORKER_ID_BYTES + 1)] {
+            let e = check_worker_id(bad).unwrap_err();
+            assert!(e.contains("letters, digits"), "{bad}: {e}");
         }
     }
 }

@@ -268,7 +268,8 @@ impl Registry {
     }
 }
 
-/// Whether `id` is a worker id we accept: short, and safe in logs and metrics labels.
+/// Whether `id` is a worker id we accept: short, and safe in logs and metrics labels
+/// (`trove-worker` checks the same at start, `membership::check_worker_id`).
 fn usable_id(id: &str) -> bool {
     id.len() <= MAX_WORKER_ID_BYTES && id.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.".contains(&b))
 }
