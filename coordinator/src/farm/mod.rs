@@ -24,7 +24,6 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use thiserror::Error;
-
 use tokio::net::TcpListener;
 use tokio_stream::wrappers::TcpListenerStream;
 use trove_proto::v1::coordinator_server::CoordinatorServer;
