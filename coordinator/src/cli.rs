@@ -98,6 +98,14 @@ struct CoordinatorArgs {
     /// Most pixels of a job that asks for a PFM; larger ones are refused at submission.
     #[arg(long, default_value_t = render::limits::MAX_PFM_PIXELS)]
     max_pfm_pixels: u64,
+    /// Keep jobs and finished results in a database in this folder: after a crash or a
+    /// restart, queued and running jobs run again and finished results are still served.
+    /// Default: memory only.
+    #[arg(long, value_name = "DIR")]
+    state_dir: Option<PathBuf>,
+    /// Seconds a finished job and its result files are kept before they are removed.
+    #[arg(long, value_name = "N", default_value_t = farm::DEFAULT_KEEP_RESULTS.as_secs())]
+    keep_results_s: u64,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -276,6 +284,8 @@ fn coordinator_command(args: CoordinatorArgs) -> Result<()> {
                 ..farm::DriverConfig::default()
             },
             max_jobs: args.max_jobs.max(1),
+            state_dir: args.state_dir,
+            keep_results: std::time::Duration::from_secs(args.keep_results_s),
         };
         farm::run(listener, trove_proto::shutdown_signal(), config).await.context("coordinator")
     })

@@ -1,8 +1,13 @@
 //! A client of a farm's job API: what `trove render --coordinator URL` does, as a library
 //! (submit a scene, follow the job, fetch its files), so tests drive a farm the way a user
 //! does.
+//!
+//! Following a job survives a coordinator restart or a dropped stream: a call that fails
+//! at the transport level (not a typed failure of the job) is tried again on a reconnecting
+//! channel, with capped exponential backoff, until [`REATTACH_DEADLINE`]; a coordinator
+//! with a state folder still knows the job by its id, resumes it and serves its files.
 
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use thiserror::Error;
 use tonic::transport::{Channel, Endpoint};
@@ -13,6 +18,11 @@ use trove_proto::v1::coordinator_client::CoordinatorClient;
 
 /// Deadline of a call that does not stream.
 const CALL_DEADLINE: Duration = Duration::from_secs(60);
+
+/// How long a client keeps trying to re-attach to its job (a coordinator restarting).
+pub const REATTACH_DEADLINE: Duration = Duration::from_secs(300);
+/// The first and the longest wait between re-attach attempts.
+const BACKOFF: (Duration, Duration) = (Duration::from_millis(50), Duration::from_secs(2));
 
 /// Why a farm render failed, as the user should read it.
 #[derive(Debug, Error)]
@@ -47,6 +57,23 @@ impl From<Status> for ClientError {
 }
 
 impl ClientError {
+    /// Whether the call failed on its way (a coordinator restarting, a broken connection or
+    /// stream) rather than with an answer: worth trying again on a new connection. A typed
+    /// `Failure` is an answer, never this.
+    pub fn is_transport(&self) -> bool {
+        match self {
+            ClientError::Connect { .. } => true,
+            ClientError::Rpc(status) => match status.code() {
+                tonic::Code::Unavailable | tonic::Code::Unknown | tonic::Code::Cancelled => true,
+                // An HTTP/2 stream reset on its way; the coordinator's own INTERNAL answers
+                // carry a typed failure.
+                tonic::Code::Internal => status.message().contains("h2 protocol error"),
+                _ => false,
+            },
+            ClientError::Failed(_) | ClientError::Incomplete => false,
+        }
+    }
+
     /// The typed failure, when there is one.
     pub fn failure(&self) -> Option<&pb::Failure> {
         match self {
@@ -102,6 +129,62 @@ impl FarmClient {
         Ok(self.inner.submit_job(request).await?.into_inner().job_id)
     }
 
+    /// Follows job `id` until it ends and fetches its files, as [`FarmClient::watch`] and
+    /// [`FarmClient::result`] do, re-attaching after a transport error (a coordinator
+    /// restart, a dropped stream) with capped exponential backoff, within
+    /// [`REATTACH_DEADLINE`] of the first such error since the last answer. A job that
+    /// fails or is cancelled is final: its typed failure is returned.
+    pub async fn follow(
+        &mut self,
+        id: &str,
+        mut progress: impl FnMut(&pb::JobStatus),
+    ) -> Result<JobFiles, ClientError> {
+        let mut lost: Option<(Instant, Duration)> = None;
+        loop {
+            let mut heard = false;
+            let attempt = self
+                .watch_and_fetch(id, &mut |status| {
+                    heard = true;
+                    progress(status)
+                })
+                .await;
+            let error = match attempt {
+                Ok(files) => return Ok(files),
+                Err(e) if e.is_transport() => e,
+                Err(e) => return Err(e),
+            };
+            if heard {
+                lost = None;
+            }
+            let (since, wait) = lost.get_or_insert((Instant::now(), BACKOFF.0));
+            if since.elapsed() >= REATTACH_DEADLINE {
+                return Err(error);
+            }
+            tracing::warn!(job = %id, error = %error, retry_in = ?*wait, "lost the coordinator; re-attaching");
+            tokio::time::sleep(*wait).await;
+            *wait = (*wait * 2).min(BACKOFF.1);
+        }
+    }
+
+    /// One attempt of [`FarmClient::follow`].
+    async fn watch_and_fetch(
+        &mut self,
+        id: &str,
+        progress: &mut impl FnMut(&pb::JobStatus),
+    ) -> Result<JobFiles, ClientError> {
+        let last = self.watch(id, progress).await?;
+        match last.state() {
+            pb::JobState::Succeeded => self.result(id).await,
+            // A stream that ended before the job did (a coordinator shutting down).
+            pb::JobState::Queued | pb::JobState::Running => Err(ClientError::Rpc(Box::new(Status::unavailable(
+                format!("the status stream of job {id} ended before the job"),
+            )))),
+            state => Err(ClientError::Failed(Box::new(last.failure.unwrap_or_else(|| {
+                convert::failure(pb::Reason::Internal, false, format!("job {id} ended as {state:?}"))
+            })))),
+        }
+    }
+
     /// Follows job `id` until it ends, calling `progress` with every status; returns the
     /// last one.
     pub async fn watch(
@@ -116,6 +199,14 @@ impl FarmClient {
             last = Some(status);
         }
         last.ok_or(ClientError::Incomplete)
+    }
+
+    /// Job `id`'s status now.
+    pub async fn status(&mut self, id: &str) -> Result<pb::JobStatus, ClientError> {
+        let mut request = tonic::Request::new(pb::WatchJobRequest { job_id: id.to_string() });
+        request.set_timeout(CALL_DEADLINE);
+        let mut stream = self.inner.watch_job(request).await?.into_inner();
+        stream.message().await?.ok_or(ClientError::Incomplete)
     }
 
     /// The files of finished job `id`.
@@ -165,12 +256,6 @@ impl FarmClient {
         progress: impl FnMut(&pb::JobStatus),
     ) -> Result<JobFiles, ClientError> {
         let id = self.submit(scene_toml, scene_name, options).await?;
-        let last = self.watch(&id, progress).await?;
-        match last.state() {
-            pb::JobState::Succeeded => self.result(&id).await,
-            state => Err(ClientError::Failed(Box::new(last.failure.unwrap_or_else(|| {
-                convert::failure(pb::Reason::Internal, false, format!("job {id} ended as {state:?}"))
-            })))),
-        }
+        self.follow(&id, progress).await
     }
 }

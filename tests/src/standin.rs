@@ -355,7 +355,14 @@ async fn stay_registered(
     threads: u32,
 ) {
     loop {
-        let request = pb::RegisterRequest { address: address.clone(), files: files.clone(), threads, memory_budget: 0 };
+        // No id of its own, as an older worker: the coordinator assigns one.
+        let request = pb::RegisterRequest {
+            address: address.clone(),
+            files: files.clone(),
+            threads,
+            memory_budget: 0,
+            worker_id: String::new(),
+        };
         let registered = match client.register(request).await {
             Ok(r) => r.into_inner(),
             Err(_) => {

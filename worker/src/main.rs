@@ -29,6 +29,18 @@ struct Args {
     /// address; on a cluster, the pod's address and port).
     #[arg(long)]
     advertise: Option<String>,
+    /// The id this worker registers under; keep it across restarts of this worker (e.g. a
+    /// StatefulSet pod's name). Default: the TROVE_WORKER_ID environment variable, else a
+    /// fresh random id per process. Letters, digits, '-', '_', '.'; at most 128.
+    #[arg(long, value_name = "ID", value_parser = parse_worker_id)]
+    worker_id: Option<String>,
+}
+
+/// The environment variable a worker's id is read from when `--worker-id` is not given.
+const WORKER_ID_ENV: &str = "TROVE_WORKER_ID";
+
+fn parse_worker_id(id: &str) -> Result<String, String> {
+    trove_worker::membership::check_worker_id(id).map(|()| id.to_string())
 }
 
 fn main() -> ExitCode {
@@ -45,6 +57,13 @@ fn main() -> ExitCode {
 #[tokio::main]
 async fn run() -> Result<()> {
     let args = Args::parse();
+    let worker_id = match args.worker_id {
+        Some(id) => Some(id),
+        None => match std::env::var(WORKER_ID_ENV) {
+            Ok(id) if !id.is_empty() => Some(parse_worker_id(&id).map_err(anyhow::Error::msg).context(WORKER_ID_ENV)?),
+            _ => None,
+        },
+    };
     let listener = tokio::net::TcpListener::bind(&args.listen)
         .await
         .with_context(|| format!("cannot listen on {}", args.listen))?;
@@ -55,6 +74,7 @@ async fn run() -> Result<()> {
         advertise: args.advertise,
         data_root: args.data_root,
         memory_budget: args.memory_budget,
+        worker_id,
     };
     trove_worker::run(listener, trove_proto::shutdown_signal(), config).await.context("worker")?;
     Ok(())

@@ -21,8 +21,26 @@ const CALL_DEADLINE: Duration = Duration::from_secs(5);
 /// Longest wait between attempts to reach an unreachable coordinator.
 const MAX_BACKOFF: Duration = Duration::from_secs(5);
 
+/// The longest worker id a coordinator accepts.
+pub const MAX_WORKER_ID_BYTES: usize = 128;
+
+/// Checks a worker id as the coordinator will (1 to [`MAX_WORKER_ID_BYTES`] letters,
+/// digits, `-`, `_`, `.`), so a bad `--worker-id` stops the worker at start instead of
+/// being refused at every registration.
+pub fn check_worker_id(id: &str) -> Result<(), String> {
+    let usable = |b: u8| b.is_ascii_alphanumeric() || b"-_.".contains(&b);
+    if id.is_empty() || id.len() > MAX_WORKER_ID_BYTES || !id.bytes().all(usable) {
+        return Err(format!(
+            "worker id `{id}` is not usable: expected 1 to {MAX_WORKER_ID_BYTES} letters, digits, '-', '_' or '.'"
+        ));
+    }
+    Ok(())
+}
+
 /// What the worker tells the coordinator about itself.
 pub struct Announcement {
+    /// Its stable id: the same across coordinator restarts, so it gets its entry back.
+    pub worker_id: String,
     /// Where the coordinator reaches this worker.
     pub address: String,
     /// The files it holds.
@@ -52,9 +70,17 @@ pub async fn stay_registered(channel: Channel, me: Announcement) {
             files: me.files.registration(),
             threads: rayon::current_num_threads() as u32,
             memory_budget: me.memory_budget.unwrap_or(0),
+            worker_id: me.worker_id.clone(),
         };
         let registered = match client.register(request).await {
             Ok(r) => r.into_inner(),
+            Err(status) if status.code() == tonic::Code::AlreadyExists => {
+                // Another live worker holds this id: an operator's mistake, not a network
+                // one. Said loudly, and retried slowly in case the other one goes away.
+                tracing::error!(worker = %me.worker_id, message = status.message(), "registration refused; retrying");
+                tokio::time::sleep(MAX_BACKOFF).await;
+                continue;
+            }
             Err(status) => {
                 tracing::warn!(code = ?status.code(), message = status.message(), "cannot register; retrying");
                 tokio::time::sleep(backoff).await;
@@ -79,6 +105,22 @@ pub async fn stay_registered(channel: Channel, me: Announcement) {
                 }
                 Err(status) => tracing::warn!(code = ?status.code(), "heartbeat failed"),
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn worker_ids_are_checked_as_the_coordinator_checks_them() {
+        for good in ["trove-worker-0", "w.1_a", &"x".repeat(MAX_WORKER_ID_BYTES)] {
+            assert!(check_worker_id(good).is_ok(), "{good}");
+        }
+        for bad in ["", "has space", "a/b", "ü", &"x".repeat(MAX_WORKER_ID_BYTES + 1)] {
+            let e = check_worker_id(bad).unwrap_err();
+            assert!(e.contains("letters, digits"), "{bad}: {e}");
         }
     }
 }

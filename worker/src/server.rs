@@ -2,6 +2,7 @@
 //! listener, and stay registered with the coordinator until `shutdown` resolves.
 
 use std::future::Future;
+use std::hash::{BuildHasher, Hasher};
 use std::path::PathBuf;
 use std::sync::atomic::AtomicU64;
 use std::sync::Arc;
@@ -28,6 +29,20 @@ pub struct WorkerConfig {
     pub data_root: PathBuf,
     /// Most voxel bytes kept resident.
     pub memory_budget: Option<u64>,
+    /// The id this worker registers under, stable across coordinator restarts; `None`: a
+    /// fresh random one for this process ([`random_worker_id`]).
+    pub worker_id: Option<String>,
+}
+
+/// A worker id unlikely to be anyone else's: `worker-` and 64 random bits (from the
+/// standard library's per-process random hash keys, mixed with the process id and the
+/// time).
+pub fn random_worker_id() -> String {
+    let mut hasher = std::collections::hash_map::RandomState::new().build_hasher();
+    hasher.write_u32(std::process::id());
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
+    hasher.write_u128(now.as_nanos());
+    format!("worker-{:016x}", hasher.finish())
 }
 
 /// Why a worker cannot run.
@@ -64,7 +79,15 @@ pub async fn run(
     let store = VolumeStore::new(config.memory_budget);
     let busy = Arc::new(AtomicU64::new(0));
     let channel = membership::channel(&config.coordinator)?;
-    let me = Announcement { address, files: files.clone(), memory_budget: config.memory_budget, busy: busy.clone() };
+    let worker_id = config.worker_id.clone().unwrap_or_else(random_worker_id);
+    tracing::info!(worker = %worker_id, %address, "worker starting");
+    let me = Announcement {
+        worker_id,
+        address,
+        files: files.clone(),
+        memory_budget: config.memory_budget,
+        busy: busy.clone(),
+    };
     let service = CastService::new(files, store, busy);
     let serve = tonic::transport::Server::builder()
         .add_service(WorkerServer::new(service).max_decoding_message_size(trove_proto::MAX_MESSAGE_BYTES))

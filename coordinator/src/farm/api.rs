@@ -1,9 +1,14 @@
 //! The coordinator's two gRPC services: `Coordinator` for clients (jobs) and `Membership`
 //! for workers (registration, heartbeats). Both translate at this edge: requests become
 //! `trove-core` scenes and jobs, failures become typed `Failure`s in gRPC statuses.
+//!
+//! A job is validated ([`plan`]) before it is accepted, then waits for its turn and runs
+//! on a task of its own. Jobs a restarted coordinator finds unfinished in its state store
+//! ([`resume`]) are queued again in submission order and validated again once the
+//! workers are back: a dataset not held yet is waited for, a while, before the job fails.
 
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
@@ -14,8 +19,9 @@ use trove_proto::convert;
 use trove_proto::v1 as pb;
 
 use super::driver::{self, DriverConfig, JobPlan};
-use super::jobs::{is_final, Admission, Jobs};
-use super::registry::Registry;
+use super::jobs::{is_final, Admission, Job, Jobs};
+use super::registry::{RegisterError, Registry};
+use super::state::StateError;
 
 /// What both services share.
 pub struct Farm {
@@ -27,6 +33,14 @@ pub struct Farm {
     pub driver: DriverConfig,
     /// How many jobs run at once; the others wait in order.
     pub admission: Arc<Admission>,
+}
+
+impl Farm {
+    /// How long a resumed job waits for a worker holding its datasets: workers register
+    /// again within a heartbeat or two of a restart.
+    pub fn resume_grace(&self) -> Duration {
+        (self.registry.heartbeat() * 10).max(Duration::from_secs(5))
+    }
 }
 
 /// The client-facing service.
@@ -94,31 +108,41 @@ fn plan(farm: &Farm, request: pb::SubmitJobRequest) -> Result<JobPlan, Status> {
     })
 }
 
-#[tonic::async_trait]
-impl pb::coordinator_server::Coordinator for CoordinatorService {
-    async fn submit_job(
-        &self,
-        request: Request<pb::SubmitJobRequest>,
-    ) -> Result<Response<pb::SubmitJobResponse>, Status> {
-        let farm = self.0.clone();
-        let request = request.into_inner();
-        let planned = {
-            let farm = farm.clone();
-            tokio::task::spawn_blocking(move || plan(&farm, request))
-                .await
-                .map_err(|e| Status::internal(format!("validating the scene failed: {e}")))?
+/// A state store that cannot be read or written, as a typed status (retryable: the disk may
+/// come back).
+fn state_status(e: &StateError) -> Status {
+    convert::failure_status(convert::failure(pb::Reason::Internal, true, format!("the coordinator's state: {e}")))
+}
+
+/// Where a job's plan comes from.
+enum Pending {
+    /// Validated at submission.
+    Planned(JobPlan),
+    /// Resumed after a restart: validated again once workers hold its datasets.
+    Resumed(pb::SubmitJobRequest),
+}
+
+/// Runs `job` (already in the admission queue) on a task of its own: its turn, its driver,
+/// and its end written down.
+fn spawn_job(farm: Arc<Farm>, job: Arc<Job>, pending: Pending) {
+    tokio::spawn(async move {
+        let job_id = job.id.clone();
+        let plan = match pending {
+            Pending::Planned(plan) => Some(plan),
+            Pending::Resumed(request) => replan(&farm, &job, request).await,
         };
-        let plan = planned?;
-        let job = farm.jobs.create();
-        farm.admission.enqueue(job.clone());
-        tracing::info!(job = %job.id, scene = %plan.scene_name, queued = farm.admission.waiting(), "job submitted");
-        let id = job.id.clone();
-        let (registry, jobs, config) = (farm.registry.clone(), farm.jobs.clone(), farm.driver.clone());
-        let admission = farm.admission.clone();
-        tokio::spawn(async move {
-            let job_id = job.id.clone();
-            match admission.admit(&job).await {
+        let (registry, config, admission) = (farm.registry.clone(), farm.driver.clone(), farm.admission.clone());
+        match plan {
+            None => admission.leave(&job),
+            Some(plan) => match admission.admit(&job).await {
                 Some(slot) => {
+                    let jobs = farm.jobs.clone();
+                    let running = job.clone();
+                    match tokio::task::spawn_blocking(move || jobs.started(&running)).await {
+                        Ok(Err(e)) => tracing::error!(job = %job_id, error = %e, "cannot write the job's start"),
+                        Err(e) => tracing::error!(job = %job_id, error = %e, "cannot write the job's start"),
+                        Ok(Ok(())) => {}
+                    }
                     // The driver runs as a task of its own, so that a panic in it fails this
                     // job (and frees its room) instead of leaving it RUNNING.
                     let ran = tokio::spawn(driver::run(plan, job.clone(), registry, config)).await;
@@ -140,9 +164,109 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
                     let message = "the job was cancelled while queued".to_string();
                     s.failure = Some(convert::failure(pb::Reason::Cancelled, false, message));
                 }),
-            }
-            jobs.finished(&job_id);
+            },
+        }
+        let jobs = farm.jobs.clone();
+        if let Err(e) = tokio::task::spawn_blocking(move || jobs.finished(&job_id)).await {
+            tracing::error!(error = %e, "recording a job's end failed");
+        }
+    });
+}
+
+/// Validates a resumed job again, waiting up to [`Farm::resume_grace`] from now while the
+/// only trouble is a dataset that no worker holds yet (workers re-register after a
+/// restart); any other refusal, or one past the grace, fails the job as a submission
+/// would have been refused. `None` when it failed or was cancelled.
+async fn replan(farm: &Arc<Farm>, job: &Arc<Job>, request: pb::SubmitJobRequest) -> Option<JobPlan> {
+    let until = Instant::now() + farm.resume_grace();
+    let retry = farm.registry.heartbeat().clamp(Duration::from_millis(20), Duration::from_secs(1));
+    let mut cancelled = job.cancelled();
+    loop {
+        let planned = {
+            let (farm, request) = (farm.clone(), request.clone());
+            tokio::task::spawn_blocking(move || plan(&farm, request)).await
+        };
+        let status = match planned {
+            Ok(Ok(plan)) => return Some(plan),
+            Ok(Err(status)) => status,
+            Err(e) => Status::internal(format!("validating the scene failed: {e}")),
+        };
+        let failure = convert::status_failure(&status).unwrap_or_else(|| {
+            convert::failure(pb::Reason::Internal, false, format!("{}: {}", status.code(), status.message()))
         });
+        if failure.reason() != pb::Reason::DatasetNotHeld || Instant::now() >= until {
+            tracing::warn!(job = %job.id, reason = ?failure.reason(), message = %failure.message, "resumed job cannot run");
+            job.update(|s| {
+                s.state = pb::JobState::Failed as i32;
+                s.failure = Some(failure);
+            });
+            return None;
+        }
+        tokio::select! {
+            _ = tokio::time::sleep(retry) => {}
+            _ = cancelled.wait_for(|c| *c) => {
+                job.update(|s| {
+                    s.state = pb::JobState::Cancelled as i32;
+                    let message = "the job was cancelled while it waited for its workers".to_string();
+                    s.failure = Some(convert::failure(pb::Reason::Cancelled, false, message));
+                });
+                return None;
+            }
+        }
+    }
+}
+
+/// Queues again, in submission order, every job the state store holds that had not ended
+/// (QUEUED or RUNNING when the coordinator stopped); they run again from the start. Returns
+/// how many. Blocking: it reads the store.
+pub fn resume(farm: &Arc<Farm>) -> Result<usize, StateError> {
+    let Some(store) = farm.jobs.store() else { return Ok(0) };
+    let mut resumed = 0;
+    for record in store.jobs()? {
+        if is_final(record.state()) {
+            continue;
+        }
+        let job = farm.jobs.resume(&record);
+        tracing::info!(job = %job.id, scene = %record.scene_name, was = ?record.state(), "job resumed");
+        farm.admission.enqueue(job.clone());
+        let request = pb::SubmitJobRequest {
+            scene_toml: record.scene_toml,
+            scene_name: record.scene_name,
+            options: record.options,
+        };
+        spawn_job(farm.clone(), job, Pending::Resumed(request));
+        resumed += 1;
+    }
+    Ok(resumed)
+}
+
+#[tonic::async_trait]
+impl pb::coordinator_server::Coordinator for CoordinatorService {
+    async fn submit_job(
+        &self,
+        request: Request<pb::SubmitJobRequest>,
+    ) -> Result<Response<pb::SubmitJobResponse>, Status> {
+        let farm = self.0.clone();
+        let request = request.into_inner();
+        let planned = {
+            let farm = farm.clone();
+            // Validated, then written down before its id is answered.
+            tokio::task::spawn_blocking(move || {
+                let plan = plan(&farm, request)?;
+                let job = farm
+                    .jobs
+                    .submit(&plan.scene_toml, &plan.scene_name, &plan.options)
+                    .map_err(|e| state_status(&e))?;
+                Ok::<_, Status>((plan, job))
+            })
+            .await
+            .map_err(|e| Status::internal(format!("validating the scene failed: {e}")))?
+        };
+        let (plan, job) = planned?;
+        farm.admission.enqueue(job.clone());
+        tracing::info!(job = %job.id, scene = %plan.scene_name, queued = farm.admission.waiting(), "job submitted");
+        let id = job.id.clone();
+        spawn_job(farm, job, Pending::Planned(plan));
         Ok(Response::new(pb::SubmitJobResponse { job_id: id }))
     }
 
@@ -179,7 +303,14 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
         let id = request.into_inner().job_id;
         let job = self.0.jobs.get(&id).ok_or_else(|| not_found(&id))?;
         let status = job.status();
-        let Some(output) = job.output() else {
+        let output = {
+            let (jobs, job) = (self.0.jobs.clone(), job.clone());
+            tokio::task::spawn_blocking(move || jobs.output(&job))
+                .await
+                .map_err(|e| Status::internal(format!("reading the result failed: {e}")))?
+                .map_err(|e| state_status(&e))?
+        };
+        let Some(output) = output else {
             let state = status.state();
             let failure = status.failure.unwrap_or_else(|| {
                 convert::failure(pb::Reason::NotFound, true, format!("job `{id}` has no result yet ({state:?})"))
@@ -240,9 +371,10 @@ impl pb::membership_server::Membership for MembershipService {
             return Err(Status::invalid_argument("a worker registers with the address it listens on"));
         }
         let registry = &self.0.registry;
-        let id = registry
-            .register(request)
-            .map_err(|e| Status::invalid_argument(format!("the worker's address is not usable: {e}")))?;
+        let id = registry.register(request).map_err(|e| match e {
+            RegisterError::IdTaken { .. } => Status::already_exists(e.to_string()),
+            RegisterError::Address { .. } | RegisterError::BadId { .. } => Status::invalid_argument(e.to_string()),
+        })?;
         Ok(Response::new(pb::RegisterResponse {
             worker_id: id,
             heartbeat_millis: registry.heartbeat().as_millis() as u32,

@@ -1,19 +1,29 @@
 //! The jobs a coordinator holds: each one's status (watched by clients), its cancellation
 //! signal and, once it succeeded, its result files.
 //!
-//! Finished jobs are kept, most recent first, up to [`KEEP_FINISHED`]; older ones are
-//! forgotten (their results too), so a long-lived coordinator's memory stays bounded.
+//! With a state store (`--state-dir`), every job is written there when it is accepted, when
+//! it starts and when it ends (its files with it); a finished job's files are then served
+//! from the store, not kept in memory. Either way at most [`KEEP_FINISHED`] finished jobs
+//! stay in memory, most recent first, and finished jobs older than the configured keep time
+//! are swept from memory and store, so a long-lived coordinator's memory stays bounded.
+//! Job ids are `job-<prefix>-<n>`: the prefix is the coordinator's start time (base 36
+//! milliseconds, never repeated over one store), `n` counts on across restarts over a
+//! store, so an old id never names a newer job.
 //! [`Admission`] runs at most a configured number of jobs at once; the others wait QUEUED
 //! in submission order, each status saying its place.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::Duration;
 
 use tokio::sync::{watch, Notify};
 use trove_proto::v1 as pb;
 
-/// Finished jobs kept for `GetResult` and `WatchJob`.
+use super::state::{now_unix_ms, JobRecord, StateError, StateStore};
+
+/// Finished jobs kept in memory for `GetResult` and `WatchJob` (beyond them, only the state
+/// store, when there is one, still answers).
 pub const KEEP_FINISHED: usize = 32;
 
 /// A finished job's files.
@@ -31,12 +41,27 @@ pub struct JobOutput {
 pub struct Job {
     /// Its id.
     pub id: String,
+    /// When it was submitted, in milliseconds since the Unix epoch.
+    pub submitted_unix_ms: u64,
+    /// When it ended, in milliseconds since the Unix epoch; 0 while it has not.
+    finished_unix_ms: AtomicU64,
     status: watch::Sender<pb::JobStatus>,
     cancel: watch::Sender<bool>,
     output: Mutex<Option<Arc<JobOutput>>>,
 }
 
 impl Job {
+    fn new(id: String, status: pb::JobStatus, submitted_unix_ms: u64, finished_unix_ms: u64) -> Arc<Job> {
+        Arc::new(Job {
+            id,
+            submitted_unix_ms,
+            finished_unix_ms: AtomicU64::new(finished_unix_ms),
+            status: watch::channel(status).0,
+            cancel: watch::channel(false).0,
+            output: Mutex::new(None),
+        })
+    }
+
     /// The status now.
     pub fn status(&self) -> pb::JobStatus {
         self.status.borrow().clone()
@@ -66,7 +91,8 @@ impl Job {
         self.cancel.subscribe()
     }
 
-    /// The result files, once the job succeeded.
+    /// The result files, once the job succeeded, while they are in memory (see
+    /// [`Jobs::output`], which also asks the store).
     pub fn output(&self) -> Option<Arc<JobOutput>> {
         lock(&self.output).clone()
     }
@@ -86,11 +112,35 @@ pub fn is_final(state: pb::JobState) -> bool {
     matches!(state, pb::JobState::Succeeded | pb::JobState::Failed | pb::JobState::Cancelled)
 }
 
+/// `n` in base 36 (digits, then lower-case letters): short, sortable within one length.
+pub fn base36(mut n: u64) -> String {
+    let mut digits = Vec::new();
+    loop {
+        digits.push(b"0123456789abcdefghijklmnopqrstuvwxyz"[(n % 36) as usize]);
+        n /= 36;
+        if n == 0 {
+            break;
+        }
+    }
+    digits.reverse();
+    String::from_utf8(digits).unwrap_or_default()
+}
+
 /// Every job the coordinator holds.
-#[derive(Default)]
 pub struct Jobs {
     state: Mutex<JobsState>,
+    /// This run's id prefix.
+    prefix: String,
+    /// The last job number handed out.
     next: AtomicU64,
+    store: Option<Arc<StateStore>>,
+}
+
+impl Default for Jobs {
+    /// Memory only, ids prefixed by the time now.
+    fn default() -> Jobs {
+        Jobs::new(now_unix_ms(), 0, None)
+    }
 }
 
 #[derive(Default)]
@@ -100,33 +150,144 @@ struct JobsState {
 }
 
 impl Jobs {
-    /// A new queued job.
-    pub fn create(&self) -> Arc<Job> {
-        let id = format!("job-{}", self.next.fetch_add(1, Ordering::Relaxed) + 1);
+    /// A job table whose ids start with `epoch_ms` (a time never used by an earlier run over
+    /// `store`) and count on from `last_seq`, written to `store` when there is one.
+    pub fn new(epoch_ms: u64, last_seq: u64, store: Option<Arc<StateStore>>) -> Jobs {
+        Jobs { state: Mutex::default(), prefix: base36(epoch_ms), next: AtomicU64::new(last_seq), store }
+    }
+
+    /// The state store, when jobs are kept on disk.
+    pub fn store(&self) -> Option<&Arc<StateStore>> {
+        self.store.as_ref()
+    }
+
+    fn queued(&self, id: String, submitted_unix_ms: u64) -> Arc<Job> {
         let status = pb::JobStatus { job_id: id.clone(), state: pb::JobState::Queued as i32, ..Default::default() };
-        let job = Arc::new(Job {
-            id: id.clone(),
-            status: watch::channel(status).0,
-            cancel: watch::channel(false).0,
-            output: Mutex::new(None),
-        });
+        let job = Job::new(id.clone(), status, submitted_unix_ms, 0);
         lock(&self.state).jobs.insert(id, job.clone());
         job
     }
 
-    /// The job `id`, if held.
-    pub fn get(&self, id: &str) -> Option<Arc<Job>> {
-        lock(&self.state).jobs.get(id).cloned()
+    /// A new queued job, in memory only.
+    pub fn create(&self) -> Arc<Job> {
+        let n = self.next.fetch_add(1, Ordering::Relaxed) + 1;
+        self.queued(format!("job-{}-{n}", self.prefix), now_unix_ms())
     }
 
-    /// Notes that `id` ended, forgetting the oldest finished jobs beyond [`KEEP_FINISHED`].
+    /// A new queued job of a validated submission, written to the store (when there is one)
+    /// before it exists here, so that an id a client was given always survives a restart.
+    /// Blocking: it commits to disk.
+    pub fn submit(&self, scene_toml: &str, scene_name: &str, options: &pb::JobOptions) -> Result<Arc<Job>, StateError> {
+        let seq = self.next.fetch_add(1, Ordering::Relaxed) + 1;
+        let id = format!("job-{}-{seq}", self.prefix);
+        let submitted = now_unix_ms();
+        if let Some(store) = &self.store {
+            let status = pb::JobStatus { job_id: id.clone(), state: pb::JobState::Queued as i32, ..Default::default() };
+            store.put_job(&JobRecord {
+                job_id: id.clone(),
+                seq,
+                scene_toml: scene_toml.to_string(),
+                scene_name: scene_name.to_string(),
+                options: Some(*options),
+                status: Some(status),
+                submitted_unix_ms: submitted,
+                finished_unix_ms: 0,
+            })?;
+        }
+        Ok(self.queued(id, submitted))
+    }
+
+    /// A stored job that had not ended when the coordinator stopped, queued again under its id
+    /// (it runs again from the start).
+    pub fn resume(&self, record: &JobRecord) -> Arc<Job> {
+        self.queued(record.job_id.clone(), record.submitted_unix_ms)
+    }
+
+    /// The job `id`: from memory, else (a finished job no longer in memory) from the store.
+    pub fn get(&self, id: &str) -> Option<Arc<Job>> {
+        if let Some(job) = lock(&self.state).jobs.get(id).cloned() {
+            return Some(job);
+        }
+        let record = match self.store.as_ref()?.job(id) {
+            Ok(record) => record?,
+            Err(e) => {
+                tracing::error!(job = %id, error = %e, "cannot read a job from the state store");
+                return None;
+            }
+        };
+        let mut status = record.status.clone().unwrap_or_default();
+        // Only finished jobs leave memory; a record still QUEUED or RUNNING that is not
+        // in memory is one this run did not resume (it cannot be followed).
+        is_final(status.state()).then(|| {
+            status.job_id = record.job_id.clone();
+            Job::new(record.job_id, status, record.submitted_unix_ms, record.finished_unix_ms)
+        })
+    }
+
+    /// The files of job `job` once it succeeded: from memory while they are there, else read
+    /// from the store (blocking).
+    pub fn output(&self, job: &Job) -> Result<Option<Arc<JobOutput>>, StateError> {
+        if let Some(output) = job.output() {
+            return Ok(Some(output));
+        }
+        match (&self.store, job.status().state()) {
+            (Some(store), pb::JobState::Succeeded) => Ok(store.result(&job.id)?.map(Arc::new)),
+            _ => Ok(None),
+        }
+    }
+
+    /// Writes that `job` left the queue to run (blocking).
+    pub fn started(&self, job: &Job) -> Result<(), StateError> {
+        let Some(store) = &self.store else { return Ok(()) };
+        let mut status = job.status();
+        status.state = pb::JobState::Running as i32;
+        status.queue_position = 0;
+        store.set_status(&job.id, &status, 0).map(drop)
+    }
+
+    /// Notes that `id` ended: writes its status and files to the store (then serves its
+    /// files from there), and forgets the oldest finished jobs beyond [`KEEP_FINISHED`]
+    /// (blocking). If the store cannot be written, the files stay in memory.
     pub fn finished(&self, id: &str) {
+        let Some(job) = lock(&self.state).jobs.get(id).cloned() else { return };
+        let now = now_unix_ms();
+        job.finished_unix_ms.store(now, Ordering::Relaxed);
+        if let Some(store) = &self.store {
+            let output = job.output();
+            match store.finish(id, &job.status(), now, output.as_deref()) {
+                Ok(_) => *lock(&job.output) = None,
+                Err(e) => tracing::error!(job = %id, error = %e, "cannot write the job's end to the state store"),
+            }
+        }
         let mut state = lock(&self.state);
         state.finished.push_back(id.to_string());
         while state.finished.len() > KEEP_FINISHED {
             if let Some(old) = state.finished.pop_front() {
                 state.jobs.remove(&old);
             }
+        }
+    }
+
+    /// Removes the jobs that ended more than `keep` ago, with their files, from memory and
+    /// store (blocking); returns how many the store removed (memory's count when there is
+    /// no store).
+    pub fn sweep(&self, keep: Duration) -> Result<usize, StateError> {
+        let cutoff = now_unix_ms().saturating_sub(keep.as_millis() as u64);
+        let expired = |job: &Job| {
+            let finished = job.finished_unix_ms.load(Ordering::Relaxed);
+            finished != 0 && finished < cutoff
+        };
+        let forgotten = {
+            let mut state = lock(&self.state);
+            let JobsState { jobs, finished } = &mut *state;
+            let before = finished.len();
+            finished.retain(|id| !jobs.get(id).is_some_and(|j| expired(j)));
+            jobs.retain(|_, j| !expired(j));
+            before - finished.len()
+        };
+        match &self.store {
+            Some(store) => Ok(store.sweep(cutoff)?.len()),
+            None => Ok(forgotten),
         }
     }
 }
@@ -181,6 +342,17 @@ impl Admission {
         state.renumber();
     }
 
+    /// Takes `job` out of the queue without running it (a resumed job whose scene no
+    /// longer plans).
+    pub fn leave(&self, job: &Arc<Job>) {
+        let mut state = lock(&self.state);
+        state.waiting.retain(|j| !Arc::ptr_eq(j, job));
+        job.update(|s| s.queue_position = 0);
+        state.renumber();
+        drop(state);
+        self.changed.notify_waiters();
+    }
+
     /// Jobs waiting now.
     pub fn waiting(&self) -> usize {
         lock(&self.state).waiting.len()
@@ -212,12 +384,7 @@ impl Admission {
             tokio::select! {
                 _ = &mut notified => {}
                 _ = cancelled.wait_for(|c| *c) => {
-                    let mut state = lock(&self.state);
-                    state.waiting.retain(|j| !Arc::ptr_eq(j, job));
-                    job.update(|s| s.queue_position = 0);
-                    state.renumber();
-                    drop(state);
-                    self.changed.notify_waiters();
+                    self.leave(job);
                     return None;
                 }
             }
@@ -228,6 +395,66 @@ impl Admission {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn succeed(jobs: &Jobs, job: &Job, tag: u8) {
+        job.set_output(JobOutput { png: vec![tag; 64], pfm: None, stats_json: b"{}".to_vec() });
+        job.update(|s| s.state = pb::JobState::Succeeded as i32);
+        jobs.finished(&job.id);
+    }
+
+    #[test]
+    fn finished_jobs_are_served_from_the_store_across_restarts_until_swept() {
+        let dir = std::env::temp_dir().join(format!("trove-jobs-store-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let options = pb::JobOptions::default();
+        let (first_id, ids) = {
+            let store = Arc::new(StateStore::open(&dir).unwrap());
+            let jobs = Jobs::new(store.claim_epoch(now_unix_ms()).unwrap(), store.last_job_seq().unwrap(), Some(store));
+            let first = jobs.submit("# first", "first.toml", &options).unwrap();
+            succeed(&jobs, &first, 1);
+            assert!(first.output().is_none(), "a stored job's files leave memory");
+            assert_eq!(jobs.output(&first).unwrap().unwrap().png, vec![1; 64], "and are read from the store");
+            let mut ids = vec![first.id.clone()];
+            for i in 0..KEEP_FINISHED {
+                let job = jobs.submit("# more", "more.toml", &options).unwrap();
+                succeed(&jobs, &job, i as u8);
+                ids.push(job.id.clone());
+            }
+            // Out of memory, still in the store.
+            let again = jobs.get(&first.id).expect("a finished job beyond memory");
+            assert!(!Arc::ptr_eq(&again, &first));
+            assert_eq!(again.status().state(), pb::JobState::Succeeded);
+            assert_eq!(jobs.output(&again).unwrap().unwrap().png, vec![1; 64]);
+            (first.id.clone(), ids)
+        };
+        // A restarted coordinator over the same store.
+        let store = Arc::new(StateStore::open(&dir).unwrap());
+        let jobs = Jobs::new(store.claim_epoch(now_unix_ms()).unwrap(), store.last_job_seq().unwrap(), Some(store));
+        assert_eq!(jobs.get(&first_id).expect("served after a restart").status().state(), pb::JobState::Succeeded);
+        let next = jobs.submit("# next", "next.toml", &options).unwrap();
+        assert!(!ids.contains(&next.id), "{} was handed out before the restart", next.id);
+        let number = |id: &str| id.rsplit('-').next().unwrap().parse::<u64>().unwrap();
+        assert_eq!(number(&next.id), KEEP_FINISHED as u64 + 2, "the counter went on");
+        // The sweep removes only what has ended, from store and memory.
+        std::thread::sleep(Duration::from_millis(5));
+        assert_eq!(jobs.sweep(Duration::from_millis(1)).unwrap(), ids.len());
+        assert!(jobs.get(&first_id).is_none());
+        assert_eq!(jobs.get(&next.id).expect("a queued job is kept").status().state(), pb::JobState::Queued);
+    }
+
+    #[test]
+    fn without_a_store_the_sweep_forgets_jobs_past_their_time() {
+        let jobs = Jobs::default();
+        let (old, fresh) = (jobs.create(), jobs.create());
+        assert_ne!(old.id, fresh.id);
+        succeed(&jobs, &old, 1);
+        assert!(old.output().is_some(), "without a store the files stay in memory");
+        std::thread::sleep(Duration::from_millis(5));
+        assert_eq!(jobs.sweep(Duration::from_millis(1)).unwrap(), 1);
+        assert!(jobs.get(&old.id).is_none());
+        assert!(jobs.get(&fresh.id).is_some(), "a job that has not ended stays");
+        assert_eq!(jobs.sweep(Duration::from_secs(3600)).unwrap(), 0);
+    }
 
     #[tokio::test]
     async fn jobs_wait_in_order_with_their_places_and_a_cancelled_one_leaves() {

@@ -5,6 +5,7 @@
 //!
 //! * [`registry`]: the workers, their files and heartbeats.
 //! * [`jobs`]: the job table, statuses, cancellation and results.
+//! * [`state`]: jobs and results on disk (`--state-dir`), so a restart loses none.
 //! * [`driver`]: one job from submission to image, band by band.
 //! * [`api`]: the gRPC services (`Coordinator` for clients, `Membership` for workers).
 //! * [`run`]: the server as a library function over a bound listener and a shutdown signal,
@@ -14,12 +15,15 @@ pub mod api;
 pub mod driver;
 pub mod jobs;
 pub mod registry;
+pub mod state;
 pub mod stats;
 
 use std::future::Future;
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
+use thiserror::Error;
 use tokio::net::TcpListener;
 use tokio_stream::wrappers::TcpListenerStream;
 use trove_proto::v1::coordinator_server::CoordinatorServer;
@@ -43,28 +47,103 @@ pub struct FarmConfig {
     pub driver: DriverConfig,
     /// Jobs running at once, at most; later ones wait QUEUED, in order.
     pub max_jobs: usize,
+    /// Where jobs and results are kept ([`state`]); `None`: in memory only, lost with the
+    /// process.
+    pub state_dir: Option<PathBuf>,
+    /// How long a finished job and its files are kept before a sweep removes them.
+    pub keep_results: Duration,
 }
+
+/// How long finished jobs are kept when not told: a day.
+pub const DEFAULT_KEEP_RESULTS: Duration = Duration::from_secs(86_400);
 
 impl Default for FarmConfig {
     fn default() -> Self {
-        FarmConfig { heartbeat: Duration::from_secs(1), driver: DriverConfig::default(), max_jobs: DEFAULT_MAX_JOBS }
+        FarmConfig {
+            heartbeat: Duration::from_secs(1),
+            driver: DriverConfig::default(),
+            max_jobs: DEFAULT_MAX_JOBS,
+            state_dir: None,
+            keep_results: DEFAULT_KEEP_RESULTS,
+        }
     }
 }
 
-/// Serves the job API and worker membership on `listener` until `shutdown` resolves.
+/// Why a coordinator stopped or could not start.
+#[derive(Debug, Error)]
+pub enum FarmError {
+    /// The server failed.
+    #[error(transparent)]
+    Transport(#[from] tonic::transport::Error),
+    /// The state store cannot be opened or read.
+    #[error(transparent)]
+    State(#[from] state::StateError),
+    /// Opening the state store was interrupted.
+    #[error("opening the state store failed: {0}")]
+    Join(#[from] tokio::task::JoinError),
+}
+
+/// How often finished jobs past [`FarmConfig::keep_results`] are looked for: often enough
+/// that none outlives its time by more than a tenth, at most once a minute.
+fn sweep_every(keep: Duration) -> Duration {
+    (keep / 10).clamp(Duration::from_millis(100), Duration::from_secs(60))
+}
+
+/// Serves the job API and worker membership on `listener` until `shutdown` resolves. With a
+/// state folder, the jobs it holds that had not ended are run again first, in submission
+/// order, and its finished jobs are still served.
 pub async fn run(
     listener: TcpListener,
     shutdown: impl Future<Output = ()>,
     config: FarmConfig,
-) -> Result<(), tonic::transport::Error> {
+) -> Result<(), FarmError> {
+    let now = state::now_unix_ms();
+    let opened = match config.state_dir.clone() {
+        Some(dir) => Some(
+            tokio::task::spawn_blocking(move || {
+                let store = state::StateStore::open(&dir)?;
+                let epoch = store.claim_epoch(now)?;
+                let seq = store.last_job_seq()?;
+                Ok::<_, state::StateError>((Arc::new(store), epoch, seq))
+            })
+            .await??,
+        ),
+        None => None,
+    };
+    let (store, epoch, seq) = match opened {
+        Some((store, epoch, seq)) => (Some(store), epoch, seq),
+        None => (None, now, 0),
+    };
     let farm = Arc::new(api::Farm {
-        registry: Arc::new(registry::Registry::new(config.heartbeat)),
-        jobs: Arc::new(jobs::Jobs::default()),
+        registry: Arc::new(registry::Registry::with_epoch(config.heartbeat, epoch)),
+        jobs: Arc::new(jobs::Jobs::new(epoch, seq, store.clone())),
         driver: config.driver,
         admission: jobs::Admission::new(config.max_jobs),
     });
+    if let Some(store) = &store {
+        let resumer = farm.clone();
+        let resumed = tokio::task::spawn_blocking(move || api::resume(&resumer)).await??;
+        tracing::info!(path = %store.path().display(), resumed, "state store opened");
+    }
+    let sweeper = {
+        let (jobs, keep) = (farm.jobs.clone(), config.keep_results);
+        tokio::spawn(async move {
+            let mut every = tokio::time::interval(sweep_every(keep));
+            every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                every.tick().await;
+                let jobs = jobs.clone();
+                match tokio::task::spawn_blocking(move || jobs.sweep(keep)).await {
+                    Ok(Ok(0)) => {}
+                    Ok(Ok(removed)) => tracing::info!(removed, "finished jobs past their keep time removed"),
+                    Ok(Err(e)) => tracing::error!(error = %e, "sweeping finished jobs failed"),
+                    Err(e) => tracing::error!(error = %e, "sweeping finished jobs failed"),
+                }
+            }
+        })
+    };
     let limit = trove_proto::MAX_MESSAGE_BYTES;
-    tonic::transport::Server::builder()
+    let served = tonic::transport::Server::builder()
         .add_service(
             CoordinatorServer::new(api::CoordinatorService(farm.clone()))
                 .max_decoding_message_size(limit)
@@ -72,5 +151,7 @@ pub async fn run(
         )
         .add_service(MembershipServer::new(api::MembershipService(farm)).max_decoding_message_size(limit))
         .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
-        .await
+        .await;
+    sweeper.abort();
+    Ok(served?)
 }

@@ -4,20 +4,31 @@
 //! A worker is *alive* while its last heartbeat is recent ([`Registry::lost_after`]); jobs
 //! dispatch only to alive workers. The files of alive workers form the catalog against which
 //! submitted scenes are validated: the coordinator never opens a dataset file itself.
+//!
+//! Workers are keyed by the id each one chooses (`trove-worker --worker-id`, else random per
+//! process), so one that registers again after a coordinator restart is the same entry, and
+//! a heartbeat can only ever name the worker that sent it. An id that a live worker at
+//! another address holds is refused (two workers claim one id); a worker too old to send an
+//! id is given one made of the coordinator's start time and a counter, unique across
+//! restarts.
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
+use thiserror::Error;
 use tonic::transport::{Channel, Endpoint};
 use trove_core::dataset::{Catalog, DatasetError, FileInfo, FileKind};
 use trove_proto::convert;
 use trove_proto::v1 as pb;
 
+use super::jobs::base36;
+use super::state::now_unix_ms;
+
 /// One registered worker.
 pub struct WorkerEntry {
-    /// Assigned at registration.
+    /// The worker's own id (or one assigned at registration).
     pub id: String,
     /// Where its `Worker` service listens.
     pub address: String,
@@ -38,6 +49,8 @@ pub struct WorkerEntry {
 pub struct Registry {
     state: Mutex<State>,
     heartbeat: Duration,
+    /// This run's prefix of assigned ids.
+    prefix: String,
     next_id: AtomicU64,
     /// Changes whenever a worker registers, so a job's dispatcher knows when to look its
     /// datasets' holders up again instead of on every batch.
@@ -65,12 +78,53 @@ const MISSED_HEARTBEATS: u32 = 5;
 /// Deadline for connecting to a worker.
 const CONNECT_DEADLINE: Duration = Duration::from_secs(5);
 
+/// The longest worker id accepted.
+pub const MAX_WORKER_ID_BYTES: usize = 128;
+
+/// Why a registration is refused.
+#[derive(Debug, Error)]
+pub enum RegisterError {
+    /// The worker's address is not a usable URL authority.
+    #[error("the worker's address `{address}` is not usable: {source}")]
+    Address {
+        /// The address it sent.
+        address: String,
+        /// Why.
+        #[source]
+        source: tonic::transport::Error,
+    },
+    /// The id is too long or holds characters other than letters, digits, `-`, `_`, `.`.
+    #[error("worker id `{id}` is not usable: expected 1 to {MAX_WORKER_ID_BYTES} letters, digits, '-', '_' or '.'")]
+    BadId {
+        /// The id it sent.
+        id: String,
+    },
+    /// A live worker at another address holds the id.
+    #[error("worker id `{id}` is held by a live worker at {held_by}, not {address}: two workers claim one id (give each its own --worker-id)")]
+    IdTaken {
+        /// The id.
+        id: String,
+        /// The address of the worker that holds it.
+        held_by: String,
+        /// The address of the one refused.
+        address: String,
+    },
+}
+
 impl Registry {
-    /// An empty registry whose workers send a heartbeat every `heartbeat`.
+    /// An empty registry whose workers send a heartbeat every `heartbeat`; the ids it
+    /// assigns start with the time now.
     pub fn new(heartbeat: Duration) -> Registry {
+        Registry::with_epoch(heartbeat, now_unix_ms())
+    }
+
+    /// As [`Registry::new`], the ids it assigns starting with `epoch_ms` (a time no earlier
+    /// run of this coordinator used: the state store's claimed epoch).
+    pub fn with_epoch(heartbeat: Duration, epoch_ms: u64) -> Registry {
         Registry {
             state: Mutex::new(State::default()),
             heartbeat,
+            prefix: base36(epoch_ms),
             next_id: AtomicU64::new(1),
             generation: AtomicU64::new(0),
             room: tokio::sync::watch::channel(0).0,
@@ -87,25 +141,46 @@ impl Registry {
         self.heartbeat * MISSED_HEARTBEATS
     }
 
-    /// Adds a worker (replacing any earlier registration from the same address, which then
-    /// stops being known) and returns its id.
-    pub fn register(&self, request: pb::RegisterRequest) -> Result<String, tonic::transport::Error> {
-        let endpoint = Endpoint::from_shared(format!("http://{}", request.address))?
+    /// Adds a worker under the id it sent (or a new one when it sent none) and returns the
+    /// id. The same id registering again replaces its entry, keeping its load counters (and
+    /// its channel, at the same address); another worker's entry at the same address is
+    /// dropped (it stops being known); an id a live worker at another address holds is
+    /// refused.
+    pub fn register(&self, request: pb::RegisterRequest) -> Result<String, RegisterError> {
+        let endpoint = Endpoint::from_shared(format!("http://{}", request.address))
+            .map_err(|source| RegisterError::Address { address: request.address.clone(), source })?
             .connect_timeout(CONNECT_DEADLINE)
             .tcp_nodelay(true);
-        let id = format!("w{}", self.next_id.fetch_add(1, Ordering::Relaxed));
-        let entry = WorkerEntry {
-            id: id.clone(),
-            address: request.address.clone(),
-            files: request.files.into_iter().map(|f| (f.key.clone(), f)).collect(),
-            threads: request.threads.max(1),
-            channel: endpoint.connect_lazy(),
-            in_flight: Arc::new(AtomicU64::new(0)),
-            done: Arc::new(AtomicU64::new(0)),
-            last_heartbeat: Instant::now(),
+        let id = match request.worker_id.as_str() {
+            "" => format!("w-{}-{}", self.prefix, self.next_id.fetch_add(1, Ordering::Relaxed)),
+            id if usable_id(id) => id.to_string(),
+            id => return Err(RegisterError::BadId { id: id.to_string() }),
         };
         let mut state = lock(&self.state);
+        let earlier = match state.workers.remove(&id) {
+            Some(held) if held.address != request.address && held.last_heartbeat.elapsed() <= self.lost_after() => {
+                let (held_by, address) = (held.address.clone(), request.address.clone());
+                state.workers.insert(id.clone(), held);
+                return Err(RegisterError::IdTaken { id, held_by, address });
+            }
+            held => held,
+        };
         state.workers.retain(|_, w| w.address != request.address);
+        let (channel, in_flight, done) = match earlier {
+            Some(w) if w.address == request.address => (w.channel, w.in_flight, w.done),
+            Some(w) => (endpoint.connect_lazy(), w.in_flight, w.done),
+            None => (endpoint.connect_lazy(), Arc::default(), Arc::default()),
+        };
+        let entry = WorkerEntry {
+            id: id.clone(),
+            address: request.address,
+            files: request.files.into_iter().map(|f| (f.key.clone(), f)).collect(),
+            threads: request.threads.max(1),
+            channel,
+            in_flight,
+            done,
+            last_heartbeat: Instant::now(),
+        };
         tracing::info!(worker = %id, address = %entry.address, files = entry.files.len(), "worker registered");
         state.workers.insert(id.clone(), entry);
         self.generation.fetch_add(1, Ordering::Release);
@@ -213,6 +288,12 @@ impl Registry {
     }
 }
 
+/// Whether `id` is a worker id we accept: short, and safe in logs and metrics labels
+/// (`trove-worker` checks the same at start, `membership::check_worker_id`).
+fn usable_id(id: &str) -> bool {
+    id.len() <= MAX_WORKER_ID_BYTES && id.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.".contains(&b))
+}
+
 /// What a job's dispatcher holds of one worker.
 #[derive(Clone)]
 pub struct WorkerHandle {
@@ -257,5 +338,102 @@ impl Catalog for RegistryCatalog {
             Some(Held::Disagree) => Err(convert::workers_disagree(key)),
             None => Err(DatasetError::not_held(key)),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const BEAT: Duration = Duration::from_millis(100);
+
+    fn request(id: &str, address: &str, keys: &[&str]) -> pb::RegisterRequest {
+        pb::RegisterRequest {
+            address: address.to_string(),
+            files: keys
+                .iter()
+                .map(|k| pb::DatasetFile { key: k.to_string(), bytes: 8, ..Default::default() })
+                .collect(),
+            threads: 2,
+            memory_budget: 0,
+            worker_id: id.to_string(),
+        }
+    }
+
+    fn ids(registry: &Registry) -> Vec<(String, String)> {
+        registry.list().into_iter().map(|w| (w.worker_id, w.address)).collect()
+    }
+
+    #[tokio::test]
+    async fn the_same_id_registering_again_gets_its_entry_back() {
+        let registry = Registry::new(BEAT);
+        assert_eq!(registry.register(request("wk-a", "127.0.0.1:9001", &["a.raw"])).unwrap(), "wk-a");
+        assert_eq!(registry.register(request("wk-b", "127.0.0.1:9002", &[])).unwrap(), "wk-b");
+        let counters = registry.handle("wk-a").unwrap().in_flight;
+        counters.fetch_add(3, Ordering::Relaxed);
+        // The worker registers again (it was told `known = false`), now with another file.
+        assert_eq!(registry.register(request("wk-a", "127.0.0.1:9001", &["b.raw"])).unwrap(), "wk-a");
+        assert_eq!(
+            ids(&registry),
+            [("wk-a".to_string(), "127.0.0.1:9001".to_string()), ("wk-b".to_string(), "127.0.0.1:9002".to_string())]
+        );
+        assert_eq!(registry.handle("wk-a").unwrap().in_flight.load(Ordering::Relaxed), 3, "its load is kept");
+        assert_eq!(registry.holders(&["b.raw".to_string()]), ["wk-a"]);
+        assert!(registry.holders(&["a.raw".to_string()]).is_empty(), "its files are the new ones");
+        assert!(registry.heartbeat_from("wk-a") && registry.heartbeat_from("wk-b"));
+
+        // A coordinator restarted over the same workers: each id comes back as itself.
+        let restarted = Registry::new(BEAT);
+        assert!(!restarted.heartbeat_from("wk-a"), "unknown until it registers again");
+        assert_eq!(restarted.register(request("wk-b", "127.0.0.1:9002", &[])).unwrap(), "wk-b");
+        assert_eq!(restarted.register(request("wk-a", "127.0.0.1:9001", &[])).unwrap(), "wk-a");
+        assert!(restarted.heartbeat_from("wk-a") && restarted.heartbeat_from("wk-b"));
+    }
+
+    #[tokio::test]
+    async fn an_id_a_live_worker_holds_is_refused_from_another_address() {
+        let registry = Registry::new(BEAT);
+        registry.register(request("wk-a", "127.0.0.1:9001", &["a.raw"])).unwrap();
+        let refused = registry.register(request("wk-a", "127.0.0.1:9009", &[])).unwrap_err();
+        assert!(matches!(&refused, RegisterError::IdTaken { held_by, .. } if held_by == "127.0.0.1:9001"));
+        let message = refused.to_string();
+        assert!(message.contains("wk-a") && message.contains("127.0.0.1:9009") && message.contains("two workers"));
+        assert_eq!(ids(&registry), [("wk-a".to_string(), "127.0.0.1:9001".to_string())], "the live one is kept");
+        assert_eq!(registry.holders(&["a.raw".to_string()]), ["wk-a"]);
+
+        // A different worker at the same address replaces the old entry, as a restarted
+        // worker on the same port does.
+        registry.register(request("wk-new", "127.0.0.1:9001", &[])).unwrap();
+        assert_eq!(ids(&registry), [("wk-new".to_string(), "127.0.0.1:9001".to_string())]);
+        assert!(!registry.heartbeat_from("wk-a"));
+
+        // Once the holder is lost, the id may move (a worker rescheduled elsewhere).
+        let quick = Registry::new(Duration::from_millis(1));
+        quick.register(request("wk-a", "127.0.0.1:9001", &[])).unwrap();
+        std::thread::sleep(Duration::from_millis(20));
+        assert_eq!(quick.register(request("wk-a", "127.0.0.1:9002", &[])).unwrap(), "wk-a");
+        assert_eq!(ids(&quick), [("wk-a".to_string(), "127.0.0.1:9002".to_string())]);
+
+        for bad in ["has space", "semi;colon", &"x".repeat(MAX_WORKER_ID_BYTES + 1)] {
+            let e = registry.register(request(bad, "127.0.0.1:9003", &[])).unwrap_err();
+            assert!(matches!(e, RegisterError::BadId { .. }), "{bad}: {e}");
+        }
+    }
+
+    #[tokio::test]
+    async fn assigned_ids_are_never_reused_by_a_restarted_coordinator() {
+        // The old bug: ids `w1, w2, …` per process. Worker X got `w1` from the first run and
+        // kept heartbeating as `w1` after the restart, while the new run gave `w1` to Y: X
+        // was answered `known` forever and never registered again.
+        let first = Registry::with_epoch(BEAT, 1_700_000_000_000);
+        let x = first.register(request("", "127.0.0.1:9001", &["a.raw"])).unwrap();
+        let restarted = Registry::with_epoch(BEAT, 1_700_000_000_001);
+        let y = restarted.register(request("", "127.0.0.1:9002", &[])).unwrap();
+        assert_ne!(x, y);
+        assert!(!restarted.heartbeat_from(&x), "X is told to register again");
+        let x_again = restarted.register(request("", "127.0.0.1:9001", &["a.raw"])).unwrap();
+        assert!(x_again != x && x_again != y && x_again.starts_with("w-"), "{x_again}");
+        assert!(restarted.heartbeat_from(&x_again) && restarted.heartbeat_from(&y));
+        assert_eq!(restarted.list().len(), 2);
     }
 }
