@@ -153,7 +153,7 @@ fn jobs_sharing_one_worker_take_the_room_each_other_frees_without_waiting_for_a_
     // batches goes on only if that job's answers wake it. Without that wake-up the test
     // fails (its jobs stop), it never merely slows down.
     let driver = DriverConfig { tick: Duration::from_secs(3600), ..DriverConfig::default() };
-    let config = FarmConfig { heartbeat: TEST_HEARTBEAT, driver, max_jobs: 3 };
+    let config = FarmConfig { heartbeat: TEST_HEARTBEAT, driver, max_jobs: 3, ..FarmConfig::default() };
     let farm = TestFarm::start_with(&[], config, None);
     // One worker of one thread: room for four batches, over every job.
     let stops = stand_ins(&farm, &answers, 1, 1, Order::AsReceived);
