@@ -13,6 +13,7 @@ use trove_core::scene::Scene;
 use trove_proto::convert;
 use trove_proto::v1 as pb;
 
+use super::drain::Drain;
 use super::driver::{self, DriverConfig, JobPlan};
 use super::jobs::{is_final, Admission, Jobs};
 use super::registry::Registry;
@@ -27,6 +28,8 @@ pub struct Farm {
     pub driver: DriverConfig,
     /// How many jobs run at once; the others wait in order.
     pub admission: Arc<Admission>,
+    /// Whether the coordinator is stopping, and the jobs it waits for.
+    pub drain: Arc<Drain>,
 }
 
 /// The client-facing service.
@@ -101,6 +104,9 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
         request: Request<pb::SubmitJobRequest>,
     ) -> Result<Response<pb::SubmitJobResponse>, Status> {
         let farm = self.0.clone();
+        if farm.drain.is_draining() {
+            return Err(Drain::refusal());
+        }
         let request = request.into_inner();
         let planned = {
             let farm = farm.clone();
@@ -110,6 +116,7 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
         };
         let plan = planned?;
         let job = farm.jobs.create();
+        let tracked = farm.drain.track(job.clone());
         farm.admission.enqueue(job.clone());
         tracing::info!(job = %job.id, scene = %plan.scene_name, queued = farm.admission.waiting(), "job submitted");
         let id = job.id.clone();
@@ -142,6 +149,7 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
                 }),
             }
             jobs.finished(&job_id);
+            drop(tracked);
         });
         Ok(Response::new(pb::SubmitJobResponse { job_id: id }))
     }
@@ -187,6 +195,7 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
             return Err(convert::failure_status(failure));
         };
         let (tx, rx) = mpsc::channel(4);
+        let drain = self.0.drain.clone();
         tokio::spawn(async move {
             let parts = [
                 (pb::ResultPart::Png, Some(&output.png)),
@@ -208,6 +217,7 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
                     }
                 }
             }
+            drain.fetched(&id);
         });
         Ok(Response::new(ReceiverStream::new(rx)))
     }
@@ -255,5 +265,16 @@ impl pb::membership_server::Membership for MembershipService {
     ) -> Result<Response<pb::HeartbeatResponse>, Status> {
         let known = self.0.registry.heartbeat_from(&request.into_inner().worker_id);
         Ok(Response::new(pb::HeartbeatResponse { known }))
+    }
+
+    async fn deregister(
+        &self,
+        request: Request<pb::DeregisterRequest>,
+    ) -> Result<Response<pb::DeregisterResponse>, Status> {
+        let id = request.into_inner().worker_id;
+        if !self.0.registry.deregister(&id) {
+            tracing::debug!(worker = %id, "an unknown worker deregistered");
+        }
+        Ok(Response::new(pb::DeregisterResponse {}))
     }
 }

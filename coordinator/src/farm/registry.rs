@@ -4,14 +4,21 @@
 //! A worker is *alive* while its last heartbeat is recent ([`Registry::lost_after`]); jobs
 //! dispatch only to alive workers. The files of alive workers form the catalog against which
 //! submitted scenes are validated: the coordinator never opens a dataset file itself.
+//!
+//! A worker that deregisters (it is stopping) *leaves*: it is no longer a holder, in the
+//! catalog or listed, so no new batch goes to it, but it stays alive for the jobs that have
+//! batches on it until its heartbeats stop, so that the answers it still sends are taken.
+//! Channels to workers are made by the registry's [`Connector`]: `https://` and the CA
+//! when the coordinator verifies its workers' certificates, and the worker token on every
+//! `Cast` stream.
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use tonic::transport::{Channel, Endpoint};
 use trove_core::dataset::{Catalog, DatasetError, FileInfo, FileKind};
+use trove_proto::connect::{AuthChannel, ConnectError, Connector};
 use trove_proto::convert;
 use trove_proto::v1 as pb;
 
@@ -26,12 +33,14 @@ pub struct WorkerEntry {
     /// Its rayon threads (how much it can cast at once).
     pub threads: u32,
     /// A lazily connecting channel to it.
-    pub channel: Channel,
+    pub channel: AuthChannel,
     /// Batches handed to it and not answered yet, over all jobs.
     pub in_flight: Arc<AtomicU64>,
     /// Batches it has answered, over all jobs.
     pub done: Arc<AtomicU64>,
     last_heartbeat: Instant,
+    /// It deregistered: no new batch goes to it.
+    leaving: bool,
 }
 
 /// The coordinator's view of its workers.
@@ -39,9 +48,11 @@ pub struct Registry {
     state: Mutex<State>,
     heartbeat: Duration,
     next_id: AtomicU64,
-    /// Changes whenever a worker registers, so a job's dispatcher knows when to look its
-    /// datasets' holders up again instead of on every batch.
+    /// Changes whenever a worker registers or leaves, so a job's dispatcher knows when to
+    /// look its datasets' holders up again instead of on every batch.
     generation: AtomicU64,
+    /// How channels to workers are made.
+    connector: Connector,
 }
 
 #[derive(Default)]
@@ -60,14 +71,26 @@ const MISSED_HEARTBEATS: u32 = 5;
 const CONNECT_DEADLINE: Duration = Duration::from_secs(5);
 
 impl Registry {
-    /// An empty registry whose workers send a heartbeat every `heartbeat`.
+    /// An empty registry whose workers send a heartbeat every `heartbeat`, reached over
+    /// plaintext without a token.
     pub fn new(heartbeat: Duration) -> Registry {
+        Registry::with_connector(heartbeat, Connector::default())
+    }
+
+    /// As [`Registry::new`], reaching workers through `connector` (TLS, the worker token).
+    pub fn with_connector(heartbeat: Duration, connector: Connector) -> Registry {
         Registry {
             state: Mutex::new(State::default()),
             heartbeat,
             next_id: AtomicU64::new(1),
             generation: AtomicU64::new(0),
+            connector,
         }
+    }
+
+    /// Whether worker `w` may be handed new batches: alive and not leaving.
+    fn serving(&self, w: &WorkerEntry) -> bool {
+        !w.leaving && w.last_heartbeat.elapsed() <= self.lost_after()
     }
 
     /// How often workers are asked to send heartbeats.
@@ -82,27 +105,41 @@ impl Registry {
 
     /// Adds a worker (replacing any earlier registration from the same address, which then
     /// stops being known) and returns its id.
-    pub fn register(&self, request: pb::RegisterRequest) -> Result<String, tonic::transport::Error> {
-        let endpoint = Endpoint::from_shared(format!("http://{}", request.address))?
-            .connect_timeout(CONNECT_DEADLINE)
-            .tcp_nodelay(true);
+    pub fn register(&self, request: pb::RegisterRequest) -> Result<String, ConnectError> {
+        let endpoint =
+            self.connector.endpoint(&self.connector.url_for(&request.address))?.connect_timeout(CONNECT_DEADLINE);
         let id = format!("w{}", self.next_id.fetch_add(1, Ordering::Relaxed));
         let entry = WorkerEntry {
             id: id.clone(),
             address: request.address.clone(),
             files: request.files.into_iter().map(|f| (f.key.clone(), f)).collect(),
             threads: request.threads.max(1),
-            channel: endpoint.connect_lazy(),
+            channel: self.connector.authorize(endpoint.connect_lazy()),
             in_flight: Arc::new(AtomicU64::new(0)),
             done: Arc::new(AtomicU64::new(0)),
             last_heartbeat: Instant::now(),
+            leaving: false,
         };
         let mut state = lock(&self.state);
-        state.workers.retain(|_, w| w.address != request.address);
+        let lost_after = self.lost_after();
+        state
+            .workers
+            .retain(|_, w| w.address != request.address && !(w.leaving && w.last_heartbeat.elapsed() > lost_after));
         tracing::info!(worker = %id, address = %entry.address, files = entry.files.len(), "worker registered");
         state.workers.insert(id.clone(), entry);
         self.generation.fetch_add(1, Ordering::Release);
         Ok(id)
+    }
+
+    /// Takes worker `id` out of dispatch: it is stopping. Its streams stay usable while it
+    /// finishes the batches it holds; returns false when the id is unknown.
+    pub fn deregister(&self, id: &str) -> bool {
+        let mut state = lock(&self.state);
+        let Some(w) = state.workers.get_mut(id) else { return false };
+        w.leaving = true;
+        tracing::info!(worker = %id, address = %w.address, "worker deregistered");
+        self.generation.fetch_add(1, Ordering::Release);
+        true
     }
 
     /// A number that changes whenever the set of registered workers does.
@@ -126,10 +163,11 @@ impl Registry {
         lock(&self.state).workers.get(id).is_some_and(|w| w.last_heartbeat.elapsed() <= self.lost_after())
     }
 
-    /// What a dispatcher needs of an alive worker: its channel and counters.
+    /// What a dispatcher needs of an alive worker that takes batches: its channel and
+    /// counters.
     pub fn handle(&self, id: &str) -> Option<WorkerHandle> {
         let state = lock(&self.state);
-        let w = state.workers.get(id).filter(|w| w.last_heartbeat.elapsed() <= self.lost_after())?;
+        let w = state.workers.get(id).filter(|w| self.serving(w))?;
         Some(WorkerHandle {
             id: w.id.clone(),
             channel: w.channel.clone(),
@@ -139,14 +177,14 @@ impl Registry {
         })
     }
 
-    /// The alive workers that hold every key in `keys` (every alive worker when `keys` is
-    /// empty: a generated dataset can be cast anywhere).
+    /// The alive workers that take batches and hold every key in `keys` (every such worker
+    /// when `keys` is empty: a generated dataset can be cast anywhere).
     pub fn holders(&self, keys: &[String]) -> Vec<String> {
         let state = lock(&self.state);
         state
             .workers
             .values()
-            .filter(|w| w.last_heartbeat.elapsed() <= self.lost_after())
+            .filter(|w| self.serving(w))
             .filter(|w| keys.iter().all(|k| w.files.contains_key(k)))
             .map(|w| w.id.clone())
             .collect()
@@ -156,7 +194,7 @@ impl Registry {
     pub fn catalog(&self) -> RegistryCatalog {
         let state = lock(&self.state);
         let mut files: HashMap<String, Held> = HashMap::new();
-        for w in state.workers.values().filter(|w| w.last_heartbeat.elapsed() <= self.lost_after()) {
+        for w in state.workers.values().filter(|w| self.serving(w)) {
             for (key, f) in &w.files {
                 files
                     .entry(key.clone())
@@ -173,12 +211,13 @@ impl Registry {
         RegistryCatalog { files }
     }
 
-    /// Every registered worker, for `ListWorkers`.
+    /// Every registered worker that has not left, for `ListWorkers`.
     pub fn list(&self) -> Vec<pb::WorkerInfo> {
         let state = lock(&self.state);
         state
             .workers
             .values()
+            .filter(|w| !w.leaving)
             .map(|w| pb::WorkerInfo {
                 worker_id: w.id.clone(),
                 address: w.address.clone(),
@@ -199,7 +238,7 @@ pub struct WorkerHandle {
     /// The worker's id.
     pub id: String,
     /// A channel to it.
-    pub channel: Channel,
+    pub channel: AuthChannel,
     /// Its threads.
     pub threads: u32,
     /// Its batches in flight over all jobs.
