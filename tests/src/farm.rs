@@ -272,9 +272,20 @@ pub fn spawn_server(
     args: &[&str],
     stderr: std::process::Stdio,
 ) -> std::io::Result<(std::process::Child, String)> {
+    spawn_server_with_env(program, args, &[], stderr)
+}
+
+/// As [`spawn_server`], with `env` added to the server's environment (e.g. `RUST_LOG`).
+pub fn spawn_server_with_env(
+    program: &Path,
+    args: &[&str],
+    env: &[(&str, &str)],
+    stderr: std::process::Stdio,
+) -> std::io::Result<(std::process::Child, String)> {
     use std::io::BufRead;
     let mut child = std::process::Command::new(program)
         .args(args)
+        .envs(env.iter().copied())
         .stdin(std::process::Stdio::null())
         .stdout(std::process::Stdio::piped())
         .stderr(stderr)
