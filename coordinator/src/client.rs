@@ -19,7 +19,7 @@ const CALL_DEADLINE: Duration = Duration::from_secs(60);
 #[derive(Debug, Error)]
 pub enum ClientError {
     /// The coordinator cannot be reached (or its URL and the TLS options disagree).
-    #[error("cannot connect to the coordinator: {0}")]
+    #[error(transparent)]
     Connect(#[from] ConnectError),
     /// The coordinator refused the client's token, or its lack of one.
     #[error(

@@ -23,7 +23,7 @@ pub const AUTHORIZATION: &str = "authorization";
 #[derive(Debug, thiserror::Error)]
 pub enum TokenError {
     /// The file cannot be read.
-    #[error("cannot read the token file {}: {source}", path.display())]
+    #[error("cannot read the token file {}", path.display())]
     Read {
         /// The file.
         path: PathBuf,

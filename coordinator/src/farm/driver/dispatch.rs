@@ -171,3 +171,37 @@ impl Dispatch {
         self.in_flight.values().filter(|b| b.sent.elapsed() > deadline).map(|b| b.stream.clone()).collect()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use trove_proto::v1 as pb;
+
+    use super::*;
+
+    #[tokio::test]
+    async fn a_lost_pair_rests_then_serves_the_job_again_and_one_out_for_the_job_stays_out() {
+        // Heartbeats every 10 ms: a worker counts as lost 50 ms after its last one.
+        let registry = Registry::new(Duration::from_millis(10));
+        let request =
+            pb::RegisterRequest { address: "127.0.0.1:9".into(), files: Vec::new(), threads: 1, memory_budget: 0 };
+        let id = registry.register(request).unwrap();
+        // One generated dataset: every worker holds it.
+        let mut dispatch = Dispatch::new(vec![Vec::new()]);
+        dispatch.refresh(&registry, true);
+        assert!(dispatch.pick(0, |_| true).is_some());
+        let pair = (id.clone(), 0);
+        let lost = dispatch.lose(&pair, None, Rest::Until(Instant::now() + Duration::from_millis(20)));
+        assert!(lost.is_empty());
+        assert!(dispatch.pick(0, |_| true).is_none(), "a resting pair is not picked");
+        assert!(!dispatch.is_orphaned(0), "a dataset whose holder rests waits for it");
+        tokio::time::sleep(Duration::from_millis(30)).await;
+        assert!(registry.heartbeat_from(&id));
+        dispatch.refresh(&registry, true);
+        assert!(dispatch.pick(0, |_| true).is_some(), "an alive worker serves the job again after its rest");
+        dispatch.lose(&pair, None, Rest::Job);
+        dispatch.lose(&pair, None, Rest::Until(Instant::now()));
+        dispatch.refresh(&registry, true);
+        assert!(dispatch.pick(0, |_| true).is_none());
+        assert!(dispatch.is_orphaned(0), "a pair out for the job stays out, and its dataset is orphaned");
+    }
+}

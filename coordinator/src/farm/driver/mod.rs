@@ -457,7 +457,7 @@ impl Driver {
         };
         self.tally.wire_to += request.encoded_len() as u64;
         self.tally.coordinator.encoding += encoding.elapsed().as_secs_f64();
-        if !self.streams.get(&key).is_some_and(|stream| stream.tx.try_send(request).is_ok()) {
+        if self.streams.get(&key).is_none_or(|stream| stream.tx.try_send(request).is_err()) {
             // The stream's reader is gone or its queue is full: give the batch back.
             if let Some((seq, scheduler)) = self.bands.casting(band) {
                 let _ = scheduler.abandon(batch.id);
