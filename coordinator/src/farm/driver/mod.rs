@@ -26,11 +26,11 @@
 //! the dataset, and serves the job again after a rest if it is still alive. Batches go on a
 //! stream only once the worker has accepted it (opening it checks the scene and the
 //! worker's stream cap), so a worker that refuses a stream as busy costs no batch an
-//! attempt: it is asked again later. A job fails only when no holder is left, when a batch has been given up
-//! [`DriverConfig::max_attempts`] times, when a worker reports a failure that retrying
-//! cannot fix, when it runs past [`DriverConfig::job_deadline`], when a band makes more
-//! tasks than the memory bound holds (`intersect_within`), or when a step on a blocking
-//! thread panics: each fails this job only.
+//! attempt: it is asked again later. A job fails only when no holder is left, when a batch
+//! has been given up [`DriverConfig::max_attempts`] times, when a worker reports a failure
+//! that retrying cannot fix, when it runs past [`DriverConfig::job_deadline`], when a band
+//! makes more tasks than the memory bound holds (`intersect_within`), or when a step on a
+//! blocking thread panics: each fails this job only.
 
 mod dispatch;
 mod error;
