@@ -8,10 +8,13 @@ use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use trove_coordinator::client::FarmClient;
-use trove_coordinator::farm::{self, FarmConfig};
+use trove_coordinator::farm::{self, FarmConfig, FarmSecurity};
 use trove_core::render::{self, Algorithm, RenderOptions};
 use trove_core::scene::{DataRoot, Scene, DATA_ROOT_ENV};
+use trove_proto::auth::Token;
+use trove_proto::connect::Connector;
 use trove_proto::parse_bytes;
+use trove_proto::tls::{CaCert, ServerTls};
 use trove_proto::v1 as pb;
 
 #[derive(Parser)]
@@ -62,11 +65,53 @@ struct RenderArgs {
     /// farm's workers resolve the keys under their own --data-root.
     #[arg(long, value_name = "DIR")]
     data_root: Option<PathBuf>,
-    /// Render through the farm whose coordinator listens at this URL (e.g.
-    /// http://127.0.0.1:7000) instead of in this process. The scene's dataset paths are
-    /// keys that the workers resolve under their data roots.
+    #[command(flatten)]
+    connect: ConnectArgs,
+}
+
+/// How a client command reaches a coordinator: its URL, the client token and, for
+/// `https://`, the CA that signed the coordinator's certificate.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct ConnectArgs {
+    /// The coordinator's URL, e.g. http://127.0.0.1:7000 (https://... for TLS, with
+    /// --tls-ca). For `render`: render through that farm instead of in this process; the
+    /// scene's dataset paths are keys that the workers resolve under their data roots.
     #[arg(long, value_name = "URL")]
-    coordinator: Option<String>,
+    pub coordinator: Option<String>,
+    /// A file holding the client token (one line): the coordinator's --client-token-file.
+    #[arg(long, value_name = "FILE")]
+    pub token_file: Option<PathBuf>,
+    /// The CA certificate (PEM) that signed an https:// coordinator's certificate.
+    #[arg(long, value_name = "FILE")]
+    pub tls_ca: Option<PathBuf>,
+}
+
+impl ConnectArgs {
+    /// The coordinator's URL; an error naming the flag when it is missing.
+    pub fn url(&self) -> Result<&str> {
+        self.coordinator.as_deref().context("--coordinator URL is required: the coordinator to ask")
+    }
+
+    /// The token and CA from their files; each error names the flag and the file.
+    pub fn connector(&self) -> Result<Connector> {
+        let token = match &self.token_file {
+            Some(path) => Some(Token::from_file(path).context("--token-file")?),
+            None => None,
+        };
+        let ca = match &self.tls_ca {
+            Some(path) => Some(CaCert::from_file(path).context("--tls-ca")?),
+            None => None,
+        };
+        Ok(Connector::new(ca, token))
+    }
+
+    /// Refuses the connection flags in a command that does not connect (a local render).
+    fn refuse_for_local(&self) -> Result<()> {
+        if self.token_file.is_some() || self.tls_ca.is_some() {
+            bail!("--token-file and --tls-ca apply to renders through a farm (--coordinator URL)");
+        }
+        Ok(())
+    }
 }
 
 #[derive(clap::Args)]
@@ -106,6 +151,50 @@ struct CoordinatorArgs {
     /// Seconds a finished job and its result files are kept before they are removed.
     #[arg(long, value_name = "N", default_value_t = farm::DEFAULT_KEEP_RESULTS.as_secs())]
     keep_results_s: u64,
+
+    /// Serve over TLS with this certificate (PEM; with --tls-key): clients and workers then
+    /// use https:// and --tls-ca with the CA that signed it.
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// The private key of --tls-cert (PEM).
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
+    /// The CA certificate (PEM) that signed the workers' certificates: the coordinator then
+    /// reaches its workers over TLS (their --tls-cert) and verifies them against it.
+    #[arg(long, value_name = "FILE")]
+    tls_ca: Option<PathBuf>,
+    /// A file holding the client token (one line): every job API call must present it
+    /// (`trove render --token-file`).
+    #[arg(long, value_name = "FILE")]
+    client_token_file: Option<PathBuf>,
+    /// A file holding the worker token (one line): workers must present it to register
+    /// (`trove-worker --token-file`), and the coordinator presents it on its cast streams.
+    #[arg(long, value_name = "FILE")]
+    worker_token_file: Option<PathBuf>,
+    /// Seconds a stopping coordinator (SIGTERM) lets running jobs finish, refusing new ones,
+    /// before it stops.
+    #[arg(long, default_value_t = farm::DEFAULT_DRAIN_GRACE.as_secs())]
+    drain_grace_s: u64,
+}
+
+impl CoordinatorArgs {
+    /// The coordinator's credentials from its flags; each error names the flag and the file.
+    fn security(&self) -> Result<FarmSecurity> {
+        let token = |path: &Option<PathBuf>, flag: &'static str| -> Result<Option<Token>> {
+            path.as_deref().map(|p| Token::from_file(p).context(flag)).transpose()
+        };
+        let tls = match (&self.tls_cert, &self.tls_key) {
+            (Some(cert), Some(key)) => Some(ServerTls::from_files(cert, key).context("--tls-cert/--tls-key")?),
+            _ => None,
+        };
+        let worker_ca = self.tls_ca.as_deref().map(|p| CaCert::from_file(p).context("--tls-ca")).transpose()?;
+        Ok(FarmSecurity {
+            tls,
+            worker_ca,
+            client_token: token(&self.client_token_file, "--client-token-file")?,
+            worker_token: token(&self.worker_token_file, "--worker-token-file")?,
+        })
+    }
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -136,7 +225,7 @@ impl From<AlgorithmArg> for Algorithm {
 /// Parses the arguments and runs the command.
 pub fn run() -> Result<()> {
     match Cli::parse().command {
-        Command::Render(args) if args.coordinator.is_some() => farm_render(args),
+        Command::Render(args) if args.connect.coordinator.is_some() => farm_render(args),
         Command::Render(args) => render_command(args),
         Command::Coordinator(args) => coordinator_command(args),
         Command::Data(data) => data.run(),
@@ -144,6 +233,7 @@ pub fn run() -> Result<()> {
 }
 
 fn render_command(args: RenderArgs) -> Result<()> {
+    args.connect.refuse_for_local()?;
     check_output(&args.output, &["png", "pfm"])?;
     if let Some(stats) = &args.stats {
         check_output(stats, &["json"])?;
@@ -214,7 +304,7 @@ fn progress_bar(rows: u64) -> Option<ProgressBar> {
 
 /// `trove render --coordinator URL`: the same files as local mode, made by a farm.
 fn farm_render(args: RenderArgs) -> Result<()> {
-    let url = args.coordinator.clone().expect("checked by the caller");
+    let url = args.connect.url()?.to_string();
     check_output(&args.output, &["png", "pfm"])?;
     if let Some(stats) = &args.stats {
         check_output(stats, &["json"])?;
@@ -239,8 +329,9 @@ fn farm_render(args: RenderArgs) -> Result<()> {
     let name = args.scene.display().to_string();
     let want_pfm = is_pfm(&args.output);
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
+    let connector = args.connect.connector()?;
     let files = runtime.block_on(async {
-        let mut client = FarmClient::connect(&url).await?;
+        let mut client = FarmClient::connect_with(&url, &connector).await?;
         let bar = progress_bar(0);
         let options = pb::JobOptions { want_pfm, ..Default::default() };
         let files = client
@@ -267,6 +358,7 @@ fn farm_render(args: RenderArgs) -> Result<()> {
 
 /// `trove coordinator`: serves until Ctrl-C or SIGTERM.
 fn coordinator_command(args: CoordinatorArgs) -> Result<()> {
+    let security = args.security()?;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {
         let listener = tokio::net::TcpListener::bind(&args.listen)
@@ -286,6 +378,9 @@ fn coordinator_command(args: CoordinatorArgs) -> Result<()> {
             max_jobs: args.max_jobs.max(1),
             state_dir: args.state_dir,
             keep_results: std::time::Duration::from_secs(args.keep_results_s),
+
+            security,
+            drain_grace: std::time::Duration::from_secs(args.drain_grace_s),
         };
         farm::run(listener, trove_proto::shutdown_signal(), config).await.context("coordinator")
     })

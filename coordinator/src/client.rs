@@ -1,6 +1,7 @@
 //! A client of a farm's job API: what `trove render --coordinator URL` does, as a library
 //! (submit a scene, follow the job, fetch its files), so tests drive a farm the way a user
-//! does.
+//! does. It connects through a [`Connector`]: `https://` verified against a CA, and the
+//! client token on every call.
 //!
 //! Following a job survives a coordinator restart or a dropped stream: a call that fails
 //! at the transport level (not a typed failure of the job) is tried again on a reconnecting
@@ -10,8 +11,8 @@
 use std::time::{Duration, Instant};
 
 use thiserror::Error;
-use tonic::transport::{Channel, Endpoint};
-use tonic::Status;
+use tonic::{Code, Status};
+use trove_proto::connect::{AuthChannel, ConnectError, Connector};
 use trove_proto::convert;
 use trove_proto::v1 as pb;
 use trove_proto::v1::coordinator_client::CoordinatorClient;
@@ -27,14 +28,20 @@ const BACKOFF: (Duration, Duration) = (Duration::from_millis(50), Duration::from
 /// Why a farm render failed, as the user should read it.
 #[derive(Debug, Error)]
 pub enum ClientError {
-    /// The coordinator cannot be reached.
-    #[error("cannot reach the coordinator at {url}: {source}")]
-    Connect {
-        /// Its URL.
-        url: String,
-        /// Why.
-        #[source]
-        source: tonic::transport::Error,
+    /// The coordinator cannot be reached (or its URL and the TLS options disagree).
+    #[error(transparent)]
+    Connect(#[from] ConnectError),
+    /// The coordinator refused the client's token, or its lack of one.
+    #[error(
+        "the coordinator refused {}: {message}; the token is read from --token-file FILE, which must hold \
+         the coordinator's --client-token-file token",
+        if *.sent { "this client's token" } else { "a client without a token" }
+    )]
+    Unauthenticated {
+        /// Whether a token was sent.
+        sent: bool,
+        /// The coordinator's reason.
+        message: String,
     },
     /// The coordinator or the job refused, with a typed reason.
     #[error("{}", .0.message)]
@@ -70,7 +77,7 @@ impl ClientError {
                 tonic::Code::Internal => status.message().contains("h2 protocol error"),
                 _ => false,
             },
-            ClientError::Failed(_) | ClientError::Incomplete => false,
+            ClientError::Failed(_) | ClientError::Unauthenticated { .. } | ClientError::Incomplete => false,
         }
     }
 
@@ -97,24 +104,35 @@ pub struct JobFiles {
 /// A connection to a coordinator's job API.
 #[derive(Clone)]
 pub struct FarmClient {
-    inner: CoordinatorClient<Channel>,
+    inner: CoordinatorClient<AuthChannel>,
+    sends_token: bool,
 }
 
 impl FarmClient {
-    /// Connects to the coordinator at `url` (e.g. `http://127.0.0.1:7000`).
+    /// Connects to the coordinator at `url` (e.g. `http://127.0.0.1:7000`), plaintext and
+    /// without a token.
     pub async fn connect(url: &str) -> Result<FarmClient, ClientError> {
-        let connect = |source| ClientError::Connect { url: url.to_string(), source };
-        let channel = Endpoint::from_shared(url.to_string())
-            .map_err(connect)?
-            .connect_timeout(Duration::from_secs(10))
-            .tcp_nodelay(true)
-            .connect()
-            .await
-            .map_err(connect)?;
+        FarmClient::connect_with(url, &Connector::default()).await
+    }
+
+    /// Connects to the coordinator at `url` through `connector` (its CA for `https://`,
+    /// its token).
+    pub async fn connect_with(url: &str, connector: &Connector) -> Result<FarmClient, ClientError> {
+        let endpoint = connector.endpoint(url)?.connect_timeout(Duration::from_secs(10));
+        let channel = connector.connect(endpoint).await?;
         let limit = trove_proto::MAX_MESSAGE_BYTES;
         Ok(FarmClient {
             inner: CoordinatorClient::new(channel).max_decoding_message_size(limit).max_encoding_message_size(limit),
+            sends_token: connector.sends_token(),
         })
+    }
+
+    /// A status as this client's error: a refused token says which flag sets it.
+    fn error(&self, status: Status) -> ClientError {
+        if status.code() == Code::Unauthenticated {
+            return ClientError::Unauthenticated { sent: self.sends_token, message: status.message().to_string() };
+        }
+        ClientError::from(status)
     }
 
     /// Submits a scene; returns the job's id.
@@ -126,7 +144,8 @@ impl FarmClient {
     ) -> Result<String, ClientError> {
         let mut request = tonic::Request::new(pb::SubmitJobRequest { scene_toml, scene_name, options: Some(options) });
         request.set_timeout(CALL_DEADLINE);
-        Ok(self.inner.submit_job(request).await?.into_inner().job_id)
+        let response = self.inner.submit_job(request).await;
+        Ok(response.map_err(|s| self.error(s))?.into_inner().job_id)
     }
 
     /// Follows job `id` until it ends and fetches its files, as [`FarmClient::watch`] and
@@ -192,7 +211,8 @@ impl FarmClient {
         id: &str,
         mut progress: impl FnMut(&pb::JobStatus),
     ) -> Result<pb::JobStatus, ClientError> {
-        let mut stream = self.inner.watch_job(pb::WatchJobRequest { job_id: id.to_string() }).await?.into_inner();
+        let response = self.inner.watch_job(pb::WatchJobRequest { job_id: id.to_string() }).await;
+        let mut stream = response.map_err(|s| self.error(s))?.into_inner();
         let mut last = None;
         while let Some(status) = stream.message().await? {
             progress(&status);
@@ -213,7 +233,8 @@ impl FarmClient {
     pub async fn result(&mut self, id: &str) -> Result<JobFiles, ClientError> {
         let mut request = tonic::Request::new(pb::GetResultRequest { job_id: id.to_string() });
         request.set_timeout(Duration::from_secs(600));
-        let mut stream = self.inner.get_result(request).await?.into_inner();
+        let response = self.inner.get_result(request).await;
+        let mut stream = response.map_err(|s| self.error(s))?.into_inner();
         let mut files = JobFiles::default();
         while let Some(chunk) = stream.message().await? {
             let part = match chunk.part() {
@@ -237,14 +258,16 @@ impl FarmClient {
     pub async fn cancel(&mut self, id: &str) -> Result<pb::JobState, ClientError> {
         let mut request = tonic::Request::new(pb::CancelJobRequest { job_id: id.to_string() });
         request.set_timeout(CALL_DEADLINE);
-        Ok(self.inner.cancel_job(request).await?.into_inner().state())
+        let response = self.inner.cancel_job(request).await;
+        Ok(response.map_err(|s| self.error(s))?.into_inner().state())
     }
 
     /// The workers the coordinator knows.
     pub async fn workers(&mut self) -> Result<Vec<pb::WorkerInfo>, ClientError> {
         let mut request = tonic::Request::new(pb::ListWorkersRequest {});
         request.set_timeout(CALL_DEADLINE);
-        Ok(self.inner.list_workers(request).await?.into_inner().workers)
+        let response = self.inner.list_workers(request).await;
+        Ok(response.map_err(|s| self.error(s))?.into_inner().workers)
     }
 
     /// Submits, follows and fetches: a whole render through the farm.
@@ -255,7 +278,21 @@ impl FarmClient {
         options: pb::JobOptions,
         progress: impl FnMut(&pb::JobStatus),
     ) -> Result<JobFiles, ClientError> {
-        let id = self.submit(scene_toml, scene_name, options).await?;
+        // A draining coordinator refuses new jobs as UNAVAILABLE (retryable, and no job was
+        // made): its successor, or the same one restarted, takes the job.
+        let mut wait = (Instant::now(), BACKOFF.0);
+        let id = loop {
+            match self.submit(scene_toml.clone(), scene_name.clone(), options).await {
+                Err(ClientError::Failed(f))
+                    if f.reason() == pb::Reason::Unavailable && wait.0.elapsed() < REATTACH_DEADLINE =>
+                {
+                    tracing::warn!(message = %f.message, retry_in = ?wait.1, "the coordinator takes no new jobs; retrying");
+                    tokio::time::sleep(wait.1).await;
+                    wait.1 = (wait.1 * 2).min(BACKOFF.1);
+                }
+                submitted => break submitted?,
+            }
+        };
         self.follow(&id, progress).await
     }
 }

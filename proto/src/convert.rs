@@ -32,7 +32,7 @@ pub fn failure_status(f: pb::Failure) -> Status {
         pb::Reason::SceneInvalid | pb::Reason::BadBatch => Code::InvalidArgument,
         pb::Reason::DatasetNotHeld | pb::Reason::DatasetInvalid => Code::FailedPrecondition,
         pb::Reason::Cancelled => Code::Cancelled,
-        pb::Reason::WorkerLost => Code::Unavailable,
+        pb::Reason::WorkerLost | pb::Reason::Unavailable => Code::Unavailable,
         pb::Reason::LimitExceeded => Code::ResourceExhausted,
         pb::Reason::NotFound => Code::NotFound,
         pb::Reason::DeadlineExceeded => Code::DeadlineExceeded,

@@ -2,10 +2,14 @@
 //! crate), and the edge where it meets `trove-core`: only this crate, the coordinator and
 //! the worker see protobuf types, and they translate here ([`convert`]), so `trove-core`
 //! never does. [`edge`] holds what both farm binaries need at their own edge (byte counts
-//! on the command line, logging, shutdown on a signal).
+//! on the command line, logging, shutdown on a signal); [`auth`], [`tls`] and [`connect`]
+//! how their connections are secured (bearer tokens, TLS, keepalive), on both sides.
 
+pub mod auth;
+pub mod connect;
 pub mod convert;
 pub mod edge;
+pub mod tls;
 
 pub use edge::{init_logging, parse_bytes, shutdown_signal, BytesError};
 

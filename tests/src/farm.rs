@@ -1,23 +1,73 @@
 //! A whole farm in this process: a coordinator and workers on `127.0.0.1:0`, each worker
 //! over its own data root, driven through the same client a user's `trove render
-//! --coordinator` uses. Dropping the farm shuts every server down.
+//! --coordinator` uses. Dropping the farm shuts every server down. [`FarmOptions`] give it
+//! tokens, TLS and a stream cap, as an operator's flags would.
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use tokio::sync::oneshot;
 use trove_coordinator::client::{ClientError, FarmClient, JobFiles};
-use trove_coordinator::farm::{self, FarmConfig};
+use trove_coordinator::farm::{self, FarmConfig, FarmSecurity};
+use trove_proto::auth::Token;
+use trove_proto::connect::Connector;
+use trove_proto::tls::{CaCert, ServerTls};
 use trove_proto::v1 as pb;
-use trove_worker::WorkerConfig;
+use trove_worker::{WorkerConfig, WorkerSecurity};
 
 /// A running in-process farm.
 pub struct TestFarm {
-    /// The coordinator's URL.
+    /// The coordinator's URL (`https://` with TLS).
     pub url: String,
     runtime: tokio::runtime::Runtime,
     coordinator: Option<oneshot::Sender<()>>,
     workers: Vec<Option<oneshot::Sender<()>>>,
+    /// How [`TestFarm::client`] connects: the CA and the client token.
+    connector: Connector,
+    /// What [`TestFarm::add_worker`] gives each worker.
+    worker_security: WorkerSecurity,
+    max_streams: usize,
+}
+
+/// TLS for a test farm: one certificate (for `127.0.0.1`) that the coordinator and every
+/// worker serve, and the CA that signed it, which every side trusts.
+#[derive(Clone, Debug)]
+pub struct TestTls {
+    /// The CA.
+    pub ca: CaCert,
+    /// The servers' certificate and key.
+    pub server: ServerTls,
+}
+
+/// How a test farm runs, beyond its data roots.
+#[derive(Clone, Debug)]
+pub struct FarmOptions {
+    /// The coordinator's configuration (its `security` is set from the fields below).
+    pub config: FarmConfig,
+    /// Every worker's memory budget.
+    pub budget: Option<u64>,
+    /// Required by the coordinator's job API; the farm's client presents it.
+    pub client_token: Option<Token>,
+    /// Required by the coordinator's membership and every worker's casts; the workers and
+    /// the coordinator present it.
+    pub worker_token: Option<Token>,
+    /// TLS on every connection.
+    pub tls: Option<TestTls>,
+    /// Every worker's stream cap.
+    pub max_streams: usize,
+}
+
+impl Default for FarmOptions {
+    fn default() -> Self {
+        FarmOptions {
+            config: FarmConfig { heartbeat: TEST_HEARTBEAT, ..FarmConfig::default() },
+            budget: None,
+            client_token: None,
+            worker_token: None,
+            tls: None,
+            max_streams: trove_worker::cast::DEFAULT_MAX_STREAMS,
+        }
+    }
 }
 
 /// The longest a test waits for one render through the farm.
@@ -34,6 +84,24 @@ impl TestFarm {
 
     /// As [`TestFarm::start`], with a coordinator configuration and a worker memory budget.
     pub fn start_with(roots: &[PathBuf], config: FarmConfig, budget: Option<u64>) -> TestFarm {
+        TestFarm::start_opts(roots, FarmOptions { config, budget, ..FarmOptions::default() })
+    }
+
+    /// As [`TestFarm::start`], with every option.
+    pub fn start_opts(roots: &[PathBuf], options: FarmOptions) -> TestFarm {
+        let FarmOptions { mut config, budget, client_token, worker_token, tls, max_streams } = options;
+        config.security = FarmSecurity {
+            tls: tls.as_ref().map(|t| t.server.clone()),
+            worker_ca: tls.as_ref().map(|t| t.ca.clone()),
+            client_token: client_token.clone(),
+            worker_token: worker_token.clone(),
+        };
+        let connector = Connector::new(tls.as_ref().map(|t| t.ca.clone()), client_token);
+        let worker_security = WorkerSecurity {
+            token: worker_token,
+            tls: tls.as_ref().map(|t| t.server.clone()),
+            coordinator_ca: tls.as_ref().map(|t| t.ca.clone()),
+        };
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .enable_all()
@@ -41,7 +109,7 @@ impl TestFarm {
             .expect("a tokio runtime");
         let (url, coordinator) = runtime.block_on(async {
             let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind the coordinator");
-            let url = format!("http://{}", listener.local_addr().expect("address"));
+            let url = connector.url_for(&listener.local_addr().expect("address").to_string());
             let (tx, rx) = oneshot::channel::<()>();
             tokio::spawn(async move {
                 let _ = farm::run(
@@ -55,7 +123,15 @@ impl TestFarm {
             });
             (url, tx)
         });
-        let mut farm = TestFarm { url, runtime, coordinator: Some(coordinator), workers: Vec::new() };
+        let mut farm = TestFarm {
+            url,
+            runtime,
+            coordinator: Some(coordinator),
+            workers: Vec::new(),
+            connector,
+            worker_security,
+            max_streams,
+        };
         for root in roots {
             farm.add_worker(root, budget);
         }
@@ -63,15 +139,20 @@ impl TestFarm {
         farm
     }
 
+    /// What [`TestFarm::add_worker`] runs a worker over `root` with: this farm's
+    /// coordinator, credentials and stream cap.
+    pub fn worker_config(&self, root: &Path, memory_budget: Option<u64>) -> WorkerConfig {
+        WorkerConfig {
+            memory_budget,
+            security: self.worker_security.clone(),
+            max_streams: self.max_streams,
+            ..WorkerConfig::new(self.url.clone(), root)
+        }
+    }
+
     /// Starts another worker over `root`.
     pub fn add_worker(&mut self, root: &Path, memory_budget: Option<u64>) {
-        let config = WorkerConfig {
-            coordinator: self.url.clone(),
-            advertise: None,
-            data_root: root.to_path_buf(),
-            memory_budget,
-            worker_id: None,
-        };
+        let config = self.worker_config(root, memory_budget);
         let tx = self.runtime.block_on(async {
             let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind a worker");
             let (tx, rx) = oneshot::channel::<()>();
@@ -119,9 +200,15 @@ impl TestFarm {
             .unwrap_or(0)
     }
 
-    /// A client of this farm.
+    /// The addresses of the workers the coordinator lists.
+    pub fn worker_addresses(&self) -> Vec<String> {
+        let workers = self.block_on(async { self.client().await.workers().await }).expect("list the workers");
+        workers.into_iter().map(|w| w.address).collect()
+    }
+
+    /// A client of this farm, with its CA and client token.
     pub async fn client(&self) -> FarmClient {
-        FarmClient::connect(&self.url).await.expect("connect to the test coordinator")
+        FarmClient::connect_with(&self.url, &self.connector).await.expect("connect to the test coordinator")
     }
 
     /// Runs a future on the farm's runtime.
@@ -185,9 +272,20 @@ pub fn spawn_server(
     args: &[&str],
     stderr: std::process::Stdio,
 ) -> std::io::Result<(std::process::Child, String)> {
+    spawn_server_with_env(program, args, &[], stderr)
+}
+
+/// As [`spawn_server`], with `env` added to the server's environment (e.g. `RUST_LOG`).
+pub fn spawn_server_with_env(
+    program: &Path,
+    args: &[&str],
+    env: &[(&str, &str)],
+    stderr: std::process::Stdio,
+) -> std::io::Result<(std::process::Child, String)> {
     use std::io::BufRead;
     let mut child = std::process::Command::new(program)
         .args(args)
+        .envs(env.iter().copied())
         .stdin(std::process::Stdio::null())
         .stdout(std::process::Stdio::piped())
         .stderr(stderr)

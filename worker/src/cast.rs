@@ -9,6 +9,12 @@
 //! other streams can then load their datasets, so streams never wait on each other forever.
 //! When the coordinator closes the stream (the job is done or cancelled), queued batches are
 //! dropped and the batch being cast stops at its next chunk.
+//!
+//! A worker serves at most `max_streams` streams at once (each is a thread); one more is
+//! refused with `RESOURCE_EXHAUSTED`, which the coordinator treats as "busy, ask again
+//! later". When the worker drains ([`CastService::drain`], on SIGTERM), new streams are
+//! refused with `UNAVAILABLE`, each stream stops taking batches, casts those it already
+//! holds, and then ends, so that the coordinator sends whatever was left to another holder.
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -16,7 +22,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use rayon::prelude::*;
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, watch, OwnedSemaphorePermit, Semaphore};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 use trove_core::dataset::{Catalog, DatasetError, FileInfo, FileKind};
@@ -31,18 +37,71 @@ use crate::files::DataFiles;
 /// Tasks per rayon work item within a batch, and the granularity of cancellation.
 const CHUNK_TASKS: usize = 256;
 
+/// Streams a worker serves at once when not told.
+pub const DEFAULT_MAX_STREAMS: usize = 64;
+
 /// The `Worker` service.
 pub struct CastService {
     files: Arc<DataFiles>,
     store: VolumeStore,
     busy: Arc<AtomicU64>,
+    /// One permit per stream served at once.
+    streams: Arc<Semaphore>,
+    max_streams: usize,
+    draining: watch::Sender<bool>,
+}
+
+/// Starts a worker's drain ([`CastService::drain`]); it outlives the service, which the
+/// server owns.
+#[derive(Clone)]
+pub struct Drain(watch::Sender<bool>);
+
+impl Drain {
+    /// From now on new streams are refused, and each stream casts the batches it holds and
+    /// ends.
+    pub fn begin(&self) {
+        self.0.send_replace(true);
+    }
 }
 
 impl CastService {
-    /// Serves casts of the datasets in `files`, keeping voxels in `store`; `busy` counts the
-    /// batches being cast (reported with heartbeats).
-    pub fn new(files: Arc<DataFiles>, store: VolumeStore, busy: Arc<AtomicU64>) -> CastService {
-        CastService { files, store, busy }
+    /// Serves casts of the datasets in `files`, keeping voxels in `store`, at most
+    /// `max_streams` streams at once (at least one); `busy` counts the batches being cast
+    /// (reported with heartbeats).
+    pub fn new(files: Arc<DataFiles>, store: VolumeStore, busy: Arc<AtomicU64>, max_streams: usize) -> CastService {
+        let max_streams = max_streams.max(1);
+        CastService {
+            files,
+            store,
+            busy,
+            streams: Arc::new(Semaphore::new(max_streams)),
+            max_streams,
+            draining: watch::channel(false).0,
+        }
+    }
+
+    /// What starts this service's drain.
+    pub fn drain(&self) -> Drain {
+        Drain(self.draining.clone())
+    }
+
+    /// A permit for one more stream, or the refusal.
+    fn admit(&self) -> Result<OwnedSemaphorePermit, Status> {
+        if *self.draining.borrow() {
+            let f = convert::failure(
+                pb::Reason::Unavailable,
+                true,
+                "this worker is stopping and takes no new streams".into(),
+            );
+            return Err(convert::failure_status(f));
+        }
+        self.streams.clone().try_acquire_owned().map_err(|_| {
+            let message = format!(
+                "this worker serves at most {} cast streams at once (--max-streams) and all are in use; try again later",
+                self.max_streams
+            );
+            convert::failure_status(convert::failure(pb::Reason::LimitExceeded, true, message))
+        })
     }
 }
 
@@ -104,6 +163,8 @@ impl pb::worker_server::Worker for CastService {
     type CastStream = ReceiverStream<Result<pb::CastResponse, Status>>;
 
     async fn cast(&self, request: Request<Streaming<pb::CastRequest>>) -> Result<Response<Self::CastStream>, Status> {
+        // Taken before anything is read, so that streams that never send are counted too.
+        let permit = self.admit()?;
         let job = request.metadata().get(JOB_HEADER).and_then(|v| v.to_str().ok()).unwrap_or("-").to_string();
         let mut inbound = request.into_inner();
         let open = match inbound.message().await? {
@@ -123,12 +184,17 @@ impl pb::worker_server::Worker for CastService {
         let cancelled = Arc::new(AtomicBool::new(false));
         let feeder_cancel = cancelled.clone();
         let feeder_out = out_tx.clone();
+        let mut draining = self.draining.subscribe();
         tokio::spawn(async move {
-            loop {
-                match inbound.message().await {
+            let drained = loop {
+                let message = tokio::select! {
+                    message = inbound.message() => message,
+                    _ = draining.wait_for(|d| *d) => break true,
+                };
+                match message {
                     Ok(Some(pb::CastRequest { kind: Some(pb::cast_request::Kind::Batch(b)) })) => {
                         if batch_tx.send(b).await.is_err() {
-                            break;
+                            break false;
                         }
                     }
                     Ok(Some(_)) => {
@@ -136,10 +202,20 @@ impl pb::worker_server::Worker for CastService {
                         let _ = feeder_out
                             .send(Ok(pb::CastResponse { kind: Some(pb::cast_response::Kind::Failure(f)) }))
                             .await;
-                        break;
+                        break false;
                     }
-                    Ok(None) | Err(_) => break,
+                    Ok(None) | Err(_) => break false,
                 }
+            };
+            if drained {
+                // Draining: the caster casts what it holds, then its end of the queue and
+                // of the answers closes, which ends the response. Batches that still arrive
+                // are not taken; the coordinator gives them to another holder when the
+                // stream ends. The request side is read to its end, not dropped, so the
+                // answers still in flight are not reset with it.
+                drop((batch_tx, feeder_out));
+                while let Ok(Some(_)) = inbound.message().await {}
+                return;
             }
             // The coordinator closed its side: the job is over or cancelled.
             feeder_cancel.store(true, Ordering::SeqCst);
@@ -152,6 +228,7 @@ impl pb::worker_server::Worker for CastService {
                 let _entered = span.enter();
                 Caster { scene, dataset, store, busy, cancelled, out: out_tx }.run(batch_rx);
                 tracing::debug!("stream closed");
+                drop(permit);
             })
             .map_err(|e| Status::resource_exhausted(format!("cannot start a casting thread: {e}")))?;
         Ok(Response::new(ReceiverStream::new(out_rx)))

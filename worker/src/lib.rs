@@ -18,4 +18,4 @@ pub mod files;
 pub mod membership;
 pub mod server;
 
-pub use server::{run, WorkerConfig, WorkerError};
+pub use server::{run, WorkerConfig, WorkerError, WorkerSecurity};

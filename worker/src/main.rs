@@ -5,13 +5,16 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 use clap::Parser;
-use trove_worker::WorkerConfig;
+use trove_proto::auth::Token;
+use trove_proto::tls::{CaCert, ServerTls};
+use trove_worker::{WorkerConfig, WorkerSecurity};
 
 /// Holds the dataset files under a data root and casts their piece tasks for a coordinator.
 #[derive(Parser)]
 #[command(name = "trove-worker", version)]
 struct Args {
-    /// The coordinator's URL, e.g. http://127.0.0.1:7000.
+    /// The coordinator's URL, e.g. http://127.0.0.1:7000 (https://... for TLS, with
+    /// --tls-ca).
     #[arg(long)]
     coordinator: String,
     /// Address to listen on (port 0 picks a free port); the bound address is printed as the
@@ -34,6 +37,24 @@ struct Args {
     /// fresh random id per process. Letters, digits, '-', '_', '.'; at most 128.
     #[arg(long, value_name = "ID", value_parser = parse_worker_id)]
     worker_id: Option<String>,
+    /// A file holding the worker token (one line): presented to the coordinator, and
+    /// required of the coordinator's cast streams. The coordinator's --worker-token-file.
+    #[arg(long, value_name = "FILE")]
+    token_file: Option<PathBuf>,
+    /// Serve over TLS with this certificate (PEM; with --tls-key). The coordinator then
+    /// needs --tls-ca with the CA that signed it.
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// The private key of --tls-cert (PEM).
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
+    /// The CA certificate (PEM) that signed an https:// coordinator's certificate.
+    #[arg(long, value_name = "FILE")]
+    tls_ca: Option<PathBuf>,
+    /// Cast streams served at once (each one job's dataset, on a thread of its own); one
+    /// more is refused as busy, and the coordinator asks again later.
+    #[arg(long, default_value_t = trove_worker::cast::DEFAULT_MAX_STREAMS as u32, value_parser = clap::value_parser!(u32).range(1..))]
+    max_streams: u32,
 }
 
 /// The environment variable a worker's id is read from when `--worker-id` is not given.
@@ -41,6 +62,23 @@ const WORKER_ID_ENV: &str = "TROVE_WORKER_ID";
 
 fn parse_worker_id(id: &str) -> Result<String, String> {
     trove_worker::membership::check_worker_id(id).map(|()| id.to_string())
+}
+
+/// The worker's credentials from its flags; each error names the flag and the file.
+fn security(args: &Args) -> Result<WorkerSecurity> {
+    let token = match &args.token_file {
+        Some(path) => Some(Token::from_file(path).context("--token-file")?),
+        None => None,
+    };
+    let tls = match (&args.tls_cert, &args.tls_key) {
+        (Some(cert), Some(key)) => Some(ServerTls::from_files(cert, key).context("--tls-cert/--tls-key")?),
+        _ => None,
+    };
+    let coordinator_ca = match &args.tls_ca {
+        Some(path) => Some(CaCert::from_file(path).context("--tls-ca")?),
+        None => None,
+    };
+    Ok(WorkerSecurity { token, tls, coordinator_ca })
 }
 
 fn main() -> ExitCode {
@@ -57,6 +95,7 @@ fn main() -> ExitCode {
 #[tokio::main]
 async fn run() -> Result<()> {
     let args = Args::parse();
+    let security = security(&args)?;
     let worker_id = match args.worker_id {
         Some(id) => Some(id),
         None => match std::env::var(WORKER_ID_ENV) {
@@ -75,6 +114,8 @@ async fn run() -> Result<()> {
         data_root: args.data_root,
         memory_budget: args.memory_budget,
         worker_id,
+        security,
+        max_streams: args.max_streams as usize,
     };
     trove_worker::run(listener, trove_proto::shutdown_signal(), config).await.context("worker")?;
     Ok(())

@@ -4,13 +4,17 @@
 //! own threads: a worker busy with a long batch still answers on time (Ballista's lesson:
 //! heartbeats that waited behind work made healthy executors look dead). Every call has a
 //! deadline; a coordinator that restarted answers `known = false` and the worker registers
-//! again; one that is unreachable is retried with capped backoff until shutdown.
+//! again; one that is unreachable is retried with capped backoff until shutdown. One that
+//! refuses the worker's token is not retried: no number of attempts would change its answer,
+//! so the worker stops and says why ([`Refused`]). A worker that stops deregisters
+//! ([`deregister`]), so that no new batch is sent to it.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use tonic::transport::{Channel, Endpoint};
+use tokio::sync::watch;
+use trove_proto::connect::{AuthChannel, ConnectError, Connector};
 use trove_proto::v1 as pb;
 use trove_proto::v1::membership_client::MembershipClient;
 
@@ -51,17 +55,36 @@ pub struct Announcement {
     pub busy: Arc<AtomicU64>,
 }
 
-/// A lazily connecting channel to the coordinator at `url` (it reconnects by itself).
-pub fn channel(url: &str) -> Result<Channel, tonic::transport::Error> {
-    Ok(Endpoint::from_shared(url.to_string())?
-        .connect_timeout(CALL_DEADLINE)
-        .timeout(CALL_DEADLINE)
-        .tcp_nodelay(true)
-        .connect_lazy())
+/// The coordinator refused this worker's credentials.
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "the coordinator refused this worker ({code:?}): {message}; the worker presents the token in its \
+     --token-file, which must hold the coordinator's --worker-token-file token"
+)]
+pub struct Refused {
+    /// `UNAUTHENTICATED` or `PERMISSION_DENIED`.
+    pub code: tonic::Code,
+    /// The coordinator's reason.
+    pub message: String,
 }
 
-/// Registers, then heartbeats, forever (the caller drops this future at shutdown).
-pub async fn stay_registered(channel: Channel, me: Announcement) {
+/// The refusal in `status`, when it is one that retrying cannot fix.
+fn refusal(status: &tonic::Status) -> Option<Refused> {
+    matches!(status.code(), tonic::Code::Unauthenticated | tonic::Code::PermissionDenied)
+        .then(|| Refused { code: status.code(), message: status.message().to_string() })
+}
+
+/// A lazily connecting channel to the coordinator at `url` (it reconnects by itself), every
+/// call with a deadline and the connector's token.
+pub fn channel(connector: &Connector, url: &str) -> Result<AuthChannel, ConnectError> {
+    let endpoint = connector.endpoint(url)?.connect_timeout(CALL_DEADLINE).timeout(CALL_DEADLINE);
+    Ok(connector.authorize(endpoint.connect_lazy()))
+}
+
+/// Registers, then heartbeats, until the coordinator refuses the worker's credentials (the
+/// caller drops this future at shutdown). `id` is set to the id the coordinator gave on
+/// every registration, for [`deregister`].
+pub async fn stay_registered(channel: AuthChannel, me: Announcement, id: watch::Sender<Option<String>>) -> Refused {
     let mut client = MembershipClient::new(channel);
     let mut backoff = Duration::from_millis(50);
     loop {
@@ -82,6 +105,10 @@ pub async fn stay_registered(channel: Channel, me: Announcement) {
                 continue;
             }
             Err(status) => {
+                if let Some(refused) = refusal(&status) {
+                    tracing::error!(code = ?status.code(), message = status.message(), "the coordinator refused this worker's token");
+                    return refused;
+                }
                 tracing::warn!(code = ?status.code(), message = status.message(), "cannot register; retrying");
                 tokio::time::sleep(backoff).await;
                 backoff = (backoff * 2).min(MAX_BACKOFF);
@@ -90,6 +117,7 @@ pub async fn stay_registered(channel: Channel, me: Announcement) {
         };
         backoff = Duration::from_millis(50);
         tracing::info!(worker = %registered.worker_id, "registered");
+        id.send_replace(Some(registered.worker_id.clone()));
         let every = Duration::from_millis(registered.heartbeat_millis.max(10) as u64);
         loop {
             tokio::time::sleep(every).await;
@@ -103,8 +131,25 @@ pub async fn stay_registered(channel: Channel, me: Announcement) {
                     tracing::warn!("the coordinator does not know this worker any more; registering again");
                     break;
                 }
-                Err(status) => tracing::warn!(code = ?status.code(), "heartbeat failed"),
+                Err(status) => {
+                    if let Some(refused) = refusal(&status) {
+                        return refused;
+                    }
+                    tracing::warn!(code = ?status.code(), "heartbeat failed");
+                }
             }
+        }
+    }
+}
+
+/// Tells the coordinator that worker `id` leaves. Failing is only logged: a coordinator that
+/// cannot be reached will notice the missed heartbeats instead.
+pub async fn deregister(channel: AuthChannel, id: String) {
+    let mut client = MembershipClient::new(channel);
+    match client.deregister(pb::DeregisterRequest { worker_id: id.clone() }).await {
+        Ok(_) => tracing::info!(worker = %id, "deregistered"),
+        Err(status) => {
+            tracing::warn!(worker = %id, code = ?status.code(), message = status.message(), "cannot deregister")
         }
     }
 }

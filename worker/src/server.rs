@@ -1,26 +1,37 @@
 //! A worker as a library function: scan the data root, serve `Worker.Cast` on a bound
-//! listener, and stay registered with the coordinator until `shutdown` resolves.
+//! listener, and stay registered with the coordinator until `shutdown` resolves; then
+//! drain: deregister, stop taking streams, finish the batches held, and return.
 
 use std::future::Future;
 use std::hash::{BuildHasher, Hasher};
 use std::path::PathBuf;
 use std::sync::atomic::AtomicU64;
 use std::sync::Arc;
+use std::time::Duration;
 
 use thiserror::Error;
 use tokio::net::TcpListener;
+use tokio::sync::{oneshot, watch};
 use tokio_stream::wrappers::TcpListenerStream;
+use tonic::service::interceptor::InterceptedService;
 use trove_core::render::VolumeStore;
+use trove_proto::auth::{RequireToken, Token};
+use trove_proto::connect::{self, ConnectError, Connector};
+use trove_proto::tls::{CaCert, ServerTls};
 use trove_proto::v1::worker_server::WorkerServer;
 
-use crate::cast::CastService;
+use crate::cast::{CastService, DEFAULT_MAX_STREAMS};
 use crate::files::{DataFiles, ScanError};
-use crate::membership::{self, Announcement};
+use crate::membership::{self, Announcement, Refused};
+
+/// Longest a stopping worker spends finishing the batches it holds; a Kubernetes pod has 30 s
+/// between SIGTERM and SIGKILL unless told otherwise.
+pub const DRAIN_GRACE: Duration = Duration::from_secs(25);
 
 /// How a worker runs.
 #[derive(Clone, Debug)]
 pub struct WorkerConfig {
-    /// The coordinator's URL, e.g. `http://127.0.0.1:7000`.
+    /// The coordinator's URL, e.g. `http://127.0.0.1:7000` (`https://` for TLS).
     pub coordinator: String,
     /// The address the coordinator reaches this worker at; `None`: the listener's own
     /// address (right on one machine; a cluster passes the pod's address).
@@ -32,6 +43,38 @@ pub struct WorkerConfig {
     /// The id this worker registers under, stable across coordinator restarts; `None`: a
     /// fresh random one for this process ([`random_worker_id`]).
     pub worker_id: Option<String>,
+    /// Tokens and TLS.
+    pub security: WorkerSecurity,
+    /// `Cast` streams served at once, at most; one more is refused as busy.
+    pub max_streams: usize,
+}
+
+impl WorkerConfig {
+    /// A worker of the coordinator at `coordinator` over `data_root`, with no budget, no
+    /// token, no TLS and the default stream cap.
+    pub fn new(coordinator: impl Into<String>, data_root: impl Into<PathBuf>) -> WorkerConfig {
+        WorkerConfig {
+            coordinator: coordinator.into(),
+            advertise: None,
+            data_root: data_root.into(),
+            memory_budget: None,
+            security: WorkerSecurity::default(),
+            max_streams: DEFAULT_MAX_STREAMS,
+            worker_id: None,
+        }
+    }
+}
+
+/// A worker's credentials; the default has none (plaintext, no tokens).
+#[derive(Clone, Debug, Default)]
+pub struct WorkerSecurity {
+    /// The worker token: presented to the coordinator's `Membership` service, and required
+    /// of every `Cast` stream (the coordinator presents the same token).
+    pub token: Option<Token>,
+    /// Serve `Worker` over TLS with this certificate and key.
+    pub tls: Option<ServerTls>,
+    /// The CA that signed the coordinator's certificate (an `https://` coordinator).
+    pub coordinator_ca: Option<CaCert>,
 }
 
 /// A worker id unlikely to be anyone else's: `worker-` and 64 random bits (from the
@@ -51,9 +94,15 @@ pub enum WorkerError {
     /// The data root cannot be read.
     #[error(transparent)]
     Scan(#[from] ScanError),
-    /// The listener or the coordinator's URL is unusable.
+    /// The listener or its TLS configuration is unusable.
     #[error(transparent)]
     Transport(#[from] tonic::transport::Error),
+    /// The coordinator's URL is unusable.
+    #[error(transparent)]
+    Connect(#[from] ConnectError),
+    /// The coordinator refused the worker's token.
+    #[error(transparent)]
+    Refused(#[from] Refused),
     /// The listener has no local address.
     #[error("the listener has no address: {0}")]
     Listener(#[source] std::io::Error),
@@ -62,7 +111,7 @@ pub enum WorkerError {
     Join(#[from] tokio::task::JoinError),
 }
 
-/// Serves until `shutdown` resolves.
+/// Serves until `shutdown` resolves, then drains (at most [`DRAIN_GRACE`]).
 pub async fn run(
     listener: TcpListener,
     shutdown: impl Future<Output = ()>,
@@ -72,13 +121,16 @@ pub async fn run(
         Some(a) => a.clone(),
         None => listener.local_addr().map_err(WorkerError::Listener)?.to_string(),
     };
+    let security = config.security;
+    let connector = Connector::new(security.coordinator_ca, security.token.clone());
+    let channel = membership::channel(&connector, &config.coordinator)?;
+    let mut builder = connect::server(security.tls.as_ref())?;
     let root = config.data_root.clone();
     let files = Arc::new(tokio::task::spawn_blocking(move || DataFiles::scan(&root)).await??);
     let (count, bytes) = files.totals();
     tracing::info!(root = %files.root().display(), files = count, bytes, "data root scanned");
     let store = VolumeStore::new(config.memory_budget);
     let busy = Arc::new(AtomicU64::new(0));
-    let channel = membership::channel(&config.coordinator)?;
     let worker_id = config.worker_id.clone().unwrap_or_else(random_worker_id);
     tracing::info!(worker = %worker_id, %address, "worker starting");
     let me = Announcement {
@@ -88,13 +140,36 @@ pub async fn run(
         memory_budget: config.memory_budget,
         busy: busy.clone(),
     };
-    let service = CastService::new(files, store, busy);
-    let serve = tonic::transport::Server::builder()
-        .add_service(WorkerServer::new(service).max_decoding_message_size(trove_proto::MAX_MESSAGE_BYTES))
-        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown);
+    let service = CastService::new(files, store, busy, config.max_streams);
+    let drain = service.drain();
+    let worker = InterceptedService::new(
+        WorkerServer::new(service).max_decoding_message_size(trove_proto::MAX_MESSAGE_BYTES),
+        RequireToken::new(security.token),
+    );
+    let (stop, stopped) = oneshot::channel::<()>();
+    let serve = builder.add_service(worker).serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
+        let _ = stopped.await;
+    });
+    tokio::pin!(serve);
+    let (id_tx, id) = watch::channel(None);
     tokio::select! {
-        served = serve => served?,
-        () = membership::stay_registered(channel, me) => {}
+        served = &mut serve => return Ok(served?),
+        refused = membership::stay_registered(channel.clone(), me, id_tx) => return Err(refused.into()),
+        () = shutdown => {}
     }
+    // Draining: the coordinator takes this worker out first, so that it sends no new batch;
+    // then new streams are refused, and each stream casts what it holds and ends.
+    tracing::info!("stopping: deregistering, then finishing the batches held");
+    let id = id.borrow().clone();
+    if let Some(id) = id {
+        membership::deregister(channel, id).await;
+    }
+    drain.begin();
+    let _ = stop.send(());
+    match tokio::time::timeout(DRAIN_GRACE, &mut serve).await {
+        Ok(served) => served?,
+        Err(_) => tracing::warn!(grace = ?DRAIN_GRACE, "streams still open after the drain's grace; stopping anyway"),
+    }
+    tracing::info!("stopped");
     Ok(())
 }

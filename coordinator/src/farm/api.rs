@@ -18,6 +18,7 @@ use trove_core::scene::Scene;
 use trove_proto::convert;
 use trove_proto::v1 as pb;
 
+use super::drain::Drain;
 use super::driver::{self, DriverConfig, JobPlan};
 use super::jobs::{is_final, Admission, Job, Jobs};
 use super::registry::{RegisterError, Registry};
@@ -33,6 +34,8 @@ pub struct Farm {
     pub driver: DriverConfig,
     /// How many jobs run at once; the others wait in order.
     pub admission: Arc<Admission>,
+    /// Whether the coordinator is stopping, and the jobs it waits for.
+    pub drain: Arc<Drain>,
 }
 
 impl Farm {
@@ -125,6 +128,8 @@ enum Pending {
 /// Runs `job` (already in the admission queue) on a task of its own: its turn, its driver,
 /// and its end written down.
 fn spawn_job(farm: Arc<Farm>, job: Arc<Job>, pending: Pending) {
+    // Held until the job's end is written down: a draining coordinator waits for it.
+    let tracked = farm.drain.track(job.clone());
     tokio::spawn(async move {
         let job_id = job.id.clone();
         let plan = match pending {
@@ -170,6 +175,7 @@ fn spawn_job(farm: Arc<Farm>, job: Arc<Job>, pending: Pending) {
         if let Err(e) = tokio::task::spawn_blocking(move || jobs.finished(&job_id)).await {
             tracing::error!(error = %e, "recording a job's end failed");
         }
+        drop(tracked);
     });
 }
 
@@ -247,6 +253,9 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
         request: Request<pb::SubmitJobRequest>,
     ) -> Result<Response<pb::SubmitJobResponse>, Status> {
         let farm = self.0.clone();
+        if farm.drain.is_draining() {
+            return Err(Drain::refusal());
+        }
         let request = request.into_inner();
         let planned = {
             let farm = farm.clone();
@@ -318,6 +327,7 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
             return Err(convert::failure_status(failure));
         };
         let (tx, rx) = mpsc::channel(4);
+        let drain = self.0.drain.clone();
         tokio::spawn(async move {
             let parts = [
                 (pb::ResultPart::Png, Some(&output.png)),
@@ -339,6 +349,7 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
                     }
                 }
             }
+            drain.fetched(&id);
         });
         Ok(Response::new(ReceiverStream::new(rx)))
     }
@@ -387,5 +398,16 @@ impl pb::membership_server::Membership for MembershipService {
     ) -> Result<Response<pb::HeartbeatResponse>, Status> {
         let known = self.0.registry.heartbeat_from(&request.into_inner().worker_id);
         Ok(Response::new(pb::HeartbeatResponse { known }))
+    }
+
+    async fn deregister(
+        &self,
+        request: Request<pb::DeregisterRequest>,
+    ) -> Result<Response<pb::DeregisterResponse>, Status> {
+        let id = request.into_inner().worker_id;
+        if !self.0.registry.deregister(&id) {
+            tracing::debug!(worker = %id, "an unknown worker deregistered");
+        }
+        Ok(Response::new(pb::DeregisterResponse {}))
     }
 }

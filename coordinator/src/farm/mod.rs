@@ -8,10 +8,16 @@
 //! * [`state`]: jobs and results on disk (`--state-dir`), so a restart loses none.
 //! * [`driver`]: one job from submission to image, band by band.
 //! * [`api`]: the gRPC services (`Coordinator` for clients, `Membership` for workers).
+//! * [`drain`]: what a stopping coordinator waits for.
 //! * [`run`]: the server as a library function over a bound listener and a shutdown signal,
 //!   so tests start a whole farm in one process on `127.0.0.1:0`.
+//!
+//! Each service may require its own bearer token ([`FarmSecurity`]): the client token guards
+//! `Coordinator`, the worker token `Membership` (and the coordinator presents it on its
+//! `Cast` streams to workers). TLS, when configured, covers every connection.
 
 pub mod api;
+pub mod drain;
 pub mod driver;
 pub mod jobs;
 pub mod registry;
@@ -25,7 +31,12 @@ use std::time::Duration;
 
 use thiserror::Error;
 use tokio::net::TcpListener;
+use tokio::sync::oneshot;
 use tokio_stream::wrappers::TcpListenerStream;
+use tonic::service::interceptor::InterceptedService;
+use trove_proto::auth::{RequireToken, Token};
+use trove_proto::connect::Connector;
+use trove_proto::tls::{CaCert, ServerTls};
 use trove_proto::v1::coordinator_server::CoordinatorServer;
 use trove_proto::v1::membership_server::MembershipServer;
 
@@ -37,6 +48,13 @@ pub use driver::Fault;
 /// busy across jobs, few enough that their bands and images (each bounded by
 /// [`DriverConfig`]) stay within a modest machine.
 pub const DEFAULT_MAX_JOBS: usize = 4;
+
+/// How long a stopping coordinator lets its jobs finish when not told.
+pub const DEFAULT_DRAIN_GRACE: Duration = Duration::from_secs(30);
+
+/// How long connections still open after the drain (a client watching a job left running)
+/// are given to close before the server stops without them.
+const CLOSE_GRACE: Duration = Duration::from_secs(1);
 
 /// How a coordinator runs.
 #[derive(Clone, Debug)]
@@ -52,6 +70,10 @@ pub struct FarmConfig {
     pub state_dir: Option<PathBuf>,
     /// How long a finished job and its files are kept before a sweep removes them.
     pub keep_results: Duration,
+    /// Tokens and TLS.
+    pub security: FarmSecurity,
+    /// How long, once `shutdown` resolves, running jobs are given to finish.
+    pub drain_grace: Duration,
 }
 
 /// How long finished jobs are kept when not told: a day.
@@ -65,6 +87,8 @@ impl Default for FarmConfig {
             max_jobs: DEFAULT_MAX_JOBS,
             state_dir: None,
             keep_results: DEFAULT_KEEP_RESULTS,
+            security: FarmSecurity::default(),
+            drain_grace: DEFAULT_DRAIN_GRACE,
         }
     }
 }
@@ -89,9 +113,24 @@ fn sweep_every(keep: Duration) -> Duration {
     (keep / 10).clamp(Duration::from_millis(100), Duration::from_secs(60))
 }
 
-/// Serves the job API and worker membership on `listener` until `shutdown` resolves. With a
-/// state folder, the jobs it holds that had not ended are run again first, in submission
-/// order, and its finished jobs are still served.
+/// A coordinator's credentials; the default has none (plaintext, no tokens).
+#[derive(Clone, Debug, Default)]
+pub struct FarmSecurity {
+    /// Serve over TLS with this certificate and key.
+    pub tls: Option<ServerTls>,
+    /// Reach workers over TLS, verifying their certificates against this CA.
+    pub worker_ca: Option<CaCert>,
+    /// Required of every `Coordinator` call (clients).
+    pub client_token: Option<Token>,
+    /// Required of every `Membership` call, and presented on `Cast` streams (workers).
+    pub worker_token: Option<Token>,
+}
+
+/// Serves the job API and worker membership on `listener` until `shutdown` resolves, then
+/// drains: new jobs are refused while those held finish, for at most
+/// [`FarmConfig::drain_grace`] ([`drain`]). With a state folder, the jobs it holds that had
+/// not ended are run again first, in submission order, and its finished jobs are still
+/// served; jobs still running when the drain ends resume at the next start.
 pub async fn run(
     listener: TcpListener,
     shutdown: impl Future<Output = ()>,
@@ -114,11 +153,14 @@ pub async fn run(
         Some((store, epoch, seq)) => (Some(store), epoch, seq),
         None => (None, now, 0),
     };
+    let security = config.security;
+    let connector = Connector::new(security.worker_ca, security.worker_token.clone());
     let farm = Arc::new(api::Farm {
-        registry: Arc::new(registry::Registry::with_epoch(config.heartbeat, epoch)),
+        registry: Arc::new(registry::Registry::with(config.heartbeat, epoch, connector)),
         jobs: Arc::new(jobs::Jobs::new(epoch, seq, store.clone())),
         driver: config.driver,
         admission: jobs::Admission::new(config.max_jobs),
+        drain: Arc::new(drain::Drain::default()),
     });
     if let Some(store) = &store {
         let resumer = farm.clone();
@@ -143,15 +185,46 @@ pub async fn run(
         })
     };
     let limit = trove_proto::MAX_MESSAGE_BYTES;
-    let served = tonic::transport::Server::builder()
-        .add_service(
-            CoordinatorServer::new(api::CoordinatorService(farm.clone()))
-                .max_decoding_message_size(limit)
-                .max_encoding_message_size(limit),
-        )
-        .add_service(MembershipServer::new(api::MembershipService(farm)).max_decoding_message_size(limit))
-        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
-        .await;
+    let coordinator = InterceptedService::new(
+        CoordinatorServer::new(api::CoordinatorService(farm.clone()))
+            .max_decoding_message_size(limit)
+            .max_encoding_message_size(limit),
+        RequireToken::new(security.client_token),
+    );
+    let membership = InterceptedService::new(
+        MembershipServer::new(api::MembershipService(farm.clone())).max_decoding_message_size(limit),
+        RequireToken::new(security.worker_token),
+    );
+    let (stop, stopped) = oneshot::channel::<()>();
+    let serve = trove_proto::connect::server(security.tls.as_ref())?
+        .add_service(coordinator)
+        .add_service(membership)
+        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
+            let _ = stopped.await;
+        });
+    tokio::pin!(serve);
+    tokio::select! {
+        served = &mut serve => {
+            sweeper.abort();
+            return Ok(served?);
+        }
+        () = shutdown => {}
+    }
+    farm.drain.begin();
+    tracing::info!(grace = ?config.drain_grace, "draining: new jobs are refused; the jobs held may finish");
+    tokio::select! {
+        served = &mut serve => {
+            sweeper.abort();
+            return Ok(served?);
+        }
+        left = farm.drain.wait(config.drain_grace) => match left {
+            0 => tracing::info!("drained: every job ended"),
+            n => tracing::warn!(jobs = n, "the drain's grace ended with jobs still running; stopping without them"),
+        },
+    }
+    let _ = stop.send(());
+    // Connections still open (a watcher of a job left running) are not waited for long.
+    let closed = tokio::time::timeout(CLOSE_GRACE, serve).await.unwrap_or(Ok(()));
     sweeper.abort();
-    Ok(served?)
+    Ok(closed?)
 }

@@ -11,6 +11,13 @@
 //! another address holds is refused (two workers claim one id); a worker too old to send an
 //! id is given one made of the coordinator's start time and a counter, unique across
 //! restarts.
+//!
+//! A worker that deregisters (it is stopping) *leaves*: it is no longer a holder, in the
+//! catalog or listed, so no new batch goes to it, but it stays alive for the jobs that have
+//! batches on it until its heartbeats stop, so that the answers it still sends are taken.
+//! Channels to workers are made by the registry's [`Connector`]: `https://` and the CA
+//! when the coordinator verifies its workers' certificates, and the worker token on every
+//! `Cast` stream.
 
 use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -18,8 +25,8 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use thiserror::Error;
-use tonic::transport::{Channel, Endpoint};
 use trove_core::dataset::{Catalog, DatasetError, FileInfo, FileKind};
+use trove_proto::connect::{AuthChannel, ConnectError, Connector};
 use trove_proto::convert;
 use trove_proto::v1 as pb;
 
@@ -37,12 +44,14 @@ pub struct WorkerEntry {
     /// Its rayon threads (how much it can cast at once).
     pub threads: u32,
     /// A lazily connecting channel to it.
-    pub channel: Channel,
+    pub channel: AuthChannel,
     /// Batches handed to it and not answered yet, over all jobs.
     pub in_flight: Arc<AtomicU64>,
     /// Batches it has answered, over all jobs.
     pub done: Arc<AtomicU64>,
     last_heartbeat: Instant,
+    /// It deregistered: no new batch goes to it.
+    leaving: bool,
 }
 
 /// The coordinator's view of its workers.
@@ -52,8 +61,8 @@ pub struct Registry {
     /// This run's prefix of assigned ids.
     prefix: String,
     next_id: AtomicU64,
-    /// Changes whenever a worker registers, so a job's dispatcher knows when to look its
-    /// datasets' holders up again instead of on every batch.
+    /// Changes whenever a worker registers or leaves, so a job's dispatcher knows when to
+    /// look its datasets' holders up again instead of on every batch.
     generation: AtomicU64,
     /// Counts the times a worker's batches in flight went down, over all jobs. Room that one
     /// job's answer freed may be taken by another job waiting for it: each driver watches
@@ -61,6 +70,8 @@ pub struct Registry {
     /// batch ready (a `watch`, not a `Notify`: a driver busy at the moment of the change
     /// still sees it when it next waits).
     room: tokio::sync::watch::Sender<u64>,
+    /// How channels to workers are made.
+    connector: Connector,
 }
 
 #[derive(Default)]
@@ -91,7 +102,7 @@ pub enum RegisterError {
         address: String,
         /// Why.
         #[source]
-        source: tonic::transport::Error,
+        source: ConnectError,
     },
     /// The id is too long or holds characters other than letters, digits, `-`, `_`, `.`.
     #[error("worker id `{id}` is not usable: expected 1 to {MAX_WORKER_ID_BYTES} letters, digits, '-', '_' or '.'")]
@@ -112,15 +123,16 @@ pub enum RegisterError {
 }
 
 impl Registry {
-    /// An empty registry whose workers send a heartbeat every `heartbeat`; the ids it
-    /// assigns start with the time now.
+    /// An empty registry whose workers send a heartbeat every `heartbeat`, reached over
+    /// plaintext without a token; the ids it assigns start with the time now.
     pub fn new(heartbeat: Duration) -> Registry {
-        Registry::with_epoch(heartbeat, now_unix_ms())
+        Registry::with(heartbeat, now_unix_ms(), Connector::default())
     }
 
     /// As [`Registry::new`], the ids it assigns starting with `epoch_ms` (a time no earlier
-    /// run of this coordinator used: the state store's claimed epoch).
-    pub fn with_epoch(heartbeat: Duration, epoch_ms: u64) -> Registry {
+    /// run of this coordinator used: the state store's claimed epoch), reaching workers
+    /// through `connector` (TLS, the worker token).
+    pub fn with(heartbeat: Duration, epoch_ms: u64, connector: Connector) -> Registry {
         Registry {
             state: Mutex::new(State::default()),
             heartbeat,
@@ -128,7 +140,13 @@ impl Registry {
             next_id: AtomicU64::new(1),
             generation: AtomicU64::new(0),
             room: tokio::sync::watch::channel(0).0,
+            connector,
         }
+    }
+
+    /// Whether worker `w` may be handed new batches: alive and not leaving.
+    fn serving(&self, w: &WorkerEntry) -> bool {
+        !w.leaving && w.last_heartbeat.elapsed() <= self.lost_after()
     }
 
     /// How often workers are asked to send heartbeats.
@@ -144,32 +162,38 @@ impl Registry {
     /// Adds a worker under the id it sent (or a new one when it sent none) and returns the
     /// id. The same id registering again replaces its entry, keeping its load counters (and
     /// its channel, at the same address); another worker's entry at the same address is
-    /// dropped (it stops being known); an id a live worker at another address holds is
-    /// refused.
+    /// dropped (it stops being known), and so are workers that left and went silent; an id
+    /// a live worker at another address holds is refused.
     pub fn register(&self, request: pb::RegisterRequest) -> Result<String, RegisterError> {
-        let endpoint = Endpoint::from_shared(format!("http://{}", request.address))
+        let endpoint = self
+            .connector
+            .endpoint(&self.connector.url_for(&request.address))
             .map_err(|source| RegisterError::Address { address: request.address.clone(), source })?
-            .connect_timeout(CONNECT_DEADLINE)
-            .tcp_nodelay(true);
+            .connect_timeout(CONNECT_DEADLINE);
         let id = match request.worker_id.as_str() {
             "" => format!("w-{}-{}", self.prefix, self.next_id.fetch_add(1, Ordering::Relaxed)),
             id if usable_id(id) => id.to_string(),
             id => return Err(RegisterError::BadId { id: id.to_string() }),
         };
         let mut state = lock(&self.state);
+        let lost_after = self.lost_after();
         let earlier = match state.workers.remove(&id) {
-            Some(held) if held.address != request.address && held.last_heartbeat.elapsed() <= self.lost_after() => {
+            Some(held)
+                if held.address != request.address && !held.leaving && held.last_heartbeat.elapsed() <= lost_after =>
+            {
                 let (held_by, address) = (held.address.clone(), request.address.clone());
                 state.workers.insert(id.clone(), held);
                 return Err(RegisterError::IdTaken { id, held_by, address });
             }
             held => held,
         };
-        state.workers.retain(|_, w| w.address != request.address);
+        state
+            .workers
+            .retain(|_, w| w.address != request.address && !(w.leaving && w.last_heartbeat.elapsed() > lost_after));
         let (channel, in_flight, done) = match earlier {
             Some(w) if w.address == request.address => (w.channel, w.in_flight, w.done),
-            Some(w) => (endpoint.connect_lazy(), w.in_flight, w.done),
-            None => (endpoint.connect_lazy(), Arc::default(), Arc::default()),
+            Some(w) => (self.connector.authorize(endpoint.connect_lazy()), w.in_flight, w.done),
+            None => (self.connector.authorize(endpoint.connect_lazy()), Arc::default(), Arc::default()),
         };
         let entry = WorkerEntry {
             id: id.clone(),
@@ -180,6 +204,7 @@ impl Registry {
             in_flight,
             done,
             last_heartbeat: Instant::now(),
+            leaving: false,
         };
         tracing::info!(worker = %id, address = %entry.address, files = entry.files.len(), "worker registered");
         state.workers.insert(id.clone(), entry);
@@ -198,6 +223,17 @@ impl Registry {
     /// A receiver that changes whenever some worker has room again ([`Registry::room_freed`]).
     pub fn watch_room(&self) -> tokio::sync::watch::Receiver<u64> {
         self.room.subscribe()
+    }
+
+    /// Takes worker `id` out of dispatch: it is stopping. Its streams stay usable while it
+    /// finishes the batches it holds; returns false when the id is unknown.
+    pub fn deregister(&self, id: &str) -> bool {
+        let mut state = lock(&self.state);
+        let Some(w) = state.workers.get_mut(id) else { return false };
+        w.leaving = true;
+        tracing::info!(worker = %id, address = %w.address, "worker deregistered");
+        self.generation.fetch_add(1, Ordering::Release);
+        true
     }
 
     /// A number that changes whenever the set of registered workers does.
@@ -221,10 +257,11 @@ impl Registry {
         lock(&self.state).workers.get(id).is_some_and(|w| w.last_heartbeat.elapsed() <= self.lost_after())
     }
 
-    /// What a dispatcher needs of an alive worker: its channel and counters.
+    /// What a dispatcher needs of an alive worker that takes batches: its channel and
+    /// counters.
     pub fn handle(&self, id: &str) -> Option<WorkerHandle> {
         let state = lock(&self.state);
-        let w = state.workers.get(id).filter(|w| w.last_heartbeat.elapsed() <= self.lost_after())?;
+        let w = state.workers.get(id).filter(|w| self.serving(w))?;
         Some(WorkerHandle {
             id: w.id.clone(),
             channel: w.channel.clone(),
@@ -234,14 +271,14 @@ impl Registry {
         })
     }
 
-    /// The alive workers that hold every key in `keys` (every alive worker when `keys` is
-    /// empty: a generated dataset can be cast anywhere).
+    /// The alive workers that take batches and hold every key in `keys` (every such worker
+    /// when `keys` is empty: a generated dataset can be cast anywhere).
     pub fn holders(&self, keys: &[String]) -> Vec<String> {
         let state = lock(&self.state);
         state
             .workers
             .values()
-            .filter(|w| w.last_heartbeat.elapsed() <= self.lost_after())
+            .filter(|w| self.serving(w))
             .filter(|w| keys.iter().all(|k| w.files.contains_key(k)))
             .map(|w| w.id.clone())
             .collect()
@@ -251,7 +288,7 @@ impl Registry {
     pub fn catalog(&self) -> RegistryCatalog {
         let state = lock(&self.state);
         let mut files: HashMap<String, Held> = HashMap::new();
-        for w in state.workers.values().filter(|w| w.last_heartbeat.elapsed() <= self.lost_after()) {
+        for w in state.workers.values().filter(|w| self.serving(w)) {
             for (key, f) in &w.files {
                 files
                     .entry(key.clone())
@@ -268,12 +305,13 @@ impl Registry {
         RegistryCatalog { files }
     }
 
-    /// Every registered worker, for `ListWorkers`.
+    /// Every registered worker that has not left, for `ListWorkers`.
     pub fn list(&self) -> Vec<pb::WorkerInfo> {
         let state = lock(&self.state);
         state
             .workers
             .values()
+            .filter(|w| !w.leaving)
             .map(|w| pb::WorkerInfo {
                 worker_id: w.id.clone(),
                 address: w.address.clone(),
@@ -300,7 +338,7 @@ pub struct WorkerHandle {
     /// The worker's id.
     pub id: String,
     /// A channel to it.
-    pub channel: Channel,
+    pub channel: AuthChannel,
     /// Its threads.
     pub threads: u32,
     /// Its batches in flight over all jobs.
@@ -425,9 +463,9 @@ mod tests {
         // The old bug: ids `w1, w2, …` per process. Worker X got `w1` from the first run and
         // kept heartbeating as `w1` after the restart, while the new run gave `w1` to Y: X
         // was answered `known` forever and never registered again.
-        let first = Registry::with_epoch(BEAT, 1_700_000_000_000);
+        let first = Registry::with(BEAT, 1_700_000_000_000, Connector::default());
         let x = first.register(request("", "127.0.0.1:9001", &["a.raw"])).unwrap();
-        let restarted = Registry::with_epoch(BEAT, 1_700_000_000_001);
+        let restarted = Registry::with(BEAT, 1_700_000_000_001, Connector::default());
         let y = restarted.register(request("", "127.0.0.1:9002", &[])).unwrap();
         assert_ne!(x, y);
         assert!(!restarted.heartbeat_from(&x), "X is told to register again");

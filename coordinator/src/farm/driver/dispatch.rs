@@ -3,6 +3,12 @@
 //! streams it opened, and its batches in flight. Which holder casts a batch is
 //! [`trove_core::render::dispatch::least_loaded`]'s choice; this module only keeps what that
 //! choice and the answers need.
+//!
+//! A (worker, dataset) pair whose stream was lost *rests* ([`Rest`]): for a while when the
+//! stream broke, went silent or the worker was busy, after which a worker still alive (its
+//! heartbeats kept coming) serves the job again; for the rest of the job when the worker
+//! answered with something the job cannot use. A dataset whose holders all rest for a while
+//! is not orphaned: the job waits for them.
 
 use std::collections::{HashMap, HashSet};
 use std::sync::atomic::Ordering;
@@ -25,6 +31,15 @@ pub(super) struct InFlight {
     pub sent: Instant,
 }
 
+/// How long a (worker, dataset) pair is not used after its stream was lost.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Rest {
+    /// Until then; the worker serves the job again if it is still alive.
+    Until(Instant),
+    /// For the rest of the job.
+    Job,
+}
+
 /// Why an answer is not taken.
 #[derive(Debug, PartialEq, Eq)]
 pub(super) enum Refused {
@@ -43,8 +58,9 @@ pub(super) struct Dispatch {
     /// Per dataset: its alive holders, in the registry's (id) order.
     holders: Vec<Vec<WorkerHandle>>,
     generation: u64,
-    /// (worker, dataset) pairs this job no longer uses (their stream broke or answered wrongly).
-    unusable: HashSet<StreamKey>,
+    /// (worker, dataset) pairs this job does not use now (their stream broke, the worker was
+    /// busy or answered wrongly), and until when.
+    resting: HashMap<StreamKey, Rest>,
     in_flight: HashMap<u64, InFlight>,
     next_wire: u64,
 }
@@ -56,7 +72,7 @@ impl Dispatch {
             keys,
             holders,
             generation: u64::MAX,
-            unusable: HashSet::new(),
+            resting: HashMap::new(),
             in_flight: HashMap::new(),
             next_wire: 1,
         }
@@ -70,26 +86,30 @@ impl Dispatch {
             return;
         }
         self.generation = generation;
+        let now = Instant::now();
+        self.resting.retain(|_, rest| !matches!(rest, Rest::Until(t) if *t <= now));
         for (d, keys) in self.keys.iter().enumerate() {
             self.holders[d] = registry
                 .holders(keys)
                 .into_iter()
-                .filter(|w| !self.unusable.contains(&(w.clone(), d)))
+                .filter(|w| !self.resting.contains_key(&(w.clone(), d)))
                 .filter_map(|w| registry.handle(&w))
                 .collect();
         }
     }
 
-    /// Whether dataset `d` has no holder left for this job.
+    /// Whether dataset `d` has no holder left for this job: none usable, and none resting
+    /// for a while.
     pub fn is_orphaned(&self, d: usize) -> bool {
-        self.holders[d].is_empty()
+        self.holders[d].is_empty() && !self.resting.iter().any(|((_, rd), rest)| *rd == d && *rest != Rest::Job)
     }
 
-    /// The holder of dataset `d` that casts its next batch, if one has room.
-    pub fn pick(&self, d: usize) -> Option<&WorkerHandle> {
-        let holders = &self.holders[d];
+    /// The holder of dataset `d` that casts its next batch, if one of those `usable` admits
+    /// has room.
+    pub fn pick(&self, d: usize, usable: impl Fn(&WorkerHandle) -> bool) -> Option<&WorkerHandle> {
+        let holders: Vec<&WorkerHandle> = self.holders[d].iter().filter(|w| usable(w)).collect();
         let loads = holders.iter().map(|w| Load { in_flight: w.in_flight.load(Ordering::Relaxed), threads: w.threads });
-        least_loaded(loads).map(|i| &holders[i])
+        least_loaded(loads).map(|i| holders[i])
     }
 
     /// A fresh wire id for a batch.
@@ -129,15 +149,17 @@ impl Dispatch {
         Ok(batch)
     }
 
-    /// Stops using `stream` for this job; returns its batches in flight, with the worker's
-    /// count given back, for the caller to hand to their schedulers again.
-    pub fn lose(&mut self, stream: &StreamKey, worker: Option<&WorkerHandle>) -> Vec<InFlight> {
+    /// Stops using `stream` for this job, for `rest`; returns its batches in flight, with the
+    /// worker's count given back, for the caller to hand to their schedulers again.
+    pub fn lose(&mut self, stream: &StreamKey, worker: Option<&WorkerHandle>, rest: Rest) -> Vec<InFlight> {
         let wires: Vec<u64> = self.in_flight.iter().filter(|(_, b)| b.stream == *stream).map(|(&w, _)| w).collect();
         let lost: Vec<InFlight> = wires.into_iter().filter_map(|w| self.in_flight.remove(&w)).collect();
         if let Some(w) = worker {
             w.in_flight.fetch_sub(lost.len() as u64, Ordering::Relaxed);
         }
-        self.unusable.insert(stream.clone());
+        // A pair that is out for the job stays out.
+        let kept = self.resting.get(stream).copied();
+        self.resting.insert(stream.clone(), if kept == Some(Rest::Job) { Rest::Job } else { rest });
         if let Some(holders) = self.holders.get_mut(stream.1) {
             holders.retain(|w| w.id != stream.0);
         }
@@ -148,9 +170,42 @@ impl Dispatch {
     pub fn overdue(&self, deadline: Duration) -> HashSet<StreamKey> {
         self.in_flight.values().filter(|b| b.sent.elapsed() > deadline).map(|b| b.stream.clone()).collect()
     }
+}
 
-    /// Whether `stream` has batches in flight.
-    pub fn has_batches_on(&self, stream: &StreamKey) -> bool {
-        self.in_flight.values().any(|b| b.stream == *stream)
+#[cfg(test)]
+mod tests {
+    use trove_proto::v1 as pb;
+
+    use super::*;
+
+    #[tokio::test]
+    async fn a_lost_pair_rests_then_serves_the_job_again_and_one_out_for_the_job_stays_out() {
+        // Heartbeats every 10 ms: a worker counts as lost 50 ms after its last one.
+        let registry = Registry::new(Duration::from_millis(10));
+        let request = pb::RegisterRequest {
+            address: "127.0.0.1:9".into(),
+            threads: 1,
+            worker_id: "w-test".into(),
+            ..Default::default()
+        };
+        let id = registry.register(request).unwrap();
+        // One generated dataset: every worker holds it.
+        let mut dispatch = Dispatch::new(vec![Vec::new()]);
+        dispatch.refresh(&registry, true);
+        assert!(dispatch.pick(0, |_| true).is_some());
+        let pair = (id.clone(), 0);
+        let lost = dispatch.lose(&pair, None, Rest::Until(Instant::now() + Duration::from_millis(20)));
+        assert!(lost.is_empty());
+        assert!(dispatch.pick(0, |_| true).is_none(), "a resting pair is not picked");
+        assert!(!dispatch.is_orphaned(0), "a dataset whose holder rests waits for it");
+        tokio::time::sleep(Duration::from_millis(30)).await;
+        assert!(registry.heartbeat_from(&id));
+        dispatch.refresh(&registry, true);
+        assert!(dispatch.pick(0, |_| true).is_some(), "an alive worker serves the job again after its rest");
+        dispatch.lose(&pair, None, Rest::Job);
+        dispatch.lose(&pair, None, Rest::Until(Instant::now()));
+        dispatch.refresh(&registry, true);
+        assert!(dispatch.pick(0, |_| true).is_none());
+        assert!(dispatch.is_orphaned(0), "a pair out for the job stays out, and its dataset is orphaned");
     }
 }

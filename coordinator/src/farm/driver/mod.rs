@@ -23,11 +23,14 @@
 //! out on and for the attempt it was, so answers to a batch that was given up are dropped.
 //! A worker that stops answering (its stream breaks, it misses heartbeats, or a batch
 //! outlives [`DriverConfig::batch_deadline`]) has its batches handed to another holder of
-//! the dataset; a job fails only when no holder is left, when a batch has been given up
-//! [`DriverConfig::max_attempts`] times, when a worker reports a failure that retrying
-//! cannot fix, when it runs past [`DriverConfig::job_deadline`], when a band makes more
-//! tasks than the memory bound holds (`intersect_within`), or when a step on a blocking
-//! thread panics: each fails this job only.
+//! the dataset, and serves the job again after a rest if it is still alive. Batches go on a
+//! stream only once the worker has accepted it (opening it checks the scene and the
+//! worker's stream cap), so a worker that refuses a stream as busy costs no batch an
+//! attempt: it is asked again later. A job fails only when no holder is left, when a batch
+//! has been given up [`DriverConfig::max_attempts`] times, when a worker reports a failure
+//! that retrying cannot fix, when it runs past [`DriverConfig::job_deadline`], when a band
+//! makes more tasks than the memory bound holds (`intersect_within`), or when a step on a
+//! blocking thread panics: each fails this job only.
 
 mod dispatch;
 mod error;
@@ -56,7 +59,7 @@ use trove_proto::v1::worker_client::WorkerClient;
 
 use super::jobs::{Job, JobOutput};
 use super::registry::{Registry, WorkerHandle};
-use dispatch::{Dispatch, InFlight};
+use dispatch::{Dispatch, InFlight, Rest};
 pub use error::JobError;
 use raster::{Composited, Raster};
 use tally::Tally;
@@ -198,13 +201,20 @@ enum Event {
         band: usize,
         part: Box<Composited>,
     },
+    /// The worker accepted stream `serial`: batches may go on it.
+    Opened {
+        stream: StreamKey,
+        serial: u64,
+    },
     Answer {
         stream: StreamKey,
+        serial: u64,
         response: pb::CastResponse,
         bytes: u64,
     },
     StreamEnded {
         stream: StreamKey,
+        serial: u64,
         status: Option<Status>,
     },
     /// A step that ran off the event loop failed; the job cannot go on.
@@ -214,6 +224,9 @@ enum Event {
 struct Stream {
     tx: mpsc::Sender<pb::CastRequest>,
     worker: WorkerHandle,
+    /// Which opening of its (worker, dataset) pair this is: events of an earlier stream of
+    /// the same pair, lost before, are not this one's.
+    serial: u64,
 }
 
 struct Driver {
@@ -227,6 +240,9 @@ struct Driver {
     batch_tasks: usize,
     dispatch: Dispatch,
     streams: std::collections::HashMap<StreamKey, Stream>,
+    /// Streams opened and not accepted yet, since when (few: only while streams open).
+    opening: Vec<(StreamKey, Instant)>,
+    next_serial: u64,
     /// (band start order, band, dataset) pairs that may have a batch to hand out: a pair
     /// leaves when its dataset has nothing ready and comes back when an answer or a lost
     /// batch could change that.
@@ -260,6 +276,8 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         events,
         batch_tasks,
         streams: Default::default(),
+        opening: Vec::new(),
+        next_serial: 0,
         ready: BTreeSet::new(),
         tally: Tally::default(),
     };
@@ -311,7 +329,7 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     // gives back to their load counts, shared with other jobs, what this job still had out.
     let open: Vec<StreamKey> = driver.streams.keys().cloned().collect();
     for stream in &open {
-        driver.lose_stream(stream);
+        driver.lose_stream(stream, Rest::Job);
     }
     let outcome = match outcome {
         Ok(()) => {
@@ -394,7 +412,14 @@ impl Driver {
                 if self.dispatch.is_orphaned(d) {
                     return Err(JobError::NoHolder { dataset: self.scene().datasets()[d].name().to_string() });
                 }
-                let Some(worker) = self.dispatch.pick(d).cloned() else { break };
+                let opening = &self.opening;
+                let accepted = |w: &WorkerHandle| !opening.iter().any(|((id, od), _)| *od == d && *id == w.id);
+                let Some(worker) = self.dispatch.pick(d, accepted).cloned() else { break };
+                if !self.streams.contains_key(&(worker.id.clone(), d)) {
+                    // Its batches wait until the worker accepts the stream.
+                    self.open(&worker, d);
+                    continue;
+                }
                 let Some((_, scheduler)) = self.bands.casting(band) else { break };
                 let asked = Instant::now();
                 let next = scheduler.next_batch(d);
@@ -427,12 +452,9 @@ impl Driver {
         }
     }
 
-    /// Sends `batch` of band `band` to `worker`'s stream for its dataset.
+    /// Sends `batch` of band `band` to `worker`'s stream for its dataset, which is open.
     fn send(&mut self, band: usize, worker: WorkerHandle, batch: Batch) {
         let key = (worker.id.clone(), batch.dataset);
-        if !self.streams.contains_key(&key) {
-            self.open(&worker, batch.dataset);
-        }
         let wire = self.dispatch.next_wire();
         let _span = tracing::debug_span!("batch", wire, dataset = batch.dataset, attempt = batch.attempt, worker = %worker.id, tasks = batch.tasks.len()).entered();
         let encoding = Instant::now();
@@ -445,14 +467,13 @@ impl Driver {
         };
         self.tally.wire_to += request.encoded_len() as u64;
         self.tally.coordinator.encoding += encoding.elapsed().as_secs_f64();
-        let stream = self.streams.get(&key).expect("opened above");
-        if stream.tx.try_send(request).is_err() {
+        if self.streams.get(&key).is_none_or(|stream| stream.tx.try_send(request).is_err()) {
             // The stream's reader is gone or its queue is full: give the batch back.
             if let Some((seq, scheduler)) = self.bands.casting(band) {
                 let _ = scheduler.abandon(batch.id);
                 self.ready.insert((seq, band, batch.dataset));
             }
-            self.lose_stream(&key);
+            self.lose_stream(&key, self.rest_lost());
             return;
         }
         let in_flight = InFlight {
@@ -495,16 +516,21 @@ impl Driver {
         }
         let events = self.events.clone();
         let stream_key = key.clone();
+        self.next_serial += 1;
+        let serial = self.next_serial;
         tokio::spawn(async move {
             let status = match client.cast(request).await {
                 Ok(response) => {
                     let mut inbound = response.into_inner();
+                    if events.send(Event::Opened { stream: stream_key.clone(), serial }).await.is_err() {
+                        return;
+                    }
                     loop {
                         match inbound.message().await {
                             Ok(Some(response)) => {
                                 let bytes = response.encoded_len() as u64;
                                 let stream = stream_key.clone();
-                                if events.send(Event::Answer { stream, response, bytes }).await.is_err() {
+                                if events.send(Event::Answer { stream, serial, response, bytes }).await.is_err() {
                                     return;
                                 }
                             }
@@ -515,9 +541,22 @@ impl Driver {
                 }
                 Err(status) => Some(status),
             };
-            let _ = events.send(Event::StreamEnded { stream: stream_key, status }).await;
+            let _ = events.send(Event::StreamEnded { stream: stream_key, serial, status }).await;
         });
-        self.streams.insert(key, Stream { tx, worker: worker.clone() });
+        self.opening.push((key.clone(), Instant::now()));
+        self.streams.insert(key, Stream { tx, worker: worker.clone(), serial });
+    }
+
+    /// Whether `serial` is the stream now open for `stream` (events of a lost one are not).
+    fn is_current(&self, stream: &StreamKey, serial: u64) -> bool {
+        self.streams.get(stream).is_some_and(|s| s.serial == serial)
+    }
+
+    /// The rest of a pair whose stream broke or went silent: as long as a silent worker
+    /// takes to count as lost, so that a dead one is no longer a holder by then and a live
+    /// one (its heartbeats kept coming) serves the job again.
+    fn rest_lost(&self) -> Rest {
+        Rest::Until(Instant::now() + self.registry.lost_after())
     }
 
     fn handle(&mut self, event: Event) -> Result<(), JobError> {
@@ -548,8 +587,22 @@ impl Driver {
                 self.tally.publish(&self.job, self.bands.tasks_done());
                 Ok(())
             }
-            Event::Answer { stream, response, bytes } => {
+            Event::Opened { stream, serial } => {
+                if self.is_current(&stream, serial) {
+                    self.opening.retain(|(k, _)| *k != stream);
+                    let casting: Vec<usize> = self.bands.casting_bands().map(|(b, _)| b).collect();
+                    for band in casting {
+                        self.wake_band(band);
+                    }
+                }
+                Ok(())
+            }
+            Event::Answer { stream, serial, response, bytes } => {
                 self.tally.wire_from += bytes;
+                if !self.is_current(&stream, serial) {
+                    // A stream lost before: its batches were given back then.
+                    return Ok(());
+                }
                 match response.kind {
                     Some(pb::cast_response::Kind::Result(result)) => {
                         self.record(&stream, result);
@@ -559,16 +612,25 @@ impl Driver {
                     None => Ok(()),
                 }
             }
-            Event::StreamEnded { stream, status } => {
+            Event::StreamEnded { stream, serial, status } => {
+                if !self.is_current(&stream, serial) {
+                    return Ok(());
+                }
                 if let Some(failure) = status.as_ref().and_then(convert::status_failure) {
                     if !failure.retryable {
                         return Err(JobError::Worker { worker: stream.0.clone(), failure: Box::new(failure) });
                     }
                 }
-                if self.streams.contains_key(&stream) || self.dispatch.has_batches_on(&stream) {
-                    tracing::warn!(worker = %stream.0, dataset = stream.1, status = ?status.map(|s| s.code()), "stream ended");
-                    self.lose_stream(&stream);
-                }
+                let code = status.as_ref().map(|s| s.code());
+                let rest = if code == Some(tonic::Code::ResourceExhausted) {
+                    // The worker serves as many streams as it takes: ask again shortly.
+                    tracing::debug!(worker = %stream.0, dataset = stream.1, "worker busy; asking again later");
+                    Rest::Until(Instant::now() + self.registry.heartbeat())
+                } else {
+                    tracing::warn!(worker = %stream.0, dataset = stream.1, status = ?code, "stream ended");
+                    self.rest_lost()
+                };
+                self.lose_stream(&stream, rest);
                 Ok(())
             }
         }
@@ -603,7 +665,7 @@ impl Driver {
             tracing::warn!(worker = %stream.0, error = %e, "refused an answer");
             let _ = scheduler.abandon(batch.id);
             self.ready.insert((seq, batch.band, batch.dataset));
-            self.lose_stream(stream);
+            self.lose_stream(stream, Rest::Job);
             return;
         }
         self.ready.insert((seq, batch.band, batch.dataset));
@@ -617,15 +679,16 @@ impl Driver {
             return Err(JobError::Worker { worker: stream.0.clone(), failure: Box::new(failure) });
         }
         tracing::warn!(worker = %stream.0, reason = ?failure.reason(), message = %failure.message, "worker failed a batch; retrying elsewhere");
-        self.lose_stream(stream);
+        self.lose_stream(stream, Rest::Job);
         Ok(())
     }
 
-    /// Stops using `stream` for this job: its batches go back to their schedulers, to be
-    /// handed to another holder.
-    fn lose_stream(&mut self, stream: &StreamKey) {
+    /// Stops using `stream` for this job, for `rest`: its batches go back to their
+    /// schedulers, to be handed to another holder.
+    fn lose_stream(&mut self, stream: &StreamKey, rest: Rest) {
         let worker = self.streams.remove(stream).map(|s| s.worker);
-        let lost = self.dispatch.lose(stream, worker.as_ref());
+        self.opening.retain(|(k, _)| k != stream);
+        let lost = self.dispatch.lose(stream, worker.as_ref(), rest);
         if !lost.is_empty() {
             self.registry.room_freed();
         }
@@ -643,9 +706,12 @@ impl Driver {
     fn check_workers(&mut self) {
         let mut lost = self.dispatch.overdue(self.config.batch_deadline);
         lost.extend(self.streams.keys().filter(|(w, _)| !self.registry.is_alive(w)).cloned());
+        let deadline = self.config.batch_deadline;
+        lost.extend(self.opening.iter().filter(|(_, since)| since.elapsed() > deadline).map(|(k, _)| k.clone()));
         for stream in lost {
             tracing::warn!(worker = %stream.0, dataset = stream.1, "worker silent; its batches go elsewhere");
-            self.lose_stream(&stream);
+            let rest = self.rest_lost();
+            self.lose_stream(&stream, rest);
         }
         self.dispatch.refresh(&self.registry, true);
         // A worker that joined, or one that freed room for another job, may take batches
