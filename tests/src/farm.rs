@@ -70,6 +70,7 @@ impl TestFarm {
             advertise: None,
             data_root: root.to_path_buf(),
             memory_budget,
+            metrics: Default::default(),
         };
         let tx = self.runtime.block_on(async {
             let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind a worker");

@@ -29,6 +29,10 @@ struct Args {
     /// address; on a cluster, the pod's address and port).
     #[arg(long)]
     advertise: Option<String>,
+    /// Serve Prometheus metrics at http://ADDR/metrics (e.g. 0.0.0.0:9101); off when not
+    /// given.
+    #[arg(long, value_name = "ADDR")]
+    metrics_listen: Option<String>,
 }
 
 fn main() -> ExitCode {
@@ -48,6 +52,15 @@ async fn run() -> Result<()> {
     let listener = tokio::net::TcpListener::bind(&args.listen)
         .await
         .with_context(|| format!("cannot listen on {}", args.listen))?;
+    // Bound before the address is printed, so a caller that read it can scrape at once.
+    let metrics_listener = match &args.metrics_listen {
+        Some(addr) => Some(
+            tokio::net::TcpListener::bind(addr)
+                .await
+                .with_context(|| format!("cannot listen on {addr} (--metrics-listen)"))?,
+        ),
+        None => None,
+    };
     let bound = listener.local_addr().context("the listener has no address")?;
     println!("{bound}");
     let config = WorkerConfig {
@@ -55,7 +68,24 @@ async fn run() -> Result<()> {
         advertise: args.advertise,
         data_root: args.data_root,
         memory_budget: args.memory_budget,
+        metrics: Default::default(),
     };
-    trove_worker::run(listener, trove_proto::shutdown_signal(), config).await.context("worker")?;
-    Ok(())
+    // The metrics server stops when the worker does.
+    let (stop_metrics, metrics_stopped) = tokio::sync::oneshot::channel::<()>();
+    if let Some(metrics_listener) = metrics_listener {
+        let address = metrics_listener.local_addr().context("the metrics listener has no address")?;
+        tracing::info!(%address, "serving metrics at /metrics");
+        let metrics = config.metrics.clone();
+        tokio::spawn(async move {
+            let stopped = async {
+                let _ = metrics_stopped.await;
+            };
+            if let Err(e) = trove_worker::metrics::serve(metrics_listener, stopped, metrics).await {
+                tracing::error!(error = %e, "the metrics server stopped");
+            }
+        });
+    }
+    let served = trove_worker::run(listener, trove_proto::shutdown_signal(), config).await.context("worker");
+    let _ = stop_metrics.send(());
+    served
 }

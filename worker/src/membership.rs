@@ -10,6 +10,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
+use tokio::sync::watch;
 use tonic::transport::{Channel, Endpoint};
 use trove_proto::v1 as pb;
 use trove_proto::v1::membership_client::MembershipClient;
@@ -31,6 +32,9 @@ pub struct Announcement {
     pub memory_budget: Option<u64>,
     /// Batches being cast right now.
     pub busy: Arc<AtomicU64>,
+    /// True while the coordinator knows this worker (registered, not yet forgotten): what
+    /// the worker's gRPC health reports as SERVING.
+    pub registered: watch::Sender<bool>,
 }
 
 /// A lazily connecting channel to the coordinator at `url` (it reconnects by itself).
@@ -64,6 +68,7 @@ pub async fn stay_registered(channel: Channel, me: Announcement) {
         };
         backoff = Duration::from_millis(50);
         tracing::info!(worker = %registered.worker_id, "registered");
+        me.registered.send_replace(true);
         let every = Duration::from_millis(registered.heartbeat_millis.max(10) as u64);
         loop {
             tokio::time::sleep(every).await;
@@ -75,6 +80,7 @@ pub async fn stay_registered(channel: Channel, me: Announcement) {
                 Ok(r) if r.get_ref().known => {}
                 Ok(_) => {
                     tracing::warn!("the coordinator does not know this worker any more; registering again");
+                    me.registered.send_replace(false);
                     break;
                 }
                 Err(status) => tracing::warn!(code = ?status.code(), "heartbeat failed"),

@@ -109,7 +109,7 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
                 .map_err(|e| Status::internal(format!("validating the scene failed: {e}")))?
         };
         let plan = planned?;
-        let job = farm.jobs.create();
+        let job = farm.jobs.create(&plan.scene_name);
         farm.admission.enqueue(job.clone());
         tracing::info!(job = %job.id, scene = %plan.scene_name, queued = farm.admission.waiting(), "job submitted");
         let id = job.id.clone();
@@ -229,6 +229,10 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
         _: Request<pb::ListWorkersRequest>,
     ) -> Result<Response<pb::ListWorkersResponse>, Status> {
         Ok(Response::new(pb::ListWorkersResponse { workers: self.0.registry.list() }))
+    }
+
+    async fn list_jobs(&self, _: Request<pb::ListJobsRequest>) -> Result<Response<pb::ListJobsResponse>, Status> {
+        Ok(Response::new(pb::ListJobsResponse { jobs: self.0.jobs.list() }))
     }
 }
 

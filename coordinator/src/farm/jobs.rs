@@ -9,6 +9,7 @@
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{SystemTime, UNIX_EPOCH};
 
 use tokio::sync::{watch, Notify};
 use trove_proto::v1 as pb;
@@ -31,6 +32,10 @@ pub struct JobOutput {
 pub struct Job {
     /// Its id.
     pub id: String,
+    /// Its scene file's name, as submitted (for `trove jobs`).
+    pub scene_name: String,
+    /// When it was submitted.
+    pub submitted: SystemTime,
     status: watch::Sender<pb::JobStatus>,
     cancel: watch::Sender<bool>,
     output: Mutex<Option<Arc<JobOutput>>>,
@@ -75,6 +80,21 @@ impl Job {
     pub fn set_output(&self, output: JobOutput) {
         *lock(&self.output) = Some(Arc::new(output));
     }
+
+    /// Its line in `ListJobs`.
+    pub fn summary(&self) -> pb::JobSummary {
+        let status = self.status.borrow();
+        let since_epoch = self.submitted.duration_since(UNIX_EPOCH).unwrap_or_default();
+        pb::JobSummary {
+            job_id: self.id.clone(),
+            scene_name: self.scene_name.clone(),
+            state: status.state,
+            pieces_done: status.pieces_done,
+            pieces_total: status.pieces_total,
+            queue_position: status.queue_position,
+            submitted_unix_ms: since_epoch.as_millis() as u64,
+        }
+    }
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -100,12 +120,14 @@ struct JobsState {
 }
 
 impl Jobs {
-    /// A new queued job.
-    pub fn create(&self) -> Arc<Job> {
+    /// A new queued job of the scene file named `scene_name`.
+    pub fn create(&self, scene_name: &str) -> Arc<Job> {
         let id = format!("job-{}", self.next.fetch_add(1, Ordering::Relaxed) + 1);
         let status = pb::JobStatus { job_id: id.clone(), state: pb::JobState::Queued as i32, ..Default::default() };
         let job = Arc::new(Job {
             id: id.clone(),
+            scene_name: scene_name.to_string(),
+            submitted: SystemTime::now(),
             status: watch::channel(status).0,
             cancel: watch::channel(false).0,
             output: Mutex::new(None),
@@ -117,6 +139,13 @@ impl Jobs {
     /// The job `id`, if held.
     pub fn get(&self, id: &str) -> Option<Arc<Job>> {
         lock(&self.state).jobs.get(id).cloned()
+    }
+
+    /// Every job held, oldest submission first.
+    pub fn list(&self) -> Vec<pb::JobSummary> {
+        let mut jobs: Vec<Arc<Job>> = lock(&self.state).jobs.values().cloned().collect();
+        jobs.sort_by(|a, b| a.submitted.cmp(&b.submitted).then_with(|| a.id.cmp(&b.id)));
+        jobs.iter().map(|j| j.summary()).collect()
     }
 
     /// Notes that `id` ended, forgetting the oldest finished jobs beyond [`KEEP_FINISHED`].
@@ -232,7 +261,7 @@ mod tests {
     #[tokio::test]
     async fn jobs_wait_in_order_with_their_places_and_a_cancelled_one_leaves() {
         let (jobs, admission) = (Jobs::default(), Admission::new(1));
-        let all: Vec<Arc<Job>> = (0..4).map(|_| jobs.create()).collect();
+        let all: Vec<Arc<Job>> = (0..4).map(|i| jobs.create(&format!("s{i}.toml"))).collect();
         for job in &all {
             admission.enqueue(job.clone());
         }
@@ -260,5 +289,8 @@ mod tests {
         drop(second);
         assert!(third.await.unwrap());
         assert_eq!(admission.waiting(), 0);
+        let listed: Vec<(String, String)> = jobs.list().into_iter().map(|j| (j.job_id, j.scene_name)).collect();
+        let expected: Vec<(String, String)> = all.iter().map(|j| (j.id.clone(), j.scene_name.clone())).collect();
+        assert_eq!(listed, expected, "listed in submission order, with their scenes");
     }
 }

@@ -7,12 +7,14 @@
 //! * [`jobs`]: the job table, statuses, cancellation and results.
 //! * [`driver`]: one job from submission to image, band by band.
 //! * [`api`]: the gRPC services (`Coordinator` for clients, `Membership` for workers).
+//! * [`metrics`]: the Prometheus metrics, served by [`metrics::serve`] on a port of their own.
 //! * [`run`]: the server as a library function over a bound listener and a shutdown signal,
 //!   so tests start a whole farm in one process on `127.0.0.1:0`.
 
 pub mod api;
 pub mod driver;
 pub mod jobs;
+pub mod metrics;
 pub mod registry;
 pub mod stats;
 
@@ -51,7 +53,9 @@ impl Default for FarmConfig {
     }
 }
 
-/// Serves the job API and worker membership on `listener` until `shutdown` resolves.
+/// Serves the job API and worker membership on `listener` until `shutdown` resolves, with
+/// gRPC health (`grpc.health.v1`, SERVING while it runs) and server reflection beside them.
+/// Its metrics are `config.driver.metrics`, for [`metrics::serve`] on another listener.
 pub async fn run(
     listener: TcpListener,
     shutdown: impl Future<Output = ()>,
@@ -63,8 +67,16 @@ pub async fn run(
         driver: config.driver,
         admission: jobs::Admission::new(config.max_jobs),
     });
+    farm.driver.metrics.observe(&farm.jobs, &farm.registry);
+    let (health, health_service) = tonic_health::server::health_reporter();
+    health.set_serving::<CoordinatorServer<api::CoordinatorService>>().await;
+    health.set_serving::<MembershipServer<api::MembershipService>>().await;
+    let (reflection_v1, reflection_v1alpha) = trove_proto::reflection::services();
     let limit = trove_proto::MAX_MESSAGE_BYTES;
     tonic::transport::Server::builder()
+        .add_service(health_service)
+        .add_optional_service(reflection_v1)
+        .add_optional_service(reflection_v1alpha)
         .add_service(
             CoordinatorServer::new(api::CoordinatorService(farm.clone()))
                 .max_decoding_message_size(limit)

@@ -55,6 +55,7 @@ use trove_proto::v1 as pb;
 use trove_proto::v1::worker_client::WorkerClient;
 
 use super::jobs::{Job, JobOutput};
+use super::metrics::FarmMetrics;
 use super::registry::{Registry, WorkerHandle};
 use dispatch::{Dispatch, InFlight};
 pub use error::JobError;
@@ -83,6 +84,8 @@ pub struct DriverConfig {
     /// Most pixels of a job that asks for a PFM (the coordinator holds its floats and the
     /// file's bytes): a larger one is refused at submission.
     pub max_pfm_pixels: u64,
+    /// Where every job of the coordinator records its counters (`--metrics-listen`).
+    pub metrics: Arc<FarmMetrics>,
     /// Debug builds only, for tests: a blocking step that panics in every job, to show that
     /// a panic fails its job only.
     #[cfg(debug_assertions)]
@@ -110,6 +113,7 @@ impl Default for DriverConfig {
             max_attempts: 5,
             job_deadline: Duration::from_secs(3600),
             max_pfm_pixels: MAX_PFM_PIXELS,
+            metrics: Arc::new(FarmMetrics::new()),
             #[cfg(debug_assertions)]
             fault: None,
         }
@@ -244,6 +248,7 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         n => (n as usize).min(trove_proto::MAX_BATCH_TASKS),
     };
     let admission = Admission { max_bands, memory_bound: config.memory_bound };
+    let metrics = config.metrics.clone();
     let mut driver = Driver {
         bands: Bands::new(h, band_rows, admission),
         raster: Raster::new(w, h, plan.options.want_pfm),
@@ -256,7 +261,7 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         batch_tasks,
         streams: Default::default(),
         ready: BTreeSet::new(),
-        tally: Tally::default(),
+        tally: Tally::new(metrics),
     };
     job.update(|s| {
         s.state = pb::JobState::Running as i32;
@@ -596,7 +601,7 @@ impl Driver {
             return;
         }
         self.ready.insert((seq, batch.band, batch.dataset));
-        self.tally.answered(&stream.0, batch.tasks, &result);
+        self.tally.answered(&stream.0, batch.tasks, batch.sent.elapsed(), &result);
         self.composite_if_complete(batch.band);
     }
 
