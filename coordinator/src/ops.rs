@@ -162,8 +162,11 @@ fn table(header: &[&str], rows: &[Vec<String>]) -> String {
     }
     let line = |cells: Vec<&str>| {
         let last = cells.len().saturating_sub(1);
-        let padded: Vec<String> =
-            cells.iter().enumerate().map(|(i, c)| if i == last { c.to_string() } else { format!("{c:<w$}", w = widths[i]) }).collect();
+        let padded: Vec<String> = cells
+            .iter()
+            .enumerate()
+            .map(|(i, c)| if i == last { c.to_string() } else { format!("{c:<w$}", w = widths[i]) })
+            .collect();
         padded.join("  ").trim_end().to_string() + "\n"
     };
     let mut out = line(header.to_vec());
@@ -339,7 +342,13 @@ mod tests {
 
     #[test]
     fn tables_align_their_columns() {
-        let rows = vec![vec!["job-10".into(), "running".into(), "x".into()], vec!["job-9".into(), "queued".into(), "y".into()]];
-        assert_eq!(table(&["ID", "STATE", "SCENE"], &rows), "ID      STATE    SCENE\njob-10  running  x\njob-9   queued   y\n");
+        let rows = vec![
+            vec!["job-10".into(), "running".into(), "x".into()],
+            vec!["job-9".into(), "queued".into(), "y".into()],
+        ];
+        assert_eq!(
+            table(&["ID", "STATE", "SCENE"], &rows),
+            "ID      STATE    SCENE\njob-10  running  x\njob-9   queued   y\n"
+        );
     }
 }

@@ -249,7 +249,8 @@ fn sample(page: &str, name: &str) -> f64 {
 #[test]
 fn metrics_count_a_renders_pieces_and_jobs_and_the_workers_cast() {
     let metrics = Arc::new(FarmMetrics::new());
-    let config = FarmConfig { driver: DriverConfig { metrics: metrics.clone(), ..DriverConfig::default() }, ..config() };
+    let config =
+        FarmConfig { driver: DriverConfig { metrics: metrics.clone(), ..DriverConfig::default() }, ..config() };
     let farm = TestFarm::start_with(&[], config, None);
     let dir = scratch("ops-metrics");
     let worker_metrics = Arc::new(WorkerMetrics::new());
@@ -313,7 +314,11 @@ fn wait_until(mut f: impl FnMut() -> bool) -> bool {
 
 /// A worker of `farm`'s coordinator over an empty root, counting into `metrics`; it stops
 /// when the sender is dropped. Returns the sender and the worker's URL.
-fn start_worker(farm: &TestFarm, root: &Path, metrics: Arc<WorkerMetrics>) -> (tokio::sync::oneshot::Sender<()>, String) {
+fn start_worker(
+    farm: &TestFarm,
+    root: &Path,
+    metrics: Arc<WorkerMetrics>,
+) -> (tokio::sync::oneshot::Sender<()>, String) {
     start_worker_of(farm, &farm.url, root, metrics)
 }
 

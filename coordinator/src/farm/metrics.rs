@@ -126,7 +126,8 @@ impl FarmMetrics {
     /// Reads the gauges from `jobs` and `registry` on every scrape (a coordinator calls
     /// this as it starts).
     pub fn observe(&self, jobs: &Arc<Jobs>, registry: &Arc<Registry>) {
-        *self.sources.lock().unwrap_or_else(|e| e.into_inner()) = Some((Arc::downgrade(jobs), Arc::downgrade(registry)));
+        *self.sources.lock().unwrap_or_else(|e| e.into_inner()) =
+            Some((Arc::downgrade(jobs), Arc::downgrade(registry)));
     }
 
     /// An accepted answer to a batch of `tasks` tasks, `latency_s` seconds after it was sent.
