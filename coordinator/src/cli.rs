@@ -121,7 +121,7 @@ struct CoordinatorArgs {
     #[arg(long, default_value_t = render::limits::MAX_PFM_PIXELS)]
     max_pfm_pixels: u64,
     /// Serve Prometheus metrics at http://ADDR/metrics (e.g. 0.0.0.0:9100); off when not
-    /// given.
+    /// given. Its bound address is printed as the second line of standard output.
     #[arg(long, value_name = "ADDR")]
     metrics_listen: Option<String>,
 }
@@ -320,6 +320,7 @@ fn coordinator_command(args: CoordinatorArgs) -> Result<()> {
         if let Some(metrics_listener) = metrics_listener {
             let address = metrics_listener.local_addr().context("the metrics listener has no address")?;
             tracing::info!(%address, "serving metrics at /metrics");
+            println!("{address}");
             let metrics = config.driver.metrics.clone();
             tokio::spawn(async move {
                 let stopped = async {

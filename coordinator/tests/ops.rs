@@ -456,3 +456,111 @@ fn reflection_lists_and_describes_both_servers_services() {
     assert!(services.iter().any(|n| n == "trove.v1.Worker"), "{services:?}");
     assert!(services.iter().any(|n| n == "grpc.health.v1.Health"), "{services:?}");
 }
+
+/// A server binary killed when dropped, with the addresses it printed (its first lines).
+struct Served {
+    child: std::process::Child,
+    lines: Vec<String>,
+    /// Kept open: a server that wrote to a closed pipe would fail.
+    _stdout: Option<std::io::BufReader<std::process::ChildStdout>>,
+}
+
+impl Drop for Served {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Starts `program args` and reads the `lines` addresses it prints first (within ten
+/// seconds: a server that prints fewer fails the test instead of hanging it).
+fn serve(program: &Path, args: &[&str], lines: usize) -> Served {
+    use std::io::BufRead;
+    let child = Command::new(program)
+        .args(args)
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::inherit())
+        .spawn()
+        .unwrap_or_else(|e| panic!("start {}: {e}", program.display()));
+    let mut served = Served { child, lines: Vec::new(), _stdout: None };
+    let mut stdout = std::io::BufReader::new(served.child.stdout.take().expect("piped"));
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut read = Vec::new();
+        for _ in 0..lines {
+            let mut line = String::new();
+            if stdout.read_line(&mut line).unwrap_or(0) == 0 {
+                break;
+            }
+            read.push(line.trim().to_string());
+        }
+        let _ = tx.send((read, stdout));
+    });
+    let (read, stdout) = rx
+        .recv_timeout(Duration::from_secs(10))
+        .unwrap_or_else(|_| panic!("{} printed fewer than {lines} lines in 10 s", program.display()));
+    assert_eq!(read.len(), lines, "{} printed only {read:?}", program.display());
+    for line in &read {
+        assert!(line.starts_with("127.0.0.1:"), "{} printed {line:?}", program.display());
+    }
+    served.lines = read;
+    served._stdout = Some(stdout);
+    served
+}
+
+#[test]
+fn the_binaries_serve_metrics_health_and_reflection_on_the_ports_they_print() {
+    let worker_binary = trove().with_file_name(format!("trove-worker{}", std::env::consts::EXE_SUFFIX));
+    assert!(worker_binary.exists(), "{} is missing: run the workspace's tests", worker_binary.display());
+    let dir = scratch("ops-binaries");
+    std::fs::create_dir_all(dir.join("w0")).unwrap();
+    let coordinator = serve(
+        trove(),
+        &["coordinator", "--listen", "127.0.0.1:0", "--heartbeat-ms", "100", "--metrics-listen", "127.0.0.1:0"],
+        2,
+    );
+    let url = format!("http://{}", coordinator.lines[0]);
+    let root = dir.join("w0");
+    let worker = serve(
+        &worker_binary,
+        &[
+            "--coordinator",
+            &url,
+            "--listen",
+            "127.0.0.1:0",
+            "--data-root",
+            root.to_str().unwrap(),
+            "--metrics-listen",
+            "127.0.0.1:0",
+        ],
+        2,
+    );
+    let (metrics, worker_metrics) = (coordinator.lines[1].parse().unwrap(), worker.lines[1].parse().unwrap());
+    assert!(wait_until(|| sample(&scrape(metrics), "trove_workers_alive") == 1.0), "the worker never registered");
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let worker_url = format!("http://{}", worker.lines[0]);
+    let serving = runtime.block_on(async {
+        let started = Instant::now();
+        while started.elapsed() < Duration::from_secs(10) {
+            if health(&worker_url, "").await == ServingStatus::Serving {
+                return true;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        false
+    });
+    assert!(serving, "the registered worker never reported SERVING");
+    let (services, _) = runtime.block_on(reflect(&url, "trove.v1.Coordinator"));
+    assert!(services.iter().any(|s| s == "trove.v1.Coordinator"), "{services:?}");
+
+    let scene = dir.join("ball.toml");
+    std::fs::write(&scene, ball(16, "")).unwrap();
+    let png = dir.join("ball.png");
+    ok(run(&["render", scene.to_str().unwrap(), "-o", png.to_str().unwrap(), "--coordinator", &url]));
+    let page = scrape(metrics);
+    assert_eq!(sample(&page, "trove_jobs{state=\"succeeded\"}"), 1.0, "{page}");
+    let cast = sample(&page, "trove_pieces_cast_total");
+    assert!(cast > 0.0, "{page}");
+    assert_eq!(sample(&scrape(worker_metrics), "trove_worker_pieces_cast_total"), cast);
+}

@@ -30,7 +30,7 @@ struct Args {
     #[arg(long)]
     advertise: Option<String>,
     /// Serve Prometheus metrics at http://ADDR/metrics (e.g. 0.0.0.0:9101); off when not
-    /// given.
+    /// given. Its bound address is printed as the second line of standard output.
     #[arg(long, value_name = "ADDR")]
     metrics_listen: Option<String>,
 }
@@ -75,6 +75,7 @@ async fn run() -> Result<()> {
     if let Some(metrics_listener) = metrics_listener {
         let address = metrics_listener.local_addr().context("the metrics listener has no address")?;
         tracing::info!(%address, "serving metrics at /metrics");
+        println!("{address}");
         let metrics = config.metrics.clone();
         tokio::spawn(async move {
             let stopped = async {
