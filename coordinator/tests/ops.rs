@@ -452,6 +452,21 @@ fn reflection_lists_and_describes_both_servers_services() {
     for name in ["trove.proto", "ListJobs", "JobSummary", "submitted_unix_ms"] {
         assert!(text.contains(name), "the descriptor lacks {name}");
     }
+    // The older protocol version, which some clients still ask for first, answers too.
+    let listed: Vec<String> = farm.block_on(async {
+        use tonic_reflection::pb::v1alpha::server_reflection_client::ServerReflectionClient as V1Alpha;
+        use tonic_reflection::pb::v1alpha::server_reflection_request::MessageRequest as Ask;
+        use tonic_reflection::pb::v1alpha::server_reflection_response::MessageResponse as Answer;
+        use tonic_reflection::pb::v1alpha::ServerReflectionRequest as Request;
+        let mut client = V1Alpha::new(channel(&farm.url).await);
+        let ask = Request { host: String::new(), message_request: Some(Ask::ListServices(String::new())) };
+        let mut answers = client.server_reflection_info(tokio_stream::iter([ask])).await.unwrap().into_inner();
+        match answers.message().await.unwrap().and_then(|a| a.message_response) {
+            Some(Answer::ListServicesResponse(list)) => list.service.into_iter().map(|s| s.name).collect(),
+            other => panic!("unexpected v1alpha answer {other:?}"),
+        }
+    });
+    assert!(listed.iter().any(|n| n == "trove.v1.Coordinator"), "{listed:?}");
     let (services, _) = farm.block_on(reflect(&worker, "trove.v1.Worker"));
     assert!(services.iter().any(|n| n == "trove.v1.Worker"), "{services:?}");
     assert!(services.iter().any(|n| n == "grpc.health.v1.Health"), "{services:?}");
