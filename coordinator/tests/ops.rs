@@ -579,3 +579,64 @@ fn the_binaries_serve_metrics_health_and_reflection_on_the_ports_they_print() {
     assert!(cast > 0.0, "{page}");
     assert_eq!(sample(&scrape(worker_metrics), "trove_worker_pieces_cast_total"), cast);
 }
+
+/// A coordinator's `Membership` that the test makes forget its workers: while `forget` is
+/// set, heartbeats are answered `known = false` and registrations refused.
+struct Forgetful(Arc<std::sync::atomic::AtomicBool>);
+
+#[tonic::async_trait]
+impl pb::membership_server::Membership for Forgetful {
+    async fn register(
+        &self,
+        _: tonic::Request<pb::RegisterRequest>,
+    ) -> Result<tonic::Response<pb::RegisterResponse>, tonic::Status> {
+        if self.0.load(std::sync::atomic::Ordering::SeqCst) {
+            return Err(tonic::Status::unavailable("not taking workers"));
+        }
+        Ok(tonic::Response::new(pb::RegisterResponse { worker_id: "w1".into(), heartbeat_millis: 20 }))
+    }
+
+    async fn heartbeat(
+        &self,
+        _: tonic::Request<pb::HeartbeatRequest>,
+    ) -> Result<tonic::Response<pb::HeartbeatResponse>, tonic::Status> {
+        let known = !self.0.load(std::sync::atomic::Ordering::SeqCst);
+        Ok(tonic::Response::new(pb::HeartbeatResponse { known }))
+    }
+}
+
+#[test]
+fn a_worker_the_coordinator_forgets_is_not_serving_until_it_registers_again() {
+    let farm = TestFarm::start_with(&[], config(), None);
+    let forget = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let coordinator = farm.block_on(async {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let url = format!("http://{}", listener.local_addr().unwrap());
+        let membership = pb::membership_server::MembershipServer::new(Forgetful(forget.clone()));
+        let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener);
+        tokio::spawn(tonic::transport::Server::builder().add_service(membership).serve_with_incoming(incoming));
+        url
+    });
+    let dir = scratch("ops-forgotten");
+    let (_stop, worker) = start_worker_of(&farm, &coordinator, &dir.join("w0"), Arc::default());
+    let becomes = |wanted: ServingStatus| {
+        farm.block_on(async {
+            let started = Instant::now();
+            while started.elapsed() < Duration::from_secs(10) {
+                if health(&worker, "").await == wanted {
+                    return true;
+                }
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+            false
+        })
+    };
+    assert!(becomes(ServingStatus::Serving), "never SERVING after registering");
+    forget.store(true, std::sync::atomic::Ordering::SeqCst);
+    assert!(becomes(ServingStatus::NotServing), "still SERVING after the coordinator forgot it");
+    // Refused registrations keep it out: it stays NOT_SERVING.
+    std::thread::sleep(Duration::from_millis(200));
+    assert_eq!(farm.block_on(health(&worker, "trove.v1.Worker")), ServingStatus::NotServing);
+    forget.store(false, std::sync::atomic::Ordering::SeqCst);
+    assert!(becomes(ServingStatus::Serving), "never SERVING again after registering again");
+}
