@@ -1,4 +1,5 @@
-//! The command line: argument parsing and the `render` command.
+//! The command line: argument parsing, the `render` and `coordinator` commands; the
+//! operator's commands against a running coordinator are in `ops.rs`.
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -33,6 +34,12 @@ enum Command {
     /// Check or fetch the public datasets the example scenes read (docs/data.md).
     #[command(subcommand)]
     Data(crate::data::DataCommand),
+    /// List a coordinator's jobs, or fetch a finished one's files (`trove jobs result`).
+    Jobs(crate::ops::JobsArgs),
+    /// List the workers registered with a coordinator.
+    Workers(crate::ops::WorkersArgs),
+    /// Cancel a queued or running job.
+    Cancel(crate::ops::CancelArgs),
 }
 
 #[derive(clap::Args)]
@@ -90,6 +97,13 @@ impl ConnectArgs {
     /// The coordinator's URL; an error naming the flag when it is missing.
     pub fn url(&self) -> Result<&str> {
         self.coordinator.as_deref().context("--coordinator URL is required: the coordinator to ask")
+    }
+
+    /// A client of the coordinator, with the token and CA; an error names its URL when it
+    /// cannot be reached.
+    pub async fn connect(&self) -> Result<FarmClient> {
+        let url = self.url()?;
+        Ok(FarmClient::connect_with(url, &self.connector()?).await?)
     }
 
     /// The token and CA from their files; each error names the flag and the file.
@@ -175,6 +189,10 @@ struct CoordinatorArgs {
     /// before it stops.
     #[arg(long, default_value_t = farm::DEFAULT_DRAIN_GRACE.as_secs())]
     drain_grace_s: u64,
+    /// Serve Prometheus metrics at http://ADDR/metrics (e.g. 0.0.0.0:9100); off when not
+    /// given. Its bound address is printed as the second line of standard output.
+    #[arg(long, value_name = "ADDR")]
+    metrics_listen: Option<String>,
 }
 
 impl CoordinatorArgs {
@@ -229,6 +247,9 @@ pub fn run() -> Result<()> {
         Command::Render(args) => render_command(args),
         Command::Coordinator(args) => coordinator_command(args),
         Command::Data(data) => data.run(),
+        Command::Jobs(args) => crate::ops::jobs_command(args),
+        Command::Workers(args) => crate::ops::workers_command(args),
+        Command::Cancel(args) => crate::ops::cancel_command(args),
     }
 }
 
@@ -276,7 +297,7 @@ fn render_command(args: RenderArgs) -> Result<()> {
 
 /// Refuses, before any work, an output whose folder does not exist or whose extension we do
 /// not write — a long render should not be lost to a typo in `-o`.
-fn check_output(path: &Path, extensions: &[&str]) -> Result<()> {
+pub(crate) fn check_output(path: &Path, extensions: &[&str]) -> Result<()> {
     let ext = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
     if !ext.as_deref().is_some_and(|e| extensions.contains(&e)) {
         bail!("cannot write {}: expected a file ending in .{}", path.display(), extensions.join(" or ."));
@@ -364,6 +385,15 @@ fn coordinator_command(args: CoordinatorArgs) -> Result<()> {
         let listener = tokio::net::TcpListener::bind(&args.listen)
             .await
             .with_context(|| format!("cannot listen on {}", args.listen))?;
+        // Bound before the address is printed, so a caller that read it can scrape at once.
+        let metrics_listener = match &args.metrics_listen {
+            Some(addr) => Some(
+                tokio::net::TcpListener::bind(addr)
+                    .await
+                    .with_context(|| format!("cannot listen on {addr} (--metrics-listen)"))?,
+            ),
+            None => None,
+        };
         println!("{}", listener.local_addr().context("the listener has no address")?);
         let config = FarmConfig {
             heartbeat: std::time::Duration::from_millis(args.heartbeat_ms.max(10)),
@@ -382,10 +412,28 @@ fn coordinator_command(args: CoordinatorArgs) -> Result<()> {
             security,
             drain_grace: std::time::Duration::from_secs(args.drain_grace_s),
         };
-        farm::run(listener, trove_proto::shutdown_signal(), config).await.context("coordinator")
+        // The metrics server stops when the coordinator does.
+        let (stop_metrics, metrics_stopped) = tokio::sync::oneshot::channel::<()>();
+        if let Some(metrics_listener) = metrics_listener {
+            let address = metrics_listener.local_addr().context("the metrics listener has no address")?;
+            tracing::info!(%address, "serving metrics at /metrics");
+            println!("{address}");
+            let metrics = config.driver.metrics.clone();
+            tokio::spawn(async move {
+                let stopped = async {
+                    let _ = metrics_stopped.await;
+                };
+                if let Err(e) = farm::metrics::serve(metrics_listener, stopped, metrics).await {
+                    tracing::error!(error = %e, "the metrics server stopped");
+                }
+            });
+        }
+        let served = farm::run(listener, trove_proto::shutdown_signal(), config).await.context("coordinator");
+        let _ = stop_metrics.send(());
+        served
     })
 }
 
-fn is_pfm(path: &Path) -> bool {
+pub(crate) fn is_pfm(path: &Path) -> bool {
     path.extension().is_some_and(|e| e.eq_ignore_ascii_case("pfm"))
 }

@@ -270,6 +270,13 @@ impl FarmClient {
         Ok(response.map_err(|s| self.error(s))?.into_inner().workers)
     }
 
+    /// The jobs the coordinator holds, oldest submission first.
+    pub async fn jobs(&mut self) -> Result<Vec<pb::JobSummary>, ClientError> {
+        let mut request = tonic::Request::new(pb::ListJobsRequest {});
+        request.set_timeout(CALL_DEADLINE);
+        Ok(self.inner.list_jobs(request).await?.into_inner().jobs)
+    }
+
     /// Submits, follows and fetches: a whole render through the farm.
     pub async fn render(
         &mut self,

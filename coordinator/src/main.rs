@@ -4,6 +4,7 @@
 
 mod cli;
 mod data;
+mod ops;
 
 use std::process::ExitCode;
 

@@ -3,21 +3,31 @@
 //! the worker see protobuf types, and they translate here ([`convert`]), so `trove-core`
 //! never does. [`edge`] holds what both farm binaries need at their own edge (byte counts
 //! on the command line, logging, shutdown on a signal); [`auth`], [`tls`] and [`connect`]
-//! how their connections are secured (bearer tokens, TLS, keepalive), on both sides.
+//! how their connections are secured (bearer tokens, TLS, keepalive), on both sides;
+//! [`metrics_http`] the HTTP endpoint both serve their Prometheus metrics on, and
+//! [`reflection`] their gRPC server reflection.
 
 pub mod auth;
 pub mod connect;
 pub mod convert;
 pub mod edge;
+pub mod metrics_http;
+pub mod reflection;
 pub mod tls;
 
 pub use edge::{init_logging, parse_bytes, shutdown_signal, BytesError};
+pub use metrics_http::serve_metrics;
 
 /// Generated messages and services.
 #[allow(missing_docs, clippy::all)]
 pub mod v1 {
     tonic::include_proto!("trove.v1");
 }
+
+/// `trove.proto` compiled, as an encoded `FileDescriptorSet`: what server reflection
+/// (`tonic-reflection`) answers with, so that `grpcurl` and other generic clients can list
+/// and call the services without the file.
+pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("trove_descriptor");
 
 /// Largest message either side accepts. Batches are far smaller (a batch of the largest
 /// size, [`MAX_BATCH_TASKS`] tasks, is 384 KiB of tasks and 256 KiB of results); scenes and

@@ -55,6 +55,10 @@ struct Args {
     /// more is refused as busy, and the coordinator asks again later.
     #[arg(long, default_value_t = trove_worker::cast::DEFAULT_MAX_STREAMS as u32, value_parser = clap::value_parser!(u32).range(1..))]
     max_streams: u32,
+    /// Serve Prometheus metrics at http://ADDR/metrics (e.g. 0.0.0.0:9101); off when not
+    /// given. Its bound address is printed as the second line of standard output.
+    #[arg(long, value_name = "ADDR")]
+    metrics_listen: Option<String>,
 }
 
 /// The environment variable a worker's id is read from when `--worker-id` is not given.
@@ -106,6 +110,15 @@ async fn run() -> Result<()> {
     let listener = tokio::net::TcpListener::bind(&args.listen)
         .await
         .with_context(|| format!("cannot listen on {}", args.listen))?;
+    // Bound before the address is printed, so a caller that read it can scrape at once.
+    let metrics_listener = match &args.metrics_listen {
+        Some(addr) => Some(
+            tokio::net::TcpListener::bind(addr)
+                .await
+                .with_context(|| format!("cannot listen on {addr} (--metrics-listen)"))?,
+        ),
+        None => None,
+    };
     let bound = listener.local_addr().context("the listener has no address")?;
     println!("{bound}");
     let config = WorkerConfig {
@@ -116,7 +129,25 @@ async fn run() -> Result<()> {
         worker_id,
         security,
         max_streams: args.max_streams as usize,
+        metrics: Default::default(),
     };
-    trove_worker::run(listener, trove_proto::shutdown_signal(), config).await.context("worker")?;
-    Ok(())
+    // The metrics server stops when the worker does.
+    let (stop_metrics, metrics_stopped) = tokio::sync::oneshot::channel::<()>();
+    if let Some(metrics_listener) = metrics_listener {
+        let address = metrics_listener.local_addr().context("the metrics listener has no address")?;
+        tracing::info!(%address, "serving metrics at /metrics");
+        println!("{address}");
+        let metrics = config.metrics.clone();
+        tokio::spawn(async move {
+            let stopped = async {
+                let _ = metrics_stopped.await;
+            };
+            if let Err(e) = trove_worker::metrics::serve(metrics_listener, stopped, metrics).await {
+                tracing::error!(error = %e, "the metrics server stopped");
+            }
+        });
+    }
+    let served = trove_worker::run(listener, trove_proto::shutdown_signal(), config).await.context("worker");
+    let _ = stop_metrics.send(());
+    served
 }

@@ -53,6 +53,9 @@ pub struct Announcement {
     pub memory_budget: Option<u64>,
     /// Batches being cast right now.
     pub busy: Arc<AtomicU64>,
+    /// True while the coordinator knows this worker (registered, not yet forgotten): what
+    /// the worker's gRPC health reports as SERVING.
+    pub registered: watch::Sender<bool>,
 }
 
 /// The coordinator refused this worker's credentials.
@@ -118,6 +121,7 @@ pub async fn stay_registered(channel: AuthChannel, me: Announcement, id: watch::
         backoff = Duration::from_millis(50);
         tracing::info!(worker = %registered.worker_id, "registered");
         id.send_replace(Some(registered.worker_id.clone()));
+        me.registered.send_replace(true);
         let every = Duration::from_millis(registered.heartbeat_millis.max(10) as u64);
         loop {
             tokio::time::sleep(every).await;
@@ -129,6 +133,7 @@ pub async fn stay_registered(channel: AuthChannel, me: Announcement, id: watch::
                 Ok(r) if r.get_ref().known => {}
                 Ok(_) => {
                     tracing::warn!("the coordinator does not know this worker any more; registering again");
+                    me.registered.send_replace(false);
                     break;
                 }
                 Err(status) => {

@@ -1,6 +1,9 @@
 //! A worker as a library function: scan the data root, serve `Worker.Cast` on a bound
 //! listener, and stay registered with the coordinator until `shutdown` resolves; then
-//! drain: deregister, stop taking streams, finish the batches held, and return.
+//! drain: deregister, stop taking streams, finish the batches held, and return. Beside
+//! `Worker`, the listener serves gRPC health — NOT_SERVING until the coordinator has
+//! accepted the worker's registration, and again whenever it forgets the worker or the
+//! worker drains — and server reflection.
 
 use std::future::Future;
 use std::hash::{BuildHasher, Hasher};
@@ -14,6 +17,8 @@ use tokio::net::TcpListener;
 use tokio::sync::{oneshot, watch};
 use tokio_stream::wrappers::TcpListenerStream;
 use tonic::service::interceptor::InterceptedService;
+use tonic_health::server::HealthReporter;
+use tonic_health::ServingStatus;
 use trove_core::render::VolumeStore;
 use trove_proto::auth::{RequireToken, Token};
 use trove_proto::connect::{self, ConnectError, Connector};
@@ -23,6 +28,7 @@ use trove_proto::v1::worker_server::WorkerServer;
 use crate::cast::{CastService, DEFAULT_MAX_STREAMS};
 use crate::files::{DataFiles, ScanError};
 use crate::membership::{self, Announcement, Refused};
+use crate::metrics::{Metered, WorkerMetrics};
 
 /// Longest a stopping worker spends finishing the batches it holds; a Kubernetes pod has 30 s
 /// between SIGTERM and SIGKILL unless told otherwise.
@@ -47,6 +53,8 @@ pub struct WorkerConfig {
     pub security: WorkerSecurity,
     /// `Cast` streams served at once, at most; one more is refused as busy.
     pub max_streams: usize,
+    /// Where the worker counts what it casts (served by [`crate::metrics::serve`]).
+    pub metrics: Arc<WorkerMetrics>,
 }
 
 impl WorkerConfig {
@@ -61,6 +69,7 @@ impl WorkerConfig {
             security: WorkerSecurity::default(),
             max_streams: DEFAULT_MAX_STREAMS,
             worker_id: None,
+            metrics: Arc::default(),
         }
     }
 }
@@ -133,33 +142,48 @@ pub async fn run(
     let busy = Arc::new(AtomicU64::new(0));
     let worker_id = config.worker_id.clone().unwrap_or_else(random_worker_id);
     tracing::info!(worker = %worker_id, %address, "worker starting");
+    let (registered, registration) = watch::channel(false);
     let me = Announcement {
         worker_id,
         address,
         files: files.clone(),
         memory_budget: config.memory_budget,
         busy: busy.clone(),
+        registered,
     };
+    config.metrics.observe(&store);
     let service = CastService::new(files, store, busy, config.max_streams);
     let drain = service.drain();
     let worker = InterceptedService::new(
-        WorkerServer::new(service).max_decoding_message_size(trove_proto::MAX_MESSAGE_BYTES),
+        WorkerServer::new(Metered::new(service, config.metrics.clone()))
+            .max_decoding_message_size(trove_proto::MAX_MESSAGE_BYTES),
         RequireToken::new(security.token),
     );
+    // Health and reflection answer without the token: probes and generic clients ask them.
+    let (health, health_service) = tonic_health::server::health_reporter();
+    report_health(&health, false).await;
+    let (reflection_v1, reflection_v1alpha) = trove_proto::reflection::services();
     let (stop, stopped) = oneshot::channel::<()>();
-    let serve = builder.add_service(worker).serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
-        let _ = stopped.await;
-    });
+    let serve = builder
+        .add_service(health_service)
+        .add_optional_service(reflection_v1)
+        .add_optional_service(reflection_v1alpha)
+        .add_service(worker)
+        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
+            let _ = stopped.await;
+        });
     tokio::pin!(serve);
     let (id_tx, id) = watch::channel(None);
     tokio::select! {
         served = &mut serve => return Ok(served?),
         refused = membership::stay_registered(channel.clone(), me, id_tx) => return Err(refused.into()),
+        () = follow_registration(registration, health.clone()) => {}
         () = shutdown => {}
     }
     // Draining: the coordinator takes this worker out first, so that it sends no new batch;
     // then new streams are refused, and each stream casts what it holds and ends.
     tracing::info!("stopping: deregistering, then finishing the batches held");
+    report_health(&health, false).await;
     let id = id.borrow().clone();
     if let Some(id) = id {
         membership::deregister(channel, id).await;
@@ -172,4 +196,24 @@ pub async fn run(
     }
     tracing::info!("stopped");
     Ok(())
+}
+
+/// The worker as a whole (service `""`, what a Kubernetes gRPC probe asks) and its `Worker`
+/// service: SERVING when registered, NOT_SERVING otherwise.
+async fn report_health(health: &HealthReporter, registered: bool) {
+    let status = if registered { ServingStatus::Serving } else { ServingStatus::NotServing };
+    health.set_service_status("", status).await;
+    health.set_service_status(<WorkerServer<CastService> as tonic::server::NamedService>::NAME, status).await;
+}
+
+/// Keeps the health status in step with registration, for as long as the worker runs.
+async fn follow_registration(mut registration: watch::Receiver<bool>, health: HealthReporter) {
+    loop {
+        let registered = *registration.borrow_and_update();
+        report_health(&health, registered).await;
+        if registration.changed().await.is_err() {
+            // The membership task has ended, and with it the worker.
+            return std::future::pending().await;
+        }
+    }
 }

@@ -372,6 +372,14 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
     ) -> Result<Response<pb::ListWorkersResponse>, Status> {
         Ok(Response::new(pb::ListWorkersResponse { workers: self.0.registry.list() }))
     }
+
+    async fn list_jobs(&self, _: Request<pb::ListJobsRequest>) -> Result<Response<pb::ListJobsResponse>, Status> {
+        let jobs = self.0.jobs.clone();
+        let listed = tokio::task::spawn_blocking(move || jobs.list())
+            .await
+            .map_err(|e| Status::internal(format!("listing the jobs failed: {e}")))?;
+        Ok(Response::new(pb::ListJobsResponse { jobs: listed }))
+    }
 }
 
 #[tonic::async_trait]

@@ -45,15 +45,24 @@ pub struct Job {
     pub submitted_unix_ms: u64,
     /// When it ended, in milliseconds since the Unix epoch; 0 while it has not.
     finished_unix_ms: AtomicU64,
+    /// Its scene file's name, as submitted (for `trove jobs`).
+    pub scene_name: String,
     status: watch::Sender<pb::JobStatus>,
     cancel: watch::Sender<bool>,
     output: Mutex<Option<Arc<JobOutput>>>,
 }
 
 impl Job {
-    fn new(id: String, status: pb::JobStatus, submitted_unix_ms: u64, finished_unix_ms: u64) -> Arc<Job> {
+    fn new(
+        id: String,
+        scene_name: String,
+        status: pb::JobStatus,
+        submitted_unix_ms: u64,
+        finished_unix_ms: u64,
+    ) -> Arc<Job> {
         Arc::new(Job {
             id,
+            scene_name,
             submitted_unix_ms,
             finished_unix_ms: AtomicU64::new(finished_unix_ms),
             status: watch::channel(status).0,
@@ -100,6 +109,20 @@ impl Job {
     /// Stores the result files.
     pub fn set_output(&self, output: JobOutput) {
         *lock(&self.output) = Some(Arc::new(output));
+    }
+
+    /// Its line in `ListJobs`.
+    pub fn summary(&self) -> pb::JobSummary {
+        let status = self.status.borrow();
+        pb::JobSummary {
+            job_id: self.id.clone(),
+            scene_name: self.scene_name.clone(),
+            state: status.state,
+            pieces_done: status.pieces_done,
+            pieces_total: status.pieces_total,
+            queue_position: status.queue_position,
+            submitted_unix_ms: self.submitted_unix_ms,
+        }
     }
 }
 
@@ -161,17 +184,55 @@ impl Jobs {
         self.store.as_ref()
     }
 
-    fn queued(&self, id: String, submitted_unix_ms: u64) -> Arc<Job> {
+    fn queued(&self, id: String, scene_name: &str, submitted_unix_ms: u64) -> Arc<Job> {
         let status = pb::JobStatus { job_id: id.clone(), state: pb::JobState::Queued as i32, ..Default::default() };
-        let job = Job::new(id.clone(), status, submitted_unix_ms, 0);
+        let job = Job::new(id.clone(), scene_name.to_string(), status, submitted_unix_ms, 0);
         lock(&self.state).jobs.insert(id, job.clone());
         job
     }
 
-    /// A new queued job, in memory only.
-    pub fn create(&self) -> Arc<Job> {
+    /// A new queued job of the scene file named `scene_name`, in memory only.
+    pub fn create(&self, scene_name: &str) -> Arc<Job> {
         let n = self.next.fetch_add(1, Ordering::Relaxed) + 1;
-        self.queued(format!("job-{}-{n}", self.prefix), now_unix_ms())
+        self.queued(format!("job-{}-{n}", self.prefix), scene_name, now_unix_ms())
+    }
+
+    /// The jobs held in memory (every job not yet ended, and the latest finished ones), in
+    /// no particular order; never blocks.
+    pub fn held(&self) -> Vec<pb::JobSummary> {
+        lock(&self.state).jobs.values().map(|j| j.summary()).collect()
+    }
+
+    /// Every job held, oldest submission first.
+    /// With a state store, finished jobs no longer in memory (older ones, or ones from
+    /// before a restart) are listed from it too (blocking, then).
+    pub fn list(&self) -> Vec<pb::JobSummary> {
+        let mut listed = self.held();
+        if let Some(store) = &self.store {
+            match store.jobs() {
+                Ok(records) => {
+                    let held: std::collections::HashSet<String> = listed.iter().map(|j| j.job_id.clone()).collect();
+                    for record in records.into_iter().filter(|r| !held.contains(&r.job_id)) {
+                        let status = record.status.unwrap_or_default();
+                        // Only finished jobs leave memory; others are ones this run did not resume.
+                        if is_final(status.state()) {
+                            listed.push(pb::JobSummary {
+                                job_id: record.job_id,
+                                scene_name: record.scene_name,
+                                state: status.state,
+                                pieces_done: status.pieces_done,
+                                pieces_total: status.pieces_total,
+                                queue_position: 0,
+                                submitted_unix_ms: record.submitted_unix_ms,
+                            });
+                        }
+                    }
+                }
+                Err(e) => tracing::error!(error = %e, "cannot list the jobs of the state store"),
+            }
+        }
+        listed.sort_by(|a, b| a.submitted_unix_ms.cmp(&b.submitted_unix_ms).then_with(|| a.job_id.cmp(&b.job_id)));
+        listed
     }
 
     /// A new queued job of a validated submission, written to the store (when there is one)
@@ -194,13 +255,13 @@ impl Jobs {
                 finished_unix_ms: 0,
             })?;
         }
-        Ok(self.queued(id, submitted))
+        Ok(self.queued(id, scene_name, submitted))
     }
 
     /// A stored job that had not ended when the coordinator stopped, queued again under its id
     /// (it runs again from the start).
     pub fn resume(&self, record: &JobRecord) -> Arc<Job> {
-        self.queued(record.job_id.clone(), record.submitted_unix_ms)
+        self.queued(record.job_id.clone(), &record.scene_name, record.submitted_unix_ms)
     }
 
     /// The job `id`: from memory, else (a finished job no longer in memory) from the store.
@@ -220,7 +281,7 @@ impl Jobs {
         // in memory is one this run did not resume (it cannot be followed).
         is_final(status.state()).then(|| {
             status.job_id = record.job_id.clone();
-            Job::new(record.job_id, status, record.submitted_unix_ms, record.finished_unix_ms)
+            Job::new(record.job_id, record.scene_name, status, record.submitted_unix_ms, record.finished_unix_ms)
         })
     }
 
@@ -445,7 +506,7 @@ mod tests {
     #[test]
     fn without_a_store_the_sweep_forgets_jobs_past_their_time() {
         let jobs = Jobs::default();
-        let (old, fresh) = (jobs.create(), jobs.create());
+        let (old, fresh) = (jobs.create("old.toml"), jobs.create("fresh.toml"));
         assert_ne!(old.id, fresh.id);
         succeed(&jobs, &old, 1);
         assert!(old.output().is_some(), "without a store the files stay in memory");
@@ -459,7 +520,7 @@ mod tests {
     #[tokio::test]
     async fn jobs_wait_in_order_with_their_places_and_a_cancelled_one_leaves() {
         let (jobs, admission) = (Jobs::default(), Admission::new(1));
-        let all: Vec<Arc<Job>> = (0..4).map(|_| jobs.create()).collect();
+        let all: Vec<Arc<Job>> = (0..4).map(|i| jobs.create(&format!("s{i}.toml"))).collect();
         for job in &all {
             admission.enqueue(job.clone());
         }
@@ -487,5 +548,8 @@ mod tests {
         drop(second);
         assert!(third.await.unwrap());
         assert_eq!(admission.waiting(), 0);
+        let listed: Vec<(String, String)> = jobs.list().into_iter().map(|j| (j.job_id, j.scene_name)).collect();
+        let expected: Vec<(String, String)> = all.iter().map(|j| (j.id.clone(), j.scene_name.clone())).collect();
+        assert_eq!(listed, expected, "listed in submission order, with their scenes");
     }
 }

@@ -9,6 +9,7 @@
 //! * [`driver`]: one job from submission to image, band by band.
 //! * [`api`]: the gRPC services (`Coordinator` for clients, `Membership` for workers).
 //! * [`drain`]: what a stopping coordinator waits for.
+//! * [`metrics`]: the Prometheus metrics, served by [`metrics::serve`] on a port of their own.
 //! * [`run`]: the server as a library function over a bound listener and a shutdown signal,
 //!   so tests start a whole farm in one process on `127.0.0.1:0`.
 //!
@@ -20,6 +21,7 @@ pub mod api;
 pub mod drain;
 pub mod driver;
 pub mod jobs;
+pub mod metrics;
 pub mod registry;
 pub mod state;
 pub mod stats;
@@ -130,7 +132,10 @@ pub struct FarmSecurity {
 /// drains: new jobs are refused while those held finish, for at most
 /// [`FarmConfig::drain_grace`] ([`drain`]). With a state folder, the jobs it holds that had
 /// not ended are run again first, in submission order, and its finished jobs are still
-/// served; jobs still running when the drain ends resume at the next start.
+/// served; jobs still running when the drain ends resume at the next start. gRPC health
+/// (`grpc.health.v1`: SERVING while it takes jobs, NOT_SERVING once it drains) and server
+/// reflection are served beside them, without a token; its metrics are
+/// `config.driver.metrics`, for [`metrics::serve`] on another listener.
 pub async fn run(
     listener: TcpListener,
     shutdown: impl Future<Output = ()>,
@@ -184,6 +189,11 @@ pub async fn run(
             }
         })
     };
+    farm.driver.metrics.observe(&farm.jobs, &farm.registry);
+    let (health, health_service) = tonic_health::server::health_reporter();
+    health.set_serving::<CoordinatorServer<api::CoordinatorService>>().await;
+    health.set_serving::<MembershipServer<api::MembershipService>>().await;
+    let (reflection_v1, reflection_v1alpha) = trove_proto::reflection::services();
     let limit = trove_proto::MAX_MESSAGE_BYTES;
     let coordinator = InterceptedService::new(
         CoordinatorServer::new(api::CoordinatorService(farm.clone()))
@@ -196,7 +206,11 @@ pub async fn run(
         RequireToken::new(security.worker_token),
     );
     let (stop, stopped) = oneshot::channel::<()>();
+    // Health and reflection answer without a token: probes and generic clients ask them.
     let serve = trove_proto::connect::server(security.tls.as_ref())?
+        .add_service(health_service)
+        .add_optional_service(reflection_v1)
+        .add_optional_service(reflection_v1alpha)
         .add_service(coordinator)
         .add_service(membership)
         .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
@@ -211,6 +225,9 @@ pub async fn run(
         () = shutdown => {}
     }
     farm.drain.begin();
+    // Taking no new jobs: a load balancer's probe sends them elsewhere.
+    health.set_service_status("", tonic_health::ServingStatus::NotServing).await;
+    health.set_not_serving::<CoordinatorServer<api::CoordinatorService>>().await;
     tracing::info!(grace = ?config.drain_grace, "draining: new jobs are refused; the jobs held may finish");
     tokio::select! {
         served = &mut serve => {

@@ -58,6 +58,7 @@ use trove_proto::v1 as pb;
 use trove_proto::v1::worker_client::WorkerClient;
 
 use super::jobs::{Job, JobOutput};
+use super::metrics::FarmMetrics;
 use super::registry::{Registry, WorkerHandle};
 use dispatch::{Dispatch, InFlight, Rest};
 pub use error::JobError;
@@ -90,6 +91,8 @@ pub struct DriverConfig {
     /// again and publishes progress. Nothing else waits for it: batches are handed out as
     /// answers, new workers and room freed by other jobs arrive.
     pub tick: Duration,
+    /// Where every job of the coordinator records its counters (`--metrics-listen`).
+    pub metrics: Arc<FarmMetrics>,
     /// Debug builds only, for tests: a blocking step that panics in every job, to show that
     /// a panic fails its job only.
     #[cfg(debug_assertions)]
@@ -118,6 +121,7 @@ impl Default for DriverConfig {
             job_deadline: Duration::from_secs(3600),
             max_pfm_pixels: MAX_PFM_PIXELS,
             tick: Duration::from_millis(250),
+            metrics: Arc::new(FarmMetrics::new()),
             #[cfg(debug_assertions)]
             fault: None,
         }
@@ -265,6 +269,7 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         n => (n as usize).min(trove_proto::MAX_BATCH_TASKS),
     };
     let admission = Admission { max_bands, memory_bound: config.memory_bound };
+    let metrics = config.metrics.clone();
     let mut driver = Driver {
         bands: Bands::new(h, band_rows, admission),
         raster: Raster::new(w, h, plan.options.want_pfm),
@@ -279,7 +284,7 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         opening: Vec::new(),
         next_serial: 0,
         ready: BTreeSet::new(),
-        tally: Tally::default(),
+        tally: Tally::new(metrics),
     };
     job.update(|s| {
         s.state = pb::JobState::Running as i32;
@@ -669,7 +674,7 @@ impl Driver {
             return;
         }
         self.ready.insert((seq, batch.band, batch.dataset));
-        self.tally.answered(&stream.0, batch.tasks, &result);
+        self.tally.answered(&stream.0, batch.tasks, batch.sent.elapsed(), &result);
         self.composite_if_complete(batch.band);
     }
 

@@ -2,18 +2,24 @@
 //! worker's share — and how much of it the job's status shows. The status is published on
 //! the driver's tick and when a band completes, not on every answer: a watcher sees it a few
 //! times a second, and the driver does not rebuild it per batch.
+//!
+//! The tally also feeds the coordinator's Prometheus metrics: each accepted batch as it is
+//! answered, and what the driver adds up in its fields (bytes on the wire, its event loop's
+//! busy time) as deltas whenever the status is published and once more when the job ends,
+//! so the driver itself never touches a metric.
 
 use std::collections::BTreeMap;
-use std::time::Instant;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use trove_core::render::{RenderStats, StoreStats};
 use trove_proto::v1 as pb;
 
 use super::super::jobs::Job;
+use super::super::metrics::FarmMetrics;
 use super::super::stats::{CoordinatorSeconds, FarmStats, WorkerStats};
 
 /// A job's counters.
-#[derive(Default)]
 pub(super) struct Tally {
     pub stats: RenderStats,
     pub store: StoreStats,
@@ -24,11 +30,31 @@ pub(super) struct Tally {
     pub cast_started: Option<Instant>,
     /// The coordinator's own time by stage.
     pub coordinator: CoordinatorSeconds,
+    metrics: Arc<FarmMetrics>,
+    /// What of `wire_to`, `wire_from` and `coordinator.event_loop` the metrics have.
+    reported: (u64, u64, f64),
 }
 
 impl Tally {
-    /// An answered batch of `tasks` tasks from `worker`.
-    pub fn answered(&mut self, worker: &str, tasks: u64, result: &pb::BatchResult) {
+    /// Nothing counted yet; the job's counts go to `metrics` too.
+    pub fn new(metrics: Arc<FarmMetrics>) -> Tally {
+        Tally {
+            stats: RenderStats::default(),
+            store: StoreStats::default(),
+            batches: 0,
+            wire_to: 0,
+            wire_from: 0,
+            workers: BTreeMap::new(),
+            cast_started: None,
+            coordinator: CoordinatorSeconds::default(),
+            metrics,
+            reported: (0, 0, 0.0),
+        }
+    }
+
+    /// An answered batch of `tasks` tasks from `worker`, `latency` after it was sent.
+    pub fn answered(&mut self, worker: &str, tasks: u64, latency: Duration, result: &pb::BatchResult) {
+        self.metrics.answered(tasks, latency.as_secs_f64());
         self.batches += 1;
         self.stats.samples += result.samples;
         if result.bytes_loaded > 0 {
@@ -42,8 +68,17 @@ impl Tally {
         w.samples += result.samples;
     }
 
+    /// Hands the metrics what was added up since they were last told.
+    fn report(&mut self) {
+        let (to, from, busy) = self.reported;
+        self.metrics.wire(self.wire_to - to, self.wire_from - from);
+        self.metrics.busy(self.coordinator.event_loop - busy);
+        self.reported = (self.wire_to, self.wire_from, self.coordinator.event_loop);
+    }
+
     /// Shows `pieces_done` tasks done and each worker's share in the job's status.
-    pub fn publish(&self, job: &Job, pieces_done: u64) {
+    pub fn publish(&mut self, job: &Job, pieces_done: u64) {
+        self.report();
         let workers: Vec<pb::WorkerCount> = self.workers.values().map(WorkerStats::to_proto).collect();
         job.update(|s| {
             s.pieces_done = pieces_done;
@@ -52,10 +87,17 @@ impl Tally {
     }
 
     /// The finished job's statistics.
-    pub fn into_stats(self, render: RenderStats) -> FarmStats {
-        let mut stats =
-            FarmStats::new(render, self.batches, self.wire_to, self.wire_from, self.workers.into_values().collect());
-        stats.coordinator_seconds = self.coordinator;
+    pub fn into_stats(mut self, render: RenderStats) -> FarmStats {
+        let workers = std::mem::take(&mut self.workers).into_values().collect();
+        let mut stats = FarmStats::new(render, self.batches, self.wire_to, self.wire_from, workers);
+        stats.coordinator_seconds = self.coordinator.clone();
         stats
+    }
+}
+
+impl Drop for Tally {
+    /// However the job ends, the metrics get its last counts.
+    fn drop(&mut self) {
+        self.report();
     }
 }
