@@ -174,12 +174,12 @@ fn an_unreachable_coordinator_fails_every_command_naming_its_url() {
         vec!["cancel", "job-1", "--coordinator", &url],
         vec!["jobs", "result", "job-1", "-o", out, "--coordinator", &url],
     ] {
-        let err = failed(run(&args), &["cannot reach the coordinator at", &url]);
+        let err = failed(run(&args), &["cannot reach", &url]);
         assert!(!err.contains("\n\n"), "{err}");
     }
-    // Without a URL, clap refuses (exit 2) naming the flag.
+    // Without a URL, the command is refused naming the flag.
     let missing = run(&["workers"]);
-    assert_eq!(missing.status.code(), Some(2));
+    assert!(!missing.status.success());
     assert!(String::from_utf8_lossy(&missing.stderr).contains("--coordinator"));
 }
 
