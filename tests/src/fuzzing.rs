@@ -132,7 +132,7 @@ pub enum JobRefusal {
     /// before the service sees it).
     Decode(prost::DecodeError),
     /// The typed failure `SubmitJob` would answer.
-    Refused(pb::Failure),
+    Refused(Box<pb::Failure>),
 }
 
 /// What planning a job found: rows per band and piece tasks, or that the exact count was
@@ -165,10 +165,10 @@ pub fn submit_job(bytes: &[u8]) -> Result<Planned, JobRefusal> {
     let name = if request.scene_name.is_empty() { "scene.toml".to_string() } else { request.scene_name };
     let refused = |mut f: pb::Failure| {
         f.file = name.clone();
-        JobRefusal::Refused(f)
+        JobRefusal::Refused(Box::new(f))
     };
     let scene = Scene::parse_with(&request.scene_toml, std::path::Path::new(&name), fixed_catalog())
-        .map_err(|e| JobRefusal::Refused(convert::scene_failure(&e)))?;
+        .map_err(|e| JobRefusal::Refused(Box::new(convert::scene_failure(&e))))?;
     let options = request.options.unwrap_or_default();
     let (w, h) = (scene.image().width, scene.image().height);
     if options.want_pfm {

@@ -43,12 +43,12 @@ enum Edit {
 fn edit() -> impl Strategy<Value = Edit> {
     let at = any::<usize>();
     prop_oneof![
-        (at.clone(), 0u8..8).prop_map(|(at, bit)| Edit::Flip { at, bit }),
-        (at.clone(), any::<u8>()).prop_map(|(at, byte)| Edit::Set { at, byte }),
-        (at.clone(), prop::collection::vec(any::<u8>(), 1..8)).prop_map(|(at, bytes)| Edit::Insert { at, bytes }),
-        (at.clone(), 1usize..32).prop_map(|(at, len)| Edit::Remove { at, len }),
-        at.clone().prop_map(|at| Edit::Truncate { at }),
-        (at.clone(), 1usize..64).prop_map(|(at, len)| Edit::Duplicate { at, len }),
+        (at, 0u8..8).prop_map(|(at, bit)| Edit::Flip { at, bit }),
+        (at, any::<u8>()).prop_map(|(at, byte)| Edit::Set { at, byte }),
+        (at, prop::collection::vec(any::<u8>(), 1..8)).prop_map(|(at, bytes)| Edit::Insert { at, bytes }),
+        (at, 1usize..32).prop_map(|(at, len)| Edit::Remove { at, len }),
+        at.prop_map(|at| Edit::Truncate { at }),
+        (at, 1usize..64).prop_map(|(at, len)| Edit::Duplicate { at, len }),
         (at, 0..NUMBERS.len()).prop_map(|(at, number)| Edit::Number { at, number }),
     ]
 }
