@@ -258,7 +258,7 @@ const SLOW: &str = "interpolation = \"cubic\"\nsampling_distance = 0.0002";
 fn a_worker_killed_mid_job_twenty_times_costs_no_job_and_changes_no_pixel() {
     let _serial = serial();
     let mut farm = Farm::start("faults-kill", &[]);
-    let texts = [scene(48, SLOW, 0.9), scene(44, SLOW, 0.4)];
+    let texts = [scene(56, SLOW, 0.9), scene(52, SLOW, 0.4)];
     let expected: Vec<Vec<u8>> = texts.iter().map(|t| local_png(t, &farm.dir)).collect();
 
     // Each scene once (loading the workers' datasets), then four jobs without a kill for
@@ -276,14 +276,22 @@ fn a_worker_killed_mid_job_twenty_times_costs_no_job_and_changes_no_pixel() {
     unharmed.sort();
 
     let (mut with_kill, mut done_at_kill) = (Vec::new(), Vec::new());
-    for rep in 0..20 {
+    // Twenty kills that land mid-job. A job that ends before one could land (its progress
+    // is published in steps, so the last steps may come together) is checked all the same
+    // and does not count; at most ten such are allowed.
+    let mut rep = 0;
+    while with_kill.len() < 20 {
+        assert!(rep < 30, "only {} of {rep} jobs were still running when a kill could land", with_kill.len());
         let text = &texts[rep % texts.len()];
         let started = Instant::now();
         let (id, mut rx) = follow(&farm, text);
         // Wait until the job is part cast, then kill a worker that has cast some of it.
-        let (victim, done) = loop {
+        let kill = loop {
             let status = next_status(&farm, &mut rx).unwrap_or_else(|| panic!("rep {rep}: the stream ended early"));
-            assert!(!is_final(status.state()), "rep {rep}: the job ended before a kill could land: {status:?}");
+            if is_final(status.state()) {
+                assert_eq!(status.state(), pb::JobState::Succeeded, "rep {rep}: {:?}", status.failure);
+                break None;
+            }
             if status.state() != pb::JobState::Running || status.pieces_done == 0 {
                 continue;
             }
@@ -295,8 +303,15 @@ fn a_worker_killed_mid_job_twenty_times_costs_no_job_and_changes_no_pixel() {
                 .iter()
                 .position(|w| alive.get(&w.address).is_some_and(|info| casting.contains(&info.worker_id.as_str())));
             if let Some(i) = found {
-                break (i, status.pieces_done as f64 / status.pieces_total as f64);
+                break Some((i, status.pieces_done as f64 / status.pieces_total as f64));
             }
+        };
+        let Some((victim, done)) = kill else {
+            let png = farm.runtime.block_on(farm.client().result(&id)).unwrap().png;
+            assert!(png == expected[rep % texts.len()], "rep {rep}: the image differs from local mode's");
+            eprintln!("rep {rep}: the job ended before a kill could land");
+            rep += 1;
+            continue;
         };
         farm.workers[victim].kill();
         done_at_kill.push(done);
@@ -310,11 +325,12 @@ fn a_worker_killed_mid_job_twenty_times_costs_no_job_and_changes_no_pixel() {
         farm.workers[victim] = farm.start_worker(victim);
         let addresses: Vec<String> = farm.workers.iter().map(|w| w.address.clone()).collect();
         farm.wait_for_alive(&addresses);
+        rep += 1;
     }
     with_kill.sort();
     done_at_kill.sort_by(f64::total_cmp);
     eprintln!(
-        "kills survived: 20 of 20; a job took {:?} median unharmed ({:?} .. {:?}), {:?} median with a kill \
+        "kills survived: 20 of 20 ({rep} jobs); a job took {:?} median unharmed ({:?} .. {:?}), {:?} median with a kill \
          ({:?} .. {:?}); the kill landed with {:.0}% .. {:.0}% of the pieces done (median {:.0}%)",
         unharmed[2],
         unharmed[0],
@@ -379,7 +395,7 @@ fn fifty_concurrent_jobs_complete_in_queue_order_within_bounded_coordinator_memo
         out
     });
 
-    let mut queued = 0;
+    let (mut queued, mut furthest) = (0, 0);
     for (i, outcome) in outcomes.into_iter().enumerate() {
         let (last, places, png) = outcome.expect("a job's task").unwrap_or_else(|e| panic!("job {i}: {e}"));
         assert_eq!(last.state(), pb::JobState::Succeeded, "job {i}: {:?}", last.failure);
@@ -388,11 +404,18 @@ fn fifty_concurrent_jobs_complete_in_queue_order_within_bounded_coordinator_memo
         assert!(places.iter().all(|&p| (1..50).contains(&p)), "job {i}: places {places:?}");
         assert!(places.windows(2).all(|w| w[1] <= w[0]), "job {i}: places went back: {places:?}");
         queued += !places.is_empty() as usize;
+        furthest = furthest.max(places.first().copied().unwrap_or(0));
     }
-    // Fifty at once against four slots: most of them waited, and said where.
-    assert!(queued >= 50 - 2 * MAX_JOBS, "only {queued} of 50 jobs reported a place in the queue");
+    // Fifty at once against four slots: most of them waited, and said where (how many, and
+    // how far back, depends on how fast the first ones finish while the rest are submitted).
+    assert!(queued >= 25, "only {queued} of 50 jobs reported a place in the queue");
+    assert!(furthest > 2 * MAX_JOBS as u32, "no job waited further back than place {furthest}");
     let peak = farm.coordinator_peak_rss();
-    eprintln!("50 concurrent jobs completed; {queued} reported queue places; coordinator VmHWM {} MiB", peak >> 20);
+    eprintln!(
+        "50 concurrent jobs completed; {queued} reported queue places, the furthest back {furthest}; coordinator \
+         VmHWM {} MiB",
+        peak >> 20
+    );
     assert!(peak < PEAK_RSS_BOUND, "the coordinator peaked at {} MiB", peak >> 20);
 }
 
