@@ -13,6 +13,8 @@ pub mod reference;
 
 pub mod farm;
 
+pub mod fuzzing;
+
 pub mod standin;
 
 use std::io::Write;
