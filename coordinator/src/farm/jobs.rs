@@ -435,7 +435,12 @@ impl Admission {
                 if first && state.running < state.max_running {
                     state.waiting.pop_front();
                     state.running += 1;
-                    job.update(|s| s.queue_position = 0);
+                    // Out of the queue and running in one change: no watcher ever sees a
+                    // QUEUED job without its place.
+                    job.update(|s| {
+                        s.queue_position = 0;
+                        s.state = pb::JobState::Running as i32;
+                    });
                     state.renumber();
                     drop(state);
                     self.changed.notify_waiters();
