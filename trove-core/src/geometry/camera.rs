@@ -189,6 +189,18 @@ impl PixelRect {
         (self.cols[0]..self.cols[1]).contains(&col) && (self.rows[0]..self.rows[1]).contains(&row)
     }
 
+    /// Whether some pixel of image row `row` is inside.
+    #[inline]
+    pub(crate) fn has_row(&self, row: u32) -> bool {
+        (self.rows[0]..self.rows[1]).contains(&row)
+    }
+
+    /// Whether column `col` of a row it has ([`PixelRect::has_row`]) is inside.
+    #[inline]
+    pub(crate) fn has_col(&self, col: u32) -> bool {
+        (self.cols[0]..self.cols[1]).contains(&col)
+    }
+
     /// How many pixels are inside.
     pub(crate) fn pixels(&self) -> u64 {
         u64::from(self.cols[1] - self.cols[0]) * u64::from(self.rows[1] - self.rows[0])

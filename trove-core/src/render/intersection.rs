@@ -100,6 +100,16 @@ impl Reach {
     }
 }
 
+impl Reach {
+    /// The objects some pixel of image row `row` can meet, in scene order: what the rays of
+    /// that row are tested against ([`segments_among`]), so that a ray is not even
+    /// rectangle-tested against objects far from its row.
+    fn on_row(&self, row: u32, out: &mut Vec<u32>) {
+        out.clear();
+        out.extend(self.0.iter().enumerate().filter(|(_, r)| r.has_row(row)).map(|(i, _)| i as u32));
+    }
+}
+
 /// The segments of every object that the ray of pixel `(col, row)` crosses over a non-zero
 /// length, in scene order (SPEC §4.2): the one place where rays meet objects, for both
 /// algorithms.
@@ -123,6 +133,24 @@ pub(crate) fn segments_of(
     }
 }
 
+/// [`segments_of`] for a ray of a row whose candidate objects are `row_objects`
+/// ([`Reach::on_row`]): the same segments, in the same (scene) order.
+fn segments_among(scene: &Scene, reach: &Reach, row_objects: &[u32], col: u32, ray: &Ray, segments: &mut Vec<Segment>) {
+    segments.clear();
+    let objects = scene.objects();
+    for &i in row_objects {
+        let i = i as usize;
+        if !reach.0[i].has_col(col) {
+            continue;
+        }
+        if let Some((t_near, t_far)) = objects[i].placement().segment_from(reach.1[i].as_ref(), ray) {
+            if t_far > t_near {
+                segments.push(Segment { object: i as u32, t_near, t_far });
+            }
+        }
+    }
+}
+
 /// What one ray's intersection needs, kept from ray to ray so that none allocates.
 #[derive(Default)]
 struct RayScratch {
@@ -130,24 +158,38 @@ struct RayScratch {
     split: PieceScratch,
     pieces: Vec<Piece>,
     cover: Vec<u32>,
+    /// The candidate objects of row `row_objects_of` ([`Reach::on_row`]).
+    row_objects: Vec<u32>,
+    row_objects_of: Option<u32>,
 }
 
 impl RayScratch {
-    /// Splits the ray of pixel `(col, row)` into pieces (`self.pieces`, their objects in
-    /// `self.cover`); returns its number of segments.
-    fn pieces(&mut self, scene: &Scene, reach: &Reach, (col, row): (u32, u32)) -> usize {
+    /// The segments of the ray of pixel `(col, row)`, tested against its row's candidates.
+    fn segments(&mut self, scene: &Scene, reach: &Reach, (col, row): (u32, u32)) {
+        if self.row_objects_of != Some(row) {
+            reach.on_row(row, &mut self.row_objects);
+            self.row_objects_of = Some(row);
+        }
+        self.segments.clear();
+        if self.row_objects.is_empty() {
+            return;
+        }
         let (w, h) = (scene.image().width, scene.image().height);
         let ray = scene.camera().ray(col, row, w, h);
-        segments_of(scene, reach, (col, row), &ray, &mut self.segments);
+        segments_among(scene, reach, &self.row_objects, col, &ray, &mut self.segments);
+    }
+
+    /// Splits the ray of pixel `(col, row)` into pieces (`self.pieces`, their objects in
+    /// `self.cover`); returns its number of segments.
+    fn pieces(&mut self, scene: &Scene, reach: &Reach, pixel: (u32, u32)) -> usize {
+        self.segments(scene, reach, pixel);
         split_into_pieces(&self.segments, &mut self.split, &mut self.pieces, &mut self.cover);
         self.segments.len()
     }
 
     /// The pieces and tasks of the ray of pixel `(col, row)`, counted without storing them.
-    fn count(&mut self, scene: &Scene, reach: &Reach, (col, row): (u32, u32)) -> (u64, u64) {
-        let (w, h) = (scene.image().width, scene.image().height);
-        let ray = scene.camera().ray(col, row, w, h);
-        segments_of(scene, reach, (col, row), &ray, &mut self.segments);
+    fn count(&mut self, scene: &Scene, reach: &Reach, pixel: (u32, u32)) -> (u64, u64) {
+        self.segments(scene, reach, pixel);
         count_pieces(&self.segments, &mut self.split)
     }
 }
@@ -314,12 +356,16 @@ mod tests {
         let everywhere = Reach(vec![PixelRect::whole(w, h); objects.len()], vec![None; objects.len()]);
         let (mut culled, mut hits) = (0, 0);
         let (mut a, mut b) = (Vec::new(), Vec::new());
+        let mut scratch = RayScratch::default();
         for row in 0..h {
             for col in 0..w {
                 let ray = scene.camera().ray(col, row, w, h);
                 segments_of(&scene, &reach, (col, row), &ray, &mut a);
                 segments_of(&scene, &everywhere, (col, row), &ray, &mut b);
                 assert_eq!(a, b, "pixel ({col}, {row})");
+                // What intersecting tests: only its row's candidates, the same segments.
+                scratch.segments(&scene, &reach, (col, row));
+                assert_eq!(scratch.segments, b, "pixel ({col}, {row}), row candidates");
                 hits += a.len();
                 culled += reach.0.iter().filter(|r| !r.contains(col, row)).count();
             }
