@@ -11,6 +11,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
+use trove_tests::process::trove_worker_beside;
 
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
@@ -20,11 +21,9 @@ fn trove() -> &'static Path {
     Path::new(env!("CARGO_BIN_EXE_trove"))
 }
 
-/// `trove-worker`, built beside `trove` by the same `cargo test --workspace`.
+/// `trove-worker`, built beside `trove`.
 fn trove_worker() -> PathBuf {
-    let path = trove().with_file_name(format!("trove-worker{}", std::env::consts::EXE_SUFFIX));
-    assert!(path.exists(), "{} is missing: run the workspace's tests (cargo test --workspace)", path.display());
-    path
+    trove_worker_beside(trove())
 }
 
 /// A command the files run: `trove-worker`, or `trove` and the words before its first flag

@@ -11,10 +11,9 @@
 //! is thawed with SIGCONT.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use rcgen::{BasicConstraints, CertificateParams, CertifiedIssuer, DnType, IsCa, KeyPair, KeyUsagePurpose};
 use tokio::sync::mpsc;
 use trove_coordinator::client::{ClientError, FarmClient};
 use trove_core::render::{render, RenderOptions};
@@ -24,46 +23,18 @@ use trove_proto::connect::Connector;
 use trove_proto::tls::CaCert;
 use trove_proto::v1 as pb;
 use trove_tests::farm::spawn_server_with_env;
+use trove_tests::process::{trove_worker_beside, Server};
+use trove_tests::scenes::{self, SLAB_AND_BALL as SCENE};
 use trove_tests::scratch;
+use trove_tests::tls::TestPki;
 
 fn trove() -> &'static Path {
     Path::new(env!("CARGO_BIN_EXE_trove"))
 }
 
-/// `trove-worker`, built beside `trove` by the same `cargo test --workspace`.
+/// `trove-worker`, built beside `trove`.
 fn trove_worker() -> PathBuf {
-    let path = trove().with_file_name(format!("trove-worker{}", std::env::consts::EXE_SUFFIX));
-    assert!(path.exists(), "{} is missing: run the workspace's tests (cargo test --workspace)", path.display());
-    path
-}
-
-/// A child process killed when dropped (SIGKILL ends a stopped one too).
-struct Server(Child);
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-impl Server {
-    fn signal(&self, signal: &str) {
-        let status = Command::new("kill").args([signal, &self.0.id().to_string()]).status().expect("run kill");
-        assert!(status.success(), "kill {signal} failed");
-    }
-
-    /// Waits for the process to exit, at most `limit`.
-    fn exit_within(&mut self, limit: Duration) -> ExitStatus {
-        let started = Instant::now();
-        loop {
-            if let Some(status) = self.0.try_wait().expect("wait for the process") {
-                return status;
-            }
-            assert!(started.elapsed() < limit, "the process did not exit within {limit:?}");
-            std::thread::sleep(Duration::from_millis(20));
-        }
-    }
+    trove_worker_beside(trove())
 }
 
 /// Starts `program args` with its log (at `info`) in `log`; the bound address with it.
@@ -74,47 +45,9 @@ fn start(program: &Path, args: &[&str], log: &Path) -> (Server, String) {
     (Server(child), address)
 }
 
-const SCENE: &str = r#"
-[image]
-width = 40
-height = 30
-background = [0.1, 0.15, 0.2]
-[camera]
-eye = [0.5, 0.6, 3.2]
-target = [0.5, 0.5, 0.5]
-up = [0, 1, 0]
-fov_y = 35.0
-[[datasets]]
-name = "slab"
-dims = [4, 4, 2]
-[datasets.channels.voxel]
-raw = "slab.raw"
-type = "u8"
-[[datasets]]
-name = "ball"
-dims = [20, 20, 20]
-[datasets.channels.voxel]
-generator = { kind = "sphere", radius = 0.5, profile = "radial", value = 1.0, type = "f32" }
-[[objects]]
-name = "slab"
-dataset = "slab"
-colour = { type = "ramp", points = [[0, 0.2, 0.3, 0.9], [255, 1, 1, 1]] }
-opacity = { type = "ramp", points = [[0, 0.05], [255, 0.5]] }
-transform = { matrix = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0.1, 0.9], [0, 0, 0, 1]] }
-[[objects]]
-name = "ball"
-dataset = "ball"
-colour = { type = "ramp", points = [[0.0, 0.9, 0.3, 0.1], [1.0, 0.2, 0.5, 1.0]] }
-opacity = { type = "ramp", points = [[0.0, 0.0], [1.0, 0.4]] }
-"#;
-
-/// A data root holding `slab.raw` (the generated ball needs no file).
+/// The slab's data root, `dir/name`.
 fn slab_root(dir: &Path, name: &str) -> PathBuf {
-    let root = dir.join(name);
-    std::fs::create_dir_all(&root).unwrap();
-    let voxels: Vec<u8> = (0..32u8).map(|i| i * 8).collect();
-    std::fs::write(root.join("slab.raw"), voxels).unwrap();
-    root
+    scenes::slab_root(&dir.join(name))
 }
 
 fn local_png(data: &Path) -> Vec<u8> {
@@ -260,17 +193,11 @@ fn sigterm_lets_the_coordinators_running_job_finish_refuses_new_ones_and_exits_z
 /// A CA, and a certificate it signed for 127.0.0.1, written as PEM files under `dir`:
 /// (ca, cert, key).
 fn tls_files(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
-    let mut ca = CertificateParams::new(Vec::<String>::new()).unwrap();
-    ca.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-    ca.distinguished_name.push(DnType::CommonName, "TROVE test CA");
-    ca.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::CrlSign];
-    let issuer = CertifiedIssuer::self_signed(ca, KeyPair::generate().unwrap()).unwrap();
-    let key = KeyPair::generate().unwrap();
-    let cert = CertificateParams::new(vec!["127.0.0.1".to_string()]).unwrap().signed_by(&key, &issuer).unwrap();
+    let pki = TestPki::new();
     let paths = (dir.join("ca.pem"), dir.join("server.pem"), dir.join("server.key"));
-    std::fs::write(&paths.0, issuer.pem()).unwrap();
-    std::fs::write(&paths.1, cert.pem()).unwrap();
-    std::fs::write(&paths.2, key.serialize_pem()).unwrap();
+    std::fs::write(&paths.0, pki.ca).unwrap();
+    std::fs::write(&paths.1, pki.cert).unwrap();
+    std::fs::write(&paths.2, pki.key).unwrap();
     paths
 }
 

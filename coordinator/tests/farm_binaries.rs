@@ -3,31 +3,21 @@
 //! with the real `trove render --coordinator`, compared byte for byte with local mode.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use trove_tests::farm::spawn_server;
+use trove_tests::process::{trove_worker_beside, Server};
+use trove_tests::scenes::{slab_root, SLAB_AND_BALL as SCENE};
 use trove_tests::scratch;
 
 fn trove() -> &'static Path {
     Path::new(env!("CARGO_BIN_EXE_trove"))
 }
 
-/// `trove-worker`, built beside `trove` by the same `cargo test --workspace`.
+/// `trove-worker`, built beside `trove`.
 fn trove_worker() -> PathBuf {
-    let path = trove().with_file_name(format!("trove-worker{}", std::env::consts::EXE_SUFFIX));
-    assert!(path.exists(), "{} is missing: run the workspace's tests (cargo test --workspace)", path.display());
-    path
-}
-
-/// A child process killed when dropped.
-struct Server(Child);
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
+    trove_worker_beside(trove())
 }
 
 /// Starts `program args`, its log on this test's stderr; the bound address with it.
@@ -37,48 +27,11 @@ fn start(program: &Path, args: &[&str]) -> (Server, String) {
     (Server(child), address)
 }
 
-const SCENE: &str = r#"
-[image]
-width = 40
-height = 30
-background = [0.1, 0.15, 0.2]
-[camera]
-eye = [0.5, 0.6, 3.2]
-target = [0.5, 0.5, 0.5]
-up = [0, 1, 0]
-fov_y = 35.0
-[[datasets]]
-name = "slab"
-dims = [4, 4, 2]
-[datasets.channels.voxel]
-raw = "slab.raw"
-type = "u8"
-[[datasets]]
-name = "ball"
-dims = [20, 20, 20]
-[datasets.channels.voxel]
-generator = { kind = "sphere", radius = 0.5, profile = "radial", value = 1.0, type = "f32" }
-[[objects]]
-name = "slab"
-dataset = "slab"
-colour = { type = "ramp", points = [[0, 0.2, 0.3, 0.9], [255, 1, 1, 1]] }
-opacity = { type = "ramp", points = [[0, 0.05], [255, 0.5]] }
-transform = { matrix = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0.1, 0.9], [0, 0, 0, 1]] }
-[[objects]]
-name = "ball"
-dataset = "ball"
-colour = { type = "ramp", points = [[0.0, 0.9, 0.3, 0.1], [1.0, 0.2, 0.5, 1.0]] }
-opacity = { type = "ramp", points = [[0.0, 0.0], [1.0, 0.4]] }
-"#;
-
 #[test]
 fn a_coordinator_and_two_worker_processes_render_what_local_mode_renders() {
     let dir = scratch("farm-binaries");
-    let voxels: Vec<u8> = (0..32u8).map(|i| i * 8).collect();
-    for w in ["w0", "w1"] {
-        std::fs::create_dir_all(dir.join(w)).unwrap();
-    }
-    std::fs::write(dir.join("w0/slab.raw"), &voxels).unwrap();
+    slab_root(&dir.join("w0"));
+    std::fs::create_dir_all(dir.join("w1")).unwrap();
     std::fs::write(dir.join("scene.toml"), SCENE).unwrap();
 
     let (_coordinator, address) = start(trove(), &["coordinator", "--listen", "127.0.0.1:0", "--heartbeat-ms", "100"]);

@@ -27,17 +27,17 @@ use trove_core::render::{render, RenderOptions};
 use trove_core::scene::Scene;
 use trove_proto::v1 as pb;
 use trove_tests::farm::{data_root, spawn_server};
+use trove_tests::process::trove_worker_beside;
+use trove_tests::scenes::{many_objects, nested_boxes};
 use trove_tests::scratch;
 
 fn trove() -> &'static Path {
     Path::new(env!("CARGO_BIN_EXE_trove"))
 }
 
-/// `trove-worker`, built beside `trove` by the same `cargo test --workspace`.
+/// `trove-worker`, built beside `trove`.
 fn trove_worker() -> PathBuf {
-    let path = trove().with_file_name(format!("trove-worker{}", std::env::consts::EXE_SUFFIX));
-    assert!(path.exists(), "{} is missing: run the workspace's tests (cargo test --workspace)", path.display());
-    path
+    trove_worker_beside(trove())
 }
 
 /// One test at a time: each starts four processes on a machine of two cores, and the kill
@@ -417,43 +417,6 @@ fn fifty_concurrent_jobs_complete_in_queue_order_within_bounded_coordinator_memo
         peak >> 20
     );
     assert!(peak < PEAK_RSS_BOUND, "the coordinator peaked at {} MiB", peak >> 20);
-}
-
-/// `n` nested cubes over one generated 2³ dataset at `step`, the outermost filling the view
-/// (the scene of issue 18 that used to kill the coordinator).
-fn nested_boxes(n: usize, size: u32, step: &str) -> String {
-    let mut text = format!(
-        "[image]\nwidth = {size}\nheight = {size}\nbackground = [0, 0, 0]\n\
-         [camera]\neye = [0, 0, 4]\ntarget = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 30.0\n\
-         [[datasets]]\nname = \"d\"\ndims = [2, 2, 2]\n[datasets.channels.voxel]\n\
-         generator = {{ kind = \"constant\", value = 0.5 }}\n"
-    );
-    for i in 0..n {
-        let half = 1.0 - i as f64 / (n as f64 + 1.0);
-        let (s, t) = (2.0 * half, -half);
-        text += &format!(
-            "[[objects]]\nname = \"o{i}\"\ndataset = \"d\"\nsampling_distance = {step}\n\
-             transform = {{ matrix = [[{s}, 0, 0, {t}], [0, {s}, 0, {t}], [0, 0, {s}, {t}], [0, 0, 0, 1]] }}\n\
-             colour = {{ type = \"ramp\", points = [[0, 1, 1, 1], [1, 1, 1, 1]] }}\n\
-             opacity = {{ type = \"ramp\", points = [[0, 0.01], [1, 0.01]] }}\n"
-        );
-    }
-    text
-}
-
-/// `n` tiny cubes in a row across a `size`² image.
-fn many_objects(n: usize, size: u32) -> String {
-    let mut text = nested_boxes(0, size, "0");
-    for i in 0..n {
-        let x = -1.0 + 2.0 * i as f64 / n as f64;
-        text += &format!(
-            "[[objects]]\nname = \"o{i}\"\ndataset = \"d\"\n\
-             transform = {{ matrix = [[0.0004, 0, 0, {x}], [0, 0.0004, 0, 0], [0, 0, 0.0004, 0], [0, 0, 0, 1]] }}\n\
-             colour = {{ type = \"ramp\", points = [[0, 1, 1, 1], [1, 1, 1, 1]] }}\n\
-             opacity = {{ type = \"ramp\", points = [[0, 0.5], [1, 0.5]] }}\n"
-        );
-    }
-    text
 }
 
 /// `trove render --coordinator` of `text` (written as `name` in `dir`) to `output`.

@@ -20,6 +20,7 @@ use trove_coordinator::farm::metrics::FarmMetrics;
 use trove_coordinator::farm::{self, DriverConfig, FarmConfig};
 use trove_proto::v1 as pb;
 use trove_tests::farm::{data_root, TestFarm, TEST_HEARTBEAT};
+use trove_tests::scenes::ball;
 use trove_tests::scratch;
 use trove_worker::metrics::WorkerMetrics;
 use trove_worker::WorkerConfig;
@@ -71,19 +72,6 @@ fn failed(out: Output, needles: &[&str]) -> String {
         assert!(err.contains(n), "stderr lacks {n:?}: {err}");
     }
     err
-}
-
-/// A ball from a generator, so the one worker needs no files; `extra` goes into its object.
-fn ball(size: u32, extra: &str) -> String {
-    format!(
-        "[image]\nwidth = {size}\nheight = {size}\nbackground = [0.1, 0.1, 0.2]\n\
-         [camera]\neye = [0.5, 0.6, 3.0]\ntarget = [0.5, 0.5, 0.5]\nup = [0, 1, 0]\nfov_y = 35.0\n\
-         [[datasets]]\nname = \"ball\"\ndims = [24, 24, 24]\n[datasets.channels.voxel]\n\
-         generator = {{ kind = \"sphere\", radius = 0.5, profile = \"radial\", value = 1.0, type = \"f32\" }}\n\
-         [[objects]]\nname = \"ball\"\ndataset = \"ball\"\n{extra}\n\
-         colour = {{ type = \"ramp\", points = [[0.0, 0.9, 0.3, 0.1], [1.0, 0.2, 0.5, 1.0]] }}\n\
-         opacity = {{ type = \"ramp\", points = [[0.0, 0.0], [1.0, 0.3]] }}\n"
-    )
 }
 
 fn config() -> FarmConfig {

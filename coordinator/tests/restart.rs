@@ -14,27 +14,16 @@ use std::time::{Duration, Instant};
 use trove_coordinator::client::{FarmClient, JobFiles};
 use trove_proto::v1 as pb;
 use trove_tests::farm::spawn_server;
+use trove_tests::process::{trove_worker_beside, Server};
 use trove_tests::scratch;
 
 fn trove() -> &'static Path {
     Path::new(env!("CARGO_BIN_EXE_trove"))
 }
 
-/// `trove-worker`, built beside `trove` by the same `cargo test --workspace`.
+/// `trove-worker`, built beside `trove`.
 fn trove_worker() -> PathBuf {
-    let path = trove().with_file_name(format!("trove-worker{}", std::env::consts::EXE_SUFFIX));
-    assert!(path.exists(), "{} is missing: run the workspace's tests (cargo test --workspace)", path.display());
-    path
-}
-
-/// A child process killed when dropped.
-struct Server(Child);
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
+    trove_worker_beside(trove())
 }
 
 /// The longest any one wait in this test may take.

@@ -15,7 +15,13 @@ pub mod farm;
 
 pub mod fuzzing;
 
+pub mod scenes;
+
+pub mod process;
+
 pub mod standin;
+
+pub mod tls;
 
 use std::io::Write;
 use std::path::{Path, PathBuf};

@@ -12,61 +12,8 @@ use trove_core::render::{render, RenderError, RenderOptions};
 use trove_core::scene::Scene;
 use trove_proto::v1 as pb;
 use trove_tests::farm::{data_root, TestFarm, TEST_HEARTBEAT};
+use trove_tests::scenes::{ball, many_objects, nested_boxes, slow_ball};
 use trove_tests::scratch;
-
-/// `n` nested cubes over one generated 2³ dataset at `step`, the outermost filling the view.
-fn nested_boxes(n: usize, size: u32, step: &str) -> String {
-    let mut text = format!(
-        "[image]\nwidth = {size}\nheight = {size}\nbackground = [0, 0, 0]\n\
-         [camera]\neye = [0, 0, 4]\ntarget = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 30.0\n\
-         [[datasets]]\nname = \"d\"\ndims = [2, 2, 2]\n[datasets.channels.voxel]\n\
-         generator = {{ kind = \"constant\", value = 0.5 }}\n"
-    );
-    for i in 0..n {
-        let half = 1.0 - i as f64 / (n as f64 + 1.0);
-        let (s, t) = (2.0 * half, -half);
-        text += &format!(
-            "[[objects]]\nname = \"o{i}\"\ndataset = \"d\"\nsampling_distance = {step}\n\
-             transform = {{ matrix = [[{s}, 0, 0, {t}], [0, {s}, 0, {t}], [0, 0, {s}, {t}], [0, 0, 0, 1]] }}\n\
-             colour = {{ type = \"ramp\", points = [[0, 1, 1, 1], [1, 1, 1, 1]] }}\n\
-             opacity = {{ type = \"ramp\", points = [[0, 0.01], [1, 0.01]] }}\n"
-        );
-    }
-    text
-}
-
-/// `n` small cubes side by side in a row across the view, on a `size`² image.
-fn many_objects(n: usize, size: u32) -> String {
-    let mut text = nested_boxes(0, size, "0");
-    for i in 0..n {
-        let x = -1.0 + 2.0 * i as f64 / n as f64;
-        text += &format!(
-            "[[objects]]\nname = \"o{i}\"\ndataset = \"d\"\n\
-             transform = {{ matrix = [[0.0004, 0, 0, {x}], [0, 0.0004, 0, 0], [0, 0, 0.0004, 0], [0, 0, 0, 1]] }}\n\
-             colour = {{ type = \"ramp\", points = [[0, 1, 1, 1], [1, 1, 1, 1]] }}\n\
-             opacity = {{ type = \"ramp\", points = [[0, 0.5], [1, 0.5]] }}\n"
-        );
-    }
-    text
-}
-
-/// A ball that renders in a moment; `extra` goes into its object.
-fn ball(size: u32, extra: &str) -> String {
-    format!(
-        "[image]\nwidth = {size}\nheight = {size}\nbackground = [0.1, 0.1, 0.2]\n\
-         [camera]\neye = [0.5, 0.6, 3.0]\ntarget = [0.5, 0.5, 0.5]\nup = [0, 1, 0]\nfov_y = 35.0\n\
-         [[datasets]]\nname = \"ball\"\ndims = [24, 24, 24]\n[datasets.channels.voxel]\n\
-         generator = {{ kind = \"sphere\", radius = 0.5, profile = \"radial\", value = 1.0, type = \"f32\" }}\n\
-         [[objects]]\nname = \"ball\"\ndataset = \"ball\"\n{extra}\n\
-         colour = {{ type = \"ramp\", points = [[0.0, 0.9, 0.3, 0.1], [1.0, 0.2, 0.5, 1.0]] }}\n\
-         opacity = {{ type = \"ramp\", points = [[0.0, 0.0], [1.0, 0.3]] }}\n"
-    )
-}
-
-/// A ball slow enough to keep a worker busy for a while: cubic at a fine step.
-fn slow_ball(size: u32) -> String {
-    ball(size, "interpolation = \"cubic\"\nsampling_distance = 0.002")
-}
 
 fn local_png(text: &str, name: &str) -> Vec<u8> {
     let scene = Scene::parse(text, name).unwrap_or_else(|e| panic!("{e}"));

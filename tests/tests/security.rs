@@ -8,7 +8,6 @@
 use std::path::Path;
 use std::time::Duration;
 
-use rcgen::{BasicConstraints, CertificateParams, CertifiedIssuer, DnType, IsCa, KeyPair, KeyUsagePurpose};
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use trove_coordinator::client::{ClientError, FarmClient};
@@ -20,44 +19,10 @@ use trove_proto::tls::{CaCert, ServerTls};
 use trove_proto::v1 as pb;
 use trove_proto::v1::worker_client::WorkerClient;
 use trove_tests::farm::{FarmOptions, TestFarm, TestTls};
+use trove_tests::scenes::{self, SLAB_AND_BALL as SCENE};
 use trove_tests::scratch;
+use trove_tests::tls::TestPki;
 use trove_worker::WorkerError;
-
-/// A dataset file a worker must hold (4×4×2 u8) and a generated one, so that a render needs
-/// the worker's data and the scene's headers.
-const SCENE: &str = r#"
-[image]
-width = 40
-height = 30
-background = [0.1, 0.15, 0.2]
-[camera]
-eye = [0.5, 0.6, 3.2]
-target = [0.5, 0.5, 0.5]
-up = [0, 1, 0]
-fov_y = 35.0
-[[datasets]]
-name = "slab"
-dims = [4, 4, 2]
-[datasets.channels.voxel]
-raw = "slab.raw"
-type = "u8"
-[[datasets]]
-name = "ball"
-dims = [20, 20, 20]
-[datasets.channels.voxel]
-generator = { kind = "sphere", radius = 0.5, profile = "radial", value = 1.0, type = "f32" }
-[[objects]]
-name = "slab"
-dataset = "slab"
-colour = { type = "ramp", points = [[0, 0.2, 0.3, 0.9], [255, 1, 1, 1]] }
-opacity = { type = "ramp", points = [[0, 0.05], [255, 0.5]] }
-transform = { matrix = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0.1, 0.9], [0, 0, 0, 1]] }
-[[objects]]
-name = "ball"
-dataset = "ball"
-colour = { type = "ramp", points = [[0.0, 0.9, 0.3, 0.1], [1.0, 0.2, 0.5, 1.0]] }
-opacity = { type = "ramp", points = [[0.0, 0.0], [1.0, 0.4]] }
-"#;
 
 /// A scene of generated data only: any worker casts it.
 const GENERATED: &str = r#"
@@ -82,13 +47,9 @@ colour = { type = "ramp", points = [[0.0, 0.9, 0.3, 0.1], [1.0, 0.2, 0.5, 1.0]] 
 opacity = { type = "ramp", points = [[0.0, 0.0], [1.0, 0.3]] }
 "#;
 
-/// A data root holding `slab.raw`.
+/// The slab's data root.
 fn slab_root(dir: &Path) -> std::path::PathBuf {
-    let root = dir.join("w0");
-    std::fs::create_dir_all(&root).unwrap();
-    let voxels: Vec<u8> = (0..32u8).map(|i| i * 8).collect();
-    std::fs::write(root.join("slab.raw"), voxels).unwrap();
-    root
+    scenes::slab_root(&dir.join("w0"))
 }
 
 /// What local mode renders from `text` with its keys under `data`.
@@ -103,19 +64,10 @@ fn token(text: &str) -> Option<Token> {
 
 /// A CA, and one certificate it signed for 127.0.0.1 and localhost, made now.
 fn test_tls() -> TestTls {
-    let mut ca = CertificateParams::new(Vec::<String>::new()).unwrap();
-    ca.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-    ca.distinguished_name.push(DnType::CommonName, "TROVE test CA");
-    ca.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::CrlSign];
-    let issuer = CertifiedIssuer::self_signed(ca, KeyPair::generate().unwrap()).unwrap();
-    let key = KeyPair::generate().unwrap();
-    let cert = CertificateParams::new(vec!["127.0.0.1".to_string(), "localhost".to_string()])
-        .unwrap()
-        .signed_by(&key, &issuer)
-        .unwrap();
+    let pki = TestPki::new();
     TestTls {
-        ca: CaCert::from_pem(issuer.pem().as_bytes()).unwrap(),
-        server: ServerTls::from_pem(cert.pem().as_bytes(), key.serialize_pem().as_bytes()).unwrap(),
+        ca: CaCert::from_pem(pki.ca.as_bytes()).unwrap(),
+        server: ServerTls::from_pem(pki.cert.as_bytes(), pki.key.as_bytes()).unwrap(),
     }
 }
 
