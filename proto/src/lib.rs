@@ -29,6 +29,18 @@ pub mod v1 {
 /// and call the services without the file.
 pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("trove_descriptor");
 
+/// The longest worker id a coordinator accepts.
+pub const MAX_WORKER_ID_BYTES: usize = 128;
+
+/// Whether `id` is a worker id a coordinator accepts: 1 to [`MAX_WORKER_ID_BYTES`] letters,
+/// digits, `-`, `_` or `.` (safe in logs, metrics labels and pod names). The coordinator
+/// checks it at registration and `trove-worker` at start, with this one rule.
+pub fn is_usable_worker_id(id: &str) -> bool {
+    !id.is_empty()
+        && id.len() <= MAX_WORKER_ID_BYTES
+        && id.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.".contains(&b))
+}
+
 /// Largest message either side accepts. Batches are far smaller (a batch of the largest
 /// size, [`MAX_BATCH_TASKS`] tasks, is 384 KiB of tasks and 256 KiB of results); scenes and
 /// registrations of large data roots are what could grow.

@@ -25,15 +25,13 @@ const CALL_DEADLINE: Duration = Duration::from_secs(5);
 /// Longest wait between attempts to reach an unreachable coordinator.
 const MAX_BACKOFF: Duration = Duration::from_secs(5);
 
-/// The longest worker id a coordinator accepts.
-pub const MAX_WORKER_ID_BYTES: usize = 128;
+pub use trove_proto::MAX_WORKER_ID_BYTES;
 
 /// Checks a worker id as the coordinator will (1 to [`MAX_WORKER_ID_BYTES`] letters,
 /// digits, `-`, `_`, `.`), so a bad `--worker-id` stops the worker at start instead of
 /// being refused at every registration.
 pub fn check_worker_id(id: &str) -> Result<(), String> {
-    let usable = |b: u8| b.is_ascii_alphanumeric() || b"-_.".contains(&b);
-    if id.is_empty() || id.len() > MAX_WORKER_ID_BYTES || !id.bytes().all(usable) {
+    if !trove_proto::is_usable_worker_id(id) {
         return Err(format!(
             "worker id `{id}` is not usable: expected 1 to {MAX_WORKER_ID_BYTES} letters, digits, '-', '_' or '.'"
         ));

@@ -89,8 +89,7 @@ const MISSED_HEARTBEATS: u32 = 5;
 /// Deadline for connecting to a worker.
 const CONNECT_DEADLINE: Duration = Duration::from_secs(5);
 
-/// The longest worker id accepted.
-pub const MAX_WORKER_ID_BYTES: usize = 128;
+pub use trove_proto::MAX_WORKER_ID_BYTES;
 
 /// Why a registration is refused.
 #[derive(Debug, Error)]
@@ -172,7 +171,7 @@ impl Registry {
             .connect_timeout(CONNECT_DEADLINE);
         let id = match request.worker_id.as_str() {
             "" => format!("w-{}-{}", self.prefix, self.next_id.fetch_add(1, Ordering::Relaxed)),
-            id if usable_id(id) => id.to_string(),
+            id if trove_proto::is_usable_worker_id(id) => id.to_string(),
             id => return Err(RegisterError::BadId { id: id.to_string() }),
         };
         let mut state = lock(&self.state);
@@ -324,12 +323,6 @@ impl Registry {
             })
             .collect()
     }
-}
-
-/// Whether `id` is a worker id we accept: short, and safe in logs and metrics labels
-/// (`trove-worker` checks the same at start, `membership::check_worker_id`).
-fn usable_id(id: &str) -> bool {
-    id.len() <= MAX_WORKER_ID_BYTES && id.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.".contains(&b))
 }
 
 /// What a job's dispatcher holds of one worker.
