@@ -22,7 +22,7 @@ use std::sync::{Arc, OnceLock};
 use prost::Message;
 use trove_coordinator::farm::DriverConfig;
 use trove_core::dataset::{Catalog, DatasetError, FileInfo, FileKind, FsCatalog, Volume};
-use trove_core::render::limits::{check_pfm, Work};
+use trove_core::render::limits::check_pfm;
 use trove_core::render::{wire, BatchCaster, CastError, PieceRgba};
 use trove_core::scene::{Scene, SceneError};
 use trove_proto::convert;
@@ -157,8 +157,9 @@ pub const COUNT_AT_MOST: u64 = 1 << 18;
 
 /// A `SubmitJobRequest`'s bytes, decoded and planned as `SubmitJob` plans it
 /// (`coordinator/src/farm/api.rs`, `plan`): the scene parsed over the workers' headers,
-/// the PFM capped, the work counted, bands sized and checked against the memory bound, each
-/// refusal turned into the typed failure the client would get.
+/// then `DriverConfig::check_work` (the PFM capped, the work counted, bands sized and
+/// checked against the memory bound), each refusal turned into the typed failure the client
+/// would get.
 pub fn submit_job(bytes: &[u8]) -> Result<Planned, JobRefusal> {
     let request = pb::SubmitJobRequest::decode(bytes).map_err(JobRefusal::Decode)?;
     let driver = DriverConfig::default();
@@ -171,15 +172,14 @@ pub fn submit_job(bytes: &[u8]) -> Result<Planned, JobRefusal> {
         .map_err(|e| JobRefusal::Refused(Box::new(convert::scene_failure(&e))))?;
     let options = request.options.unwrap_or_default();
     let (w, h) = (scene.image().width, scene.image().height);
-    if options.want_pfm {
-        check_pfm(w, h, driver.max_pfm_pixels).map_err(|e| refused(convert::limit_failure(&e)))?;
-    }
     if w as u64 * h as u64 * scene.objects().len() as u64 > COUNT_AT_MOST {
+        // Too large to count within a fuzz input's time: only what comes before counting.
+        if options.want_pfm {
+            check_pfm(w, h, driver.max_pfm_pixels).map_err(|e| refused(convert::limit_failure(&e)))?;
+        }
         return Ok(Planned::NotCounted);
     }
-    let work = Work::count(&scene).map_err(|e| refused(convert::limit_failure(&e)))?;
-    let band_rows = driver.band_rows(&scene, &work, &options).map_err(|e| refused(convert::limit_failure(&e)))?;
-    work.check_bands(band_rows, driver.memory_bound).map_err(|e| refused(convert::limit_failure(&e)))?;
+    let (work, band_rows) = driver.check_work(&scene, &options).map_err(|e| refused(convert::limit_failure(&e)))?;
     Ok(Planned::Counted { band_rows, tasks: work.tasks_in(0..h) })
 }
 

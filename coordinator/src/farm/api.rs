@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
-use trove_core::render::limits::{check_pfm, LimitError, Work};
+use trove_core::render::limits::LimitError;
 use trove_core::scene::Scene;
 use trove_proto::convert;
 use trove_proto::v1 as pb;
@@ -71,13 +71,7 @@ fn plan(farm: &Farm, request: pb::SubmitJobRequest) -> Result<JobPlan, Status> {
         f.file = name.clone();
         convert::limit_status(f)
     };
-    let (w, h) = (scene.image().width, scene.image().height);
-    if options.want_pfm {
-        check_pfm(w, h, farm.driver.max_pfm_pixels).map_err(limited)?;
-    }
-    let work = Work::count(&scene).map_err(limited)?;
-    let band_rows = farm.driver.band_rows(&scene, &work, &options).map_err(limited)?;
-    work.check_bands(band_rows, farm.driver.memory_bound).map_err(limited)?;
+    let (_, band_rows) = farm.driver.check_work(&scene, &options).map_err(limited)?;
     let dataset_keys: Vec<Vec<String>> = scene.datasets().iter().map(|d| d.file_keys()).collect();
     for d in scene.used_datasets() {
         if farm.registry.holders(&dataset_keys[d]).is_empty() {

@@ -49,7 +49,7 @@ use tonic::Status;
 use trove_core::render::bands::Bands;
 use trove_core::render::dispatch::Admission;
 use trove_core::render::intersection::intersect_within;
-use trove_core::render::limits::{max_band_tasks, LimitError, Work, MAX_PFM_PIXELS};
+use trove_core::render::limits::{check_pfm, max_band_tasks, LimitError, Work, MAX_PFM_PIXELS};
 use trove_core::render::wire::{decode_results, encode_tasks};
 use trove_core::render::{Algorithm, Batch, Scheduler};
 use trove_core::scene::Scene;
@@ -138,6 +138,22 @@ impl DriverConfig {
         let (w, h) = (scene.image().width, scene.image().height);
         let within = work.rows_within(self.memory_bound / self.max_bands.max(1) as u64)?;
         Ok(raster::rows_per_band(options.band_rows, w, h, within))
+    }
+
+    /// The work a job of `scene` with `options` would take, checked before it is queued:
+    /// its PFM capped, its tasks counted without storing one, its bands sized
+    /// ([`DriverConfig::band_rows`]) and each checked against the memory bound. Returns the
+    /// count and the rows per band; `SubmitJob` calls it, and so does the job-request fuzz
+    /// target, so that what is fuzzed is what a submission runs.
+    pub fn check_work(&self, scene: &Scene, options: &pb::JobOptions) -> Result<(Work, u32), LimitError> {
+        let (w, h) = (scene.image().width, scene.image().height);
+        if options.want_pfm {
+            check_pfm(w, h, self.max_pfm_pixels)?;
+        }
+        let work = Work::count(scene)?;
+        let band_rows = self.band_rows(scene, &work, options)?;
+        work.check_bands(band_rows, self.memory_bound)?;
+        Ok((work, band_rows))
     }
 
     /// Panics if this step is the configured fault (debug builds only).
