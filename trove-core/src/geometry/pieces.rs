@@ -66,6 +66,20 @@ pub fn split_into_pieces(
 ) {
     pieces.clear();
     cover.clear();
+    if let Some(disjoint) = apart(segments) {
+        for s in disjoint.into_iter().flatten() {
+            cover.push(s.object);
+            pieces.push(Piece { t0: s.t_near, t1: s.t_far, cover: (cover.len() as u32 - 1, cover.len() as u32) });
+        }
+        return;
+    }
+    sweep_into_pieces(segments, scratch, pieces, cover);
+}
+
+/// [`split_into_pieces`] by the sweep alone, for any segments.
+fn sweep_into_pieces(segments: &[Segment], scratch: &mut PieceScratch, pieces: &mut Vec<Piece>, cover: &mut Vec<u32>) {
+    pieces.clear();
+    cover.clear();
     scratch.sort_events(segments);
     let PieceScratch { events, active } = scratch;
     active.clear();
@@ -92,6 +106,10 @@ pub fn split_into_pieces(
 /// The number of pieces and of (piece, object) pairs [`split_into_pieces`] would make from
 /// `segments`, without storing either: O(k log k) for k segments, however many pairs.
 pub fn count_pieces(segments: &[Segment], scratch: &mut PieceScratch) -> (u64, u64) {
+    if let Some(disjoint) = apart(segments) {
+        let n = disjoint.iter().flatten().count() as u64;
+        return (n, n);
+    }
     scratch.sort_events(segments);
     let (mut active, mut pieces, mut pairs) = (0u64, 0u64, 0u64);
     sweep(&scratch.events, |_, _, event| match event {
@@ -104,6 +122,21 @@ pub fn count_pieces(segments: &[Segment], scratch: &mut PieceScratch) -> (u64, u
         None => {}
     });
     (pieces, pairs)
+}
+
+/// Most rays cross at most two objects and most pairs do not overlap: then each segment is
+/// one piece of its own, front to back, which is what the sweep makes of them (a shared end
+/// point cuts nothing either), without sorting. `None` for every other case, which sweeps.
+fn apart(segments: &[Segment]) -> Option<[Option<&Segment>; 2]> {
+    let long = |s: &&Segment| s.t_far > s.t_near;
+    match segments {
+        [] => Some([None, None]),
+        [a] => Some([Some(a).filter(long), None]),
+        [a, b] if !long(&a) || !long(&b) => Some([Some(a).filter(long).or(Some(b).filter(long)), None]),
+        [a, b] if a.t_far <= b.t_near => Some([Some(a), Some(b)]),
+        [a, b] if b.t_far <= a.t_near => Some([Some(b), Some(a)]),
+        _ => None,
+    }
 }
 
 /// Walks sorted `events`: for each distinct t (equal as f64, as `dedup` compares; the first
@@ -168,6 +201,31 @@ mod tests {
             })
             .filter(|(_, _, c)| !c.is_empty())
             .collect()
+    }
+
+    #[test]
+    fn one_or_two_segments_apart_make_what_the_sweep_makes() {
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = |n: u64| {
+            state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+            (state >> 33) % n
+        };
+        let mut scratch = PieceScratch::default();
+        let (mut fast, mut swept) = ((vec![], vec![]), (vec![], vec![]));
+        for _ in 0..5000 {
+            // Coincident, touching, empty and overlapping segments, in either order.
+            let segments: Vec<Segment> = (0..1 + next(2))
+                .map(|i| {
+                    let a = next(6) as f64 * 0.25 + if next(3) == 0 { 1e-17 } else { 0.0 };
+                    Segment { object: i as u32 * 3, t_near: a, t_far: a + next(4) as f64 * 0.25 }
+                })
+                .collect();
+            split_into_pieces(&segments, &mut scratch, &mut fast.0, &mut fast.1);
+            sweep_into_pieces(&segments, &mut scratch, &mut swept.0, &mut swept.1);
+            assert_eq!(fast, swept, "{segments:?}");
+            let counted = count_pieces(&segments, &mut scratch);
+            assert_eq!(counted, (swept.0.len() as u64, swept.1.len() as u64), "{segments:?}");
+        }
     }
 
     #[test]

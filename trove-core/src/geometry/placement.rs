@@ -2,7 +2,7 @@
 //! sub-box of its dataset that fills it, and the map from world points to volume
 //! coordinates (VC) that sampling needs.
 
-use glam::{DMat4, DVec3};
+use glam::{DMat3, DMat4, DVec3};
 use thiserror::Error;
 
 use super::hexahedron::{Hexahedron, Q};
@@ -190,8 +190,8 @@ impl Placement {
     pub fn segment(&self, ray: &Ray) -> Option<(f64, f64)> {
         match &self.shape {
             Shape::Affine { box_from_world, .. } => {
-                let o = BoxOrigin::new(ray.origin, box_from_world.transform_point3(ray.origin));
-                slab_segment(&o, box_from_world.transform_vector3(ray.dir))
+                let linear = DMat3::from_mat4(*box_from_world);
+                BoxOrigin::new(ray.origin, box_from_world.transform_point3(ray.origin), linear).segment(ray)
             }
             Shape::Distorted { hex, .. } => hex.segment(ray.origin, ray.dir),
         }
@@ -203,7 +203,8 @@ impl Placement {
     pub fn box_origin(&self, origin: DVec3) -> Option<BoxOrigin> {
         match &self.shape {
             Shape::Affine { box_from_world, .. } => {
-                Some(BoxOrigin::new(origin, box_from_world.transform_point3(origin)))
+                let linear = DMat3::from_mat4(*box_from_world);
+                Some(BoxOrigin::new(origin, box_from_world.transform_point3(origin), linear))
             }
             Shape::Distorted { .. } => None,
         }
@@ -214,9 +215,7 @@ impl Placement {
     /// segment to the bit.
     pub fn segment_from(&self, from: Option<&BoxOrigin>, ray: &Ray) -> Option<(f64, f64)> {
         match (&self.shape, from) {
-            (Shape::Affine { box_from_world, .. }, Some(o)) if o.world == ray.origin => {
-                slab_segment(o, box_from_world.transform_vector3(ray.dir))
-            }
+            (Shape::Affine { .. }, Some(o)) if o.starts(ray) => o.segment(ray),
             _ => self.segment(ray),
         }
     }
@@ -277,11 +276,29 @@ pub struct BoxOrigin {
     o: DVec3,
     slack: f64,
     o_len: f64,
+    /// The box-from-world map of directions, kept beside the origin so that a ray's slab
+    /// test reads these 136 bytes rather than the whole object.
+    linear: DMat3,
 }
 
 impl BoxOrigin {
-    fn new(world: DVec3, o: DVec3) -> BoxOrigin {
-        BoxOrigin { world, o, slack: BOX_SLACK * (1.0 + o.abs().max_element()), o_len: o.length() }
+    fn new(world: DVec3, o: DVec3, linear: DMat3) -> BoxOrigin {
+        BoxOrigin { world, o, slack: BOX_SLACK * (1.0 + o.abs().max_element()), o_len: o.length(), linear }
+    }
+
+    /// Whether `ray` starts where this was worked out.
+    #[inline]
+    pub fn starts(&self, ray: &Ray) -> bool {
+        self.world == ray.origin
+    }
+
+    /// [`Placement::segment`] of a ray that [`BoxOrigin::starts`] here: the same operations
+    /// on the same values (the direction mapped as `DMat4::transform_vector3` maps it — the
+    /// same products, added in an order IEEE addition does not see), so the same segment to
+    /// the bit.
+    #[inline]
+    pub fn segment(&self, ray: &Ray) -> Option<(f64, f64)> {
+        slab_segment(self, self.linear.mul_vec3(ray.dir))
     }
 }
 
@@ -293,13 +310,23 @@ impl BoxOrigin {
 /// exact crossing parameters.
 fn slab_segment(origin: &BoxOrigin, d: DVec3) -> Option<(f64, f64)> {
     let (o, slack) = (origin.o, origin.slack);
-    // |o + t·d| ≤ √3 inside the box, so t ≤ (|o| + √3)/|d| there.
-    let reach = (origin.o_len + 2.0) / d.length();
+    // |o + t·d| ≤ √3 inside the box, so t ≤ (|o| + √3)/|d| there: `reach`. Its square root
+    // and division are paid only for an axis the cheap bound below cannot decide — a ray
+    // nearly parallel to a face — which is rare; every other ray skips them.
+    let (ad, num) = (d.abs(), origin.o_len + 2.0);
+    // |d| ≤ ‖d‖₁, so |d_a|·reach ≥ |d_a|·num/‖d‖₁ up to a few roundings: above the slack by
+    // the margin, the exact test below would find the axis not parallel too.
+    let l1_slack = slack * (ad.x + ad.y + ad.z) * (1.0 + 1e-6);
+    let mut reach = None;
     let (mut t_near, mut t_far) = (0.0f64, f64::INFINITY);
-    // How far rounding of the box coordinates can move a crossing parameter.
-    let mut t_tol = 0.0f64;
+    // The smallest |d_a| over the crossing axes: the rounding tolerance of a crossing
+    // parameter, max_a slack/|d_a|, is slack over it (division rounds monotonically), so it
+    // costs one division, taken only for a ray that grazes an edge.
+    let mut min_crossing = f64::INFINITY;
     for a in 0..3 {
-        if d[a] == 0.0 || d[a].abs() * reach <= slack {
+        let parallel =
+            d[a] == 0.0 || (ad[a] * num <= l1_slack && ad[a] * *reach.get_or_insert_with(|| num / d.length()) <= slack);
+        if parallel {
             if o[a] < -slack || o[a] > 1.0 + slack {
                 return None;
             }
@@ -308,12 +335,12 @@ fn slab_segment(origin: &BoxOrigin, d: DVec3) -> Option<(f64, f64)> {
         let (ta, tb) = ((0.0 - o[a]) / d[a], (1.0 - o[a]) / d[a]);
         t_near = t_near.max(ta.min(tb));
         t_far = t_far.min(ta.max(tb));
-        t_tol = t_tol.max(slack / d[a].abs());
+        min_crossing = min_crossing.min(ad[a]);
     }
     // A ray that only touches an edge or a corner meets the closed box in one point, and
     // rounding may put the entry a hair after the exit: keep that point (a zero-length
     // segment, which the renderer then drops) rather than report a miss.
-    if t_near > t_far && t_near - t_far <= t_tol {
+    if t_near > t_far && t_near - t_far <= slack / min_crossing {
         t_far = t_near;
     }
     (t_near <= t_far && t_far.is_finite()).then_some((t_near, t_far))
@@ -472,6 +499,57 @@ impl Iterator for SampleWalk<'_> {
 
 #[cfg(test)]
 mod tests {
+
+    use proptest::prelude::*;
+
+    /// The slab test as first written — `reach` and every axis's tolerance computed
+    /// outright — which [`slab_segment`] must equal to the bit.
+    fn slab_segment_outright(origin: &BoxOrigin, d: DVec3) -> Option<(f64, f64)> {
+        let (o, slack) = (origin.o, origin.slack);
+        let reach = (origin.o_len + 2.0) / d.length();
+        let (mut t_near, mut t_far) = (0.0f64, f64::INFINITY);
+        let mut t_tol = 0.0f64;
+        for a in 0..3 {
+            if d[a] == 0.0 || d[a].abs() * reach <= slack {
+                if o[a] < -slack || o[a] > 1.0 + slack {
+                    return None;
+                }
+                continue;
+            }
+            let (ta, tb) = ((0.0 - o[a]) / d[a], (1.0 - o[a]) / d[a]);
+            t_near = t_near.max(ta.min(tb));
+            t_far = t_far.min(ta.max(tb));
+            t_tol = t_tol.max(slack / d[a].abs());
+        }
+        if t_near > t_far && t_near - t_far <= t_tol {
+            t_far = t_near;
+        }
+        (t_near <= t_far && t_far.is_finite()).then_some((t_near, t_far))
+    }
+
+    /// A direction component: ordinary, tiny (nearly parallel to a face), or zero.
+    fn component() -> impl Strategy<Value = f64> {
+        prop_oneof![-3.0f64..3.0, (-1e-9f64..1e-9), (-1e-14f64..1e-14), Just(0.0), Just(-0.0)]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(20_000))]
+        #[test]
+        fn the_cheap_slab_test_equals_the_outright_one_to_the_bit(
+            o in prop::array::uniform3(-3.0f64..4.0), d in prop::array::uniform3(component()),
+            edge in 0usize..4,
+        ) {
+            // Some origins exactly on a face or an edge, where the tolerances decide.
+            let mut o = DVec3::from_array(o);
+            if edge < 3 {
+                o[edge] = if o[edge] < 0.5 { 0.0 } else { 1.0 };
+            }
+            let origin = BoxOrigin::new(DVec3::ZERO, o, DMat3::IDENTITY);
+            let d = DVec3::from_array(d);
+            let (fast, outright) = (slab_segment(&origin, d), slab_segment_outright(&origin, d));
+            prop_assert_eq!(fast.map(|(a, b)| (a.to_bits(), b.to_bits())), outright.map(|(a, b)| (a.to_bits(), b.to_bits())));
+        }
+    }
     use super::*;
 
     fn unit_box(dims: [u64; 3]) -> Placement {

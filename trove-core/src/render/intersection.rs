@@ -143,7 +143,11 @@ fn segments_among(scene: &Scene, reach: &Reach, row_objects: &[u32], col: u32, r
         if !reach.0[i].has_col(col) {
             continue;
         }
-        if let Some((t_near, t_far)) = objects[i].placement().segment_from(reach.1[i].as_ref(), ray) {
+        let segment = match &reach.1[i] {
+            Some(origin) if origin.starts(ray) => origin.segment(ray),
+            _ => objects[i].placement().segment(ray),
+        };
+        if let Some((t_near, t_far)) = segment {
             if t_far > t_near {
                 segments.push(Segment { object: i as u32, t_near, t_far });
             }
