@@ -19,6 +19,7 @@ mod inputs;
 mod measure;
 mod placement;
 mod pool;
+pub(crate) mod recorded;
 mod report;
 mod scene;
 mod sim;
