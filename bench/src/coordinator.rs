@@ -31,6 +31,7 @@ use trove_core::scene::{DataRoot, Scene};
 use trove_proto::v1 as pb;
 use trove_tests::standin::{self, Answers};
 
+use crate::farm_sim::recorded::{self, place_of, CoordinatorRecord, RunsOn, SceneCosts, Stage, COORDINATOR_FORMAT};
 use crate::stats::median;
 use crate::table1::{table1_scene, write_dataset, Storage};
 
@@ -56,6 +57,10 @@ pub struct Args {
     /// with a message where it is absent).
     #[arg(long, default_value = "../shared/data")]
     data_root: PathBuf,
+    /// Also write what the 1-core runs measured to this file, for `farm-sim` to read (the
+    /// repository keeps one: `bench/recorded/coordinator.json`). Needs 1 in `--cores`.
+    #[arg(long)]
+    record: Option<PathBuf>,
     /// (Internal) measure with this many coordinator cores in this process, printing one
     /// JSON line per scene; `--dir` holds the scenes.
     #[arg(long, hide = true)]
@@ -84,6 +89,9 @@ pub fn run(args: Args) -> Result<()> {
 }
 
 fn run_in(args: &Args, dir: &Path) -> Result<()> {
+    if args.record.is_some() {
+        ensure!(args.cores.contains(&1), "--record writes the 1-core runs: put 1 in --cores");
+    }
     write_cases(args, dir)?;
     println!("processor: {}; sampler: {}", processor(), simd_path());
     println!("load average before: {}", load_average());
@@ -105,7 +113,101 @@ fn run_in(args: &Args, dir: &Path) -> Result<()> {
     }
     println!("load average after: {}", load_average());
     print_table(&rows);
+    if let Some(file) = &args.record {
+        let record = record_of(args, &rows)?;
+        record.write(file)?;
+        println!("recorded the 1-core runs in {}", file.display());
+    }
     Ok(())
+}
+
+/// The 1-core rows as a [`CoordinatorRecord`]: each stage's CPU per piece estimated as
+/// `recorded::SceneCosts` describes, from the measured CPU of the coordinator's threads and
+/// of the runtime's one worker thread (which runs the job's event loop and the transport).
+fn record_of(args: &Args, rows: &[Value]) -> Result<CoordinatorRecord> {
+    let f = |v: &Value| v.as_f64().unwrap_or(0.0);
+    let mut scenes = Vec::new();
+    for r in rows.iter().filter(|r| r["cores"] == 1) {
+        let name = r["scene"].as_str().unwrap_or("?").to_string();
+        let pieces = r["pieces"].as_u64().context("a row without pieces")?;
+        let per = |seconds: f64| seconds * 1e9 / pieces.max(1) as f64;
+        let st = r["stages"].as_object().context("a row without stages")?;
+        let wall = |k: &str| st.get(k).map_or(0.0, f);
+        let timed_loop = ["dispatch", "encoding", "decoding", "recording"].iter().map(|k| wall(k)).sum::<f64>();
+        let loop_wall = wall("event_loop");
+        let mut walls: Vec<(String, f64)> = Vec::new();
+        for (key, seconds) in st {
+            if key != "event_loop" {
+                walls.push((key.clone(), f(seconds)));
+            }
+        }
+        walls.push(("loop_rest".into(), (loop_wall - timed_loop).max(0.0)));
+        let cpu = f(&r["coordinator_cpu"]);
+        let worker_cpu = r["loop_thread_cpu"].as_f64().context("a 1-core row without its worker thread's CPU")?;
+        // The loop's CPU: its wall time, which on a shared core also counts waits, capped by
+        // the CPU of the thread it runs on.
+        let loop_cpu = loop_wall.min(worker_cpu).min(cpu);
+        let blocking_cpu = (cpu - worker_cpu).max(0.0);
+        let mut groups = [(RunsOn::EventLoop, 0.0), (RunsOn::Parallel, 0.0), (RunsOn::OneThread, 0.0)];
+        let mut placed = Vec::new();
+        for (key, seconds) in walls {
+            let (runs_on, at) = place_of(&key).with_context(|| {
+                format!(
+                    "the job's statistics have a stage `{key}` that farm_sim::recorded::place_of does not place: \
+                     say where it runs and bump COORDINATOR_FORMAT"
+                )
+            })?;
+            let group = if runs_on == RunsOn::EventLoop { 0 } else { 1 };
+            groups[group].1 += seconds;
+            placed.push((key, seconds, runs_on, at, group));
+        }
+        let scale = [loop_cpu / groups[0].1.max(1e-12), blocking_cpu / groups[1].1.max(1e-12)];
+        let mut stages: Vec<Stage> = placed
+            .into_iter()
+            .map(|(name, seconds, runs_on, at, group)| Stage {
+                name,
+                cpu_ns_per_piece: per(seconds * scale[group]),
+                wall_ns_per_piece: Some(per(seconds)),
+                runs_on,
+                at,
+            })
+            .collect();
+        let (runs_on, at) = place_of("transport").expect("transport is placed");
+        stages.push(Stage {
+            name: "transport".into(),
+            cpu_ns_per_piece: per((worker_cpu - loop_cpu).max(0.0)),
+            wall_ns_per_piece: None,
+            runs_on,
+            at,
+        });
+        scenes.push(SceneCosts {
+            scene: name,
+            pixels: r["pixels"].as_u64().context("a row without pixels")?,
+            pieces,
+            tasks_sent: r["tasks_sent"].as_u64().unwrap_or(0),
+            cpu_ns_per_piece: per(cpu),
+            stages,
+        });
+    }
+    ensure!(!scenes.is_empty(), "no 1-core rows to record");
+    let cores: Vec<String> = args.cores.iter().map(|c| c.to_string()).collect();
+    let file = args.record.as_ref().map(|p| p.display().to_string()).unwrap_or_default();
+    Ok(CoordinatorRecord {
+        format: COORDINATOR_FORMAT,
+        processor: recorded::processor(),
+        simd: simd_path().to_string(),
+        commit: recorded::commit(),
+        command: format!(
+            "trove-bench coordinator --size {} --repeat {} --workers {} --cores {} --dims {} --record {file}",
+            args.size,
+            args.repeat,
+            args.workers,
+            cores.join(","),
+            args.dims
+        ),
+        cores: 1,
+        scenes,
+    })
 }
 
 /// The Table-1 scene (15 raw datasets) and Fig. 1, in one data root: `dir/root`.
@@ -200,6 +302,15 @@ fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> 
         });
         anyhow::Ok((url, tx))
     })?;
+    // With one worker thread, every task of the coordinator's runtime — the job's event
+    // loop and the transport — runs on it: its CPU is theirs (its blocking threads are
+    // others).
+    let loop_thread = if cores == 1 {
+        // SAFETY: gettid has no preconditions.
+        Some(coordinator_rt.block_on(async { tokio::spawn(async { unsafe { libc::gettid() } }).await })?)
+    } else {
+        None
+    };
     let root = dir.join("root");
     let answers = Arc::new(Answers::new(&root, pool)?);
     let mut stops = Vec::new();
@@ -232,15 +343,17 @@ fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> 
         let name = case.scene.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let scene = Scene::parse_in(&text, &case.scene, &DataRoot::Given(root.clone()))?;
         let local = render(&scene, &RenderOptions::default())?.image.encode_png()?;
-        let mut farm_render = || -> Result<(f64, f64, f64, Value)> {
-            let (cpu, standins) = (thread_cpu("coord-")?, thread_cpu("standin-")?);
+        let loop_cpu = || loop_thread.map_or(Ok(0.0), tid_cpu);
+        let mut farm_render = || -> Result<(f64, f64, f64, Value, f64)> {
+            let (cpu, standins, on_loop) = (thread_cpu("coord-")?, thread_cpu("standin-")?, loop_cpu()?);
             let started = Instant::now();
             let files =
                 standin_rt.block_on(client.render(text.clone(), name.clone(), pb::JobOptions::default(), |_| {}))?;
             let wall = started.elapsed().as_secs_f64();
             let (cpu, standins) = (thread_cpu("coord-")? - cpu, thread_cpu("standin-")? - standins);
+            let on_loop = loop_cpu()? - on_loop;
             ensure!(files.png == local, "{}: the coordinator's image differs from local mode's", case.name);
-            Ok((wall, cpu, standins, serde_json::from_slice(&files.stats_json)?))
+            Ok((wall, cpu, standins, serde_json::from_slice(&files.stats_json)?, on_loop))
         };
         let recording = Instant::now();
         farm_render()?;
@@ -272,6 +385,8 @@ fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> 
             "seconds": median(runs.iter().map(|r| r.0)),
             "coordinator_cpu": runs.iter().map(|r| r.1).sum::<f64>() / n,
             "standin_cpu": runs.iter().map(|r| r.2).sum::<f64>() / n,
+            "loop_thread_cpu": loop_thread.map(|_| runs.iter().map(|r| r.4).sum::<f64>() / n),
+            "pixels": u64::from(scene.image().width) * u64::from(scene.image().height),
             "stages": stages,
             "cast_during_measurement": cast_during,
         });
@@ -378,23 +493,19 @@ fn thread_cpu(prefix: &str) -> Result<f64> {
 }
 
 fn processor() -> String {
-    let info = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
-    let model =
-        info.lines().find(|l| l.starts_with("model name")).and_then(|l| l.split_once(':')).map(|(_, m)| m.trim());
-    format!("{} ({} processors allowed)", model.unwrap_or("unknown"), allowed_cpus().len())
+    format!("{} ({} processors allowed)", recorded::processor(), allowed_cpus().len())
 }
 
 fn simd_path() -> &'static str {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx512f") {
-            return "AVX-512";
-        }
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-            return "AVX2";
-        }
-    }
-    "scalar"
+    recorded::simd_path()
+}
+
+/// CPU seconds run so far by thread `tid` of this process (its schedstat's first field).
+fn tid_cpu(tid: libc::pid_t) -> Result<f64> {
+    let file = format!("/proc/self/task/{tid}/schedstat");
+    let text = std::fs::read_to_string(&file).with_context(|| format!("reading {file}"))?;
+    let ns = text.split_whitespace().next().and_then(|v| v.parse::<u64>().ok()).context("an empty schedstat")?;
+    Ok(ns as f64 * 1e-9)
 }
 
 fn load_average() -> String {

@@ -1,9 +1,21 @@
-//! What the simulation is fed: the cost of each step of the farm, in seconds per unit of
-//! work. Most are measured on this machine by running `trove-core`'s own code
-//! ([`super::measure`]); a few are not measurable without the farm's network stack and are
-//! stated as assumptions. The defaults ([`Inputs::recorded`]) are one such measurement,
-//! written down so that the simulation gives the same numbers on every run; `farm-sim
-//! --measure` measures again and uses what it finds.
+//! What the simulation is fed: the cost of each step of the farm. The coordinator's come
+//! from `trove-bench coordinator --record` (the real coordinator, its CPU per piece by
+//! stage, each stage placed on the job's event loop or on the other threads); the workers'
+//! from the worker's own caster timed on this processor (`super::measure`), recorded in
+//! `bench/recorded/worker.json` or measured at start with `--measure`. Only the network is
+//! a parameter or an assumption.
+
+use super::recorded::{At, CoordinatorRecord, RunsOn, WorkerRecord};
+
+/// One coordinator stage's cost in the model: seconds per unit of `at` (per piece for
+/// intersection and composition, per task for sending and answering, per pixel at the end).
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct Cost {
+    pub name: String,
+    pub runs_on: RunsOn,
+    pub at: At,
+    pub seconds: f64,
+}
 
 /// Costs of every step of a farm job. Core-seconds unless marked otherwise.
 #[derive(Clone, Debug, PartialEq)]
@@ -11,99 +23,51 @@ pub(crate) struct Inputs {
     // --- workers -------------------------------------------------------------------------
     /// Casting: per sample evaluated (interpolate, classify, composite).
     pub cast_per_sample: f64,
-    /// Casting: per task (recompute the ray, check the task, walk set-up).
+    /// Casting: per task (recompute the ray, check the task, set up the walk).
     pub cast_per_task: f64,
-    /// Binding a dataset's objects before casting (`BatchCaster::new`), per voxel; paid
-    /// whenever a worker's stream for that dataset starts again after running dry.
+    /// A worker's first bind of a dataset's objects (`BatchCaster::new` through its
+    /// store, which classifies the cells and keeps them), per voxel, once per dataset.
     pub bind_per_voxel: f64,
+    /// Binding again when a stream starts after running dry (the store kept the cells), per
+    /// voxel.
+    pub rebind_per_voxel: f64,
     /// Loading a dataset, per byte (one core).
     pub load_per_byte: f64,
     /// Parsing and validating the job's scene when a stream opens, per object.
     pub parse_per_object: f64,
 
-    // --- coordinator, blocking threads --------------------------------------------------
-    /// Intersection, per ray and object tested (every ray meets every object).
-    pub intersect_per_ray_object: f64,
-    /// Intersection, per task made (pieces split, tasks written).
-    pub intersect_per_task: f64,
-    /// `Scheduler::new` after a band's intersection (waves and dataset order), per task;
-    /// it runs on one thread.
-    pub plan_per_task: f64,
-    /// Composition, per ray (background, quantisation) and per piece laid.
-    pub composite_per_ray: f64,
-    pub composite_per_piece: f64,
-    /// Encoding the final PNG, per pixel, on one thread.
-    pub png_per_pixel: f64,
-
-    // --- coordinator, the job's event loop (one thread) ---------------------------------
-    /// Handing out a task: `Scheduler::next_batch` (its culling bound and front) and
-    /// `encode_tasks`.
-    pub dispatch_per_task: f64,
-    /// Taking a result back: `decode_results` and `Scheduler::record`.
-    pub record_per_task: f64,
-    /// `Registry::holders`, per registered worker (clock read, key lookup, id copy); the
-    /// driver calls it for every unfinished dataset of every band being cast, on every
-    /// event, and once more per batch sent.
-    pub holders_per_worker: f64,
-    /// `pick_worker`'s work per holder (a handle: lock, lookup, clones; filters; minimum).
-    pub pick_per_holder: f64,
-    /// `update_progress` after each answer, per worker that has answered in the job.
-    pub progress_per_worker: f64,
-    /// Opening a stream (once per worker and dataset): the scene's text and the headers of
-    /// its files copied into the `open` message, per byte.
-    pub open_per_byte: f64,
-    /// Fixed cost of an event on the loop (channel receive, `select!`, match, status
-    /// update). Assumed.
-    pub per_event: f64,
-    /// Fixed cost of a batch sent (stream map, queue send, bookkeeping). Assumed.
-    pub per_send: f64,
+    // --- coordinator ---------------------------------------------------------------------
+    /// Its stages, as recorded.
+    pub stages: Vec<Cost>,
 
     // --- network --------------------------------------------------------------------------
     /// Each machine's link, one direction, bytes per second.
     pub link_bytes_per_s: f64,
     /// One-way latency between two machines, seconds.
     pub latency: f64,
-    /// Per message: framing bytes (gRPC, HTTP/2, protobuf) beyond the payload.
+    /// Per message: framing bytes (gRPC, HTTP/2, protobuf) beyond the payload. Assumed.
     pub message_overhead_bytes: f64,
-    /// Per message: CPU time of each end's network stack, charged to its link. Assumed.
-    pub per_message: f64,
 }
 
-/// Where an input comes from, for the printed table.
-pub(crate) struct Provenance {
-    pub name: &'static str,
-    pub value: f64,
-    pub unit: &'static str,
-    pub how: &'static str,
-}
+/// Bytes per task on the wire, coordinator to worker and back (`render/wire.rs`: at most 24
+/// out and 16 back, the bound).
+pub(crate) const TASK_BYTES_OUT: f64 = 24.0;
+pub(crate) const TASK_BYTES_BACK: f64 = 16.0;
 
 impl Inputs {
-    /// The measured defaults: see `BENCHMARKS.md` ("Farm simulation") for the run.
-    pub(crate) fn recorded() -> Inputs {
+    /// The inputs from the two records, with a 10 Gbit/s link and 50 µs one way.
+    pub(crate) fn from_records(coordinator: &CoordinatorRecord, worker: &WorkerRecord) -> Inputs {
         Inputs {
-            cast_per_sample: 125.699e-9,
-            cast_per_task: 217.259e-9,
-            bind_per_voxel: 0.004e-9,
-            load_per_byte: 0.542e-9,
-            parse_per_object: 98954.863e-9,
-            intersect_per_ray_object: 28.494e-9,
-            intersect_per_task: 108.468e-9,
-            plan_per_task: 46.558e-9,
-            composite_per_ray: 0.0,
-            composite_per_piece: 11.67e-9,
-            png_per_pixel: 6.549e-9,
-            dispatch_per_task: 147.138e-9,
-            record_per_task: 12.204e-9,
-            holders_per_worker: 56.176e-9,
-            pick_per_holder: 287.396e-9,
-            progress_per_worker: 47.42e-9,
-            open_per_byte: 0.123e-9,
-            per_event: 2e-6,
-            per_send: 1e-6,
+            cast_per_sample: worker.cast_per_sample,
+            cast_per_task: worker.cast_per_task,
+            bind_per_voxel: worker.bind_per_voxel,
+            rebind_per_voxel: worker.rebind_per_voxel,
+            load_per_byte: worker.load_per_byte,
+            parse_per_object: worker.parse_per_object,
+            stages: coordinator_costs(coordinator),
             link_bytes_per_s: 10e9 / 8.0,
             latency: 50e-6,
             message_overhead_bytes: 64.0,
-            per_message: 2e-6,
         }
     }
 
@@ -117,60 +81,61 @@ impl Inputs {
     /// The same with every cost of the coordinator's own work set to zero (its network
     /// links stay): a bound on what the rest of the farm allows.
     pub(crate) fn without_coordinator(mut self) -> Inputs {
-        for cost in [
-            &mut self.intersect_per_ray_object,
-            &mut self.intersect_per_task,
-            &mut self.plan_per_task,
-            &mut self.composite_per_ray,
-            &mut self.composite_per_piece,
-            &mut self.png_per_pixel,
-            &mut self.dispatch_per_task,
-            &mut self.record_per_task,
-            &mut self.holders_per_worker,
-            &mut self.pick_per_holder,
-            &mut self.progress_per_worker,
-            &mut self.open_per_byte,
-            &mut self.per_event,
-            &mut self.per_send,
-        ] {
-            *cost = 0.0;
-        }
+        self.stages.iter_mut().for_each(|c| c.seconds = 0.0);
         self
+    }
+
+    /// Seconds per unit of the stages paid at `at` that run on `runs_on`.
+    pub(crate) fn cost(&self, at: At, runs_on: RunsOn) -> f64 {
+        self.stages.iter().filter(|c| c.at == at && c.runs_on == runs_on).map(|c| c.seconds).sum()
     }
 
     /// Seconds a message of `payload` bytes occupies a link.
     pub(crate) fn wire_seconds(&self, payload: f64) -> f64 {
-        (payload + self.message_overhead_bytes) / self.link_bytes_per_s + self.per_message
+        (payload + self.message_overhead_bytes) / self.link_bytes_per_s
     }
+}
 
-    /// Every input with its unit and how it was obtained, for the printed table.
-    pub(crate) fn provenance(&self) -> Vec<Provenance> {
-        let m = "measured";
-        let p = |name, value, unit, how| Provenance { name, value, unit, how };
-        vec![
-            p("cast per sample", self.cast_per_sample * 1e9, "core-ns", m),
-            p("cast per task", self.cast_per_task * 1e9, "core-ns", m),
-            p("bind per voxel", self.bind_per_voxel * 1e9, "core-ns", m),
-            p("load per byte", self.load_per_byte * 1e9, "core-ns", m),
-            p("scene parse per object", self.parse_per_object * 1e9, "core-ns", m),
-            p("intersect per ray·object", self.intersect_per_ray_object * 1e9, "core-ns", m),
-            p("intersect per task", self.intersect_per_task * 1e9, "core-ns", m),
-            p("plan per task", self.plan_per_task * 1e9, "ns (1 thread)", m),
-            p("composite per ray", self.composite_per_ray * 1e9, "core-ns", m),
-            p("composite per piece", self.composite_per_piece * 1e9, "core-ns", m),
-            p("PNG per pixel", self.png_per_pixel * 1e9, "ns (1 thread)", m),
-            p("dispatch per task", self.dispatch_per_task * 1e9, "ns (event loop)", m),
-            p("record per task", self.record_per_task * 1e9, "ns (event loop)", m),
-            p("holders per worker", self.holders_per_worker * 1e9, "ns (event loop)", "measured on a replica"),
-            p("pick per holder", self.pick_per_holder * 1e9, "ns (event loop)", "measured on a replica"),
-            p("progress per worker", self.progress_per_worker * 1e9, "ns (event loop)", "measured on a replica"),
-            p("open per scene byte", self.open_per_byte * 1e9, "ns (event loop)", "measured on a replica"),
-            p("per event", self.per_event * 1e9, "ns (event loop)", "assumed"),
-            p("per batch sent", self.per_send * 1e9, "ns (event loop)", "assumed"),
-            p("link", self.link_bytes_per_s * 8e-9, "Gbit/s", "parameter"),
-            p("latency (one way)", self.latency * 1e6, "µs", "parameter"),
-            p("framing per message", self.message_overhead_bytes, "bytes", "assumed"),
-            p("stack per message", self.per_message * 1e9, "ns per end", "assumed"),
-        ]
+/// Each recorded stage's cost per unit of its step, over all the recorded scenes (pieces
+/// weigh: a stage's CPU over every scene's pieces): per piece as recorded for intersection
+/// and composition, per task sent for sending and answering (over the tasks the scenes sent
+/// per piece), per pixel at the end (over their pieces per pixel).
+pub(crate) fn coordinator_costs(record: &CoordinatorRecord) -> Vec<Cost> {
+    let pieces: f64 = record.scenes.iter().map(|s| s.pieces as f64).sum();
+    let tasks: f64 = record.scenes.iter().map(|s| s.tasks_sent as f64).sum();
+    let pixels: f64 = record.scenes.iter().map(|s| s.pixels as f64).sum();
+    let mut costs: Vec<Cost> = Vec::new();
+    for scene in &record.scenes {
+        for st in &scene.stages {
+            let seconds = st.cpu_ns_per_piece * 1e-9 * scene.pieces as f64 / pieces;
+            match costs.iter_mut().find(|c| c.name == st.name) {
+                Some(c) => c.seconds += seconds,
+                None => costs.push(Cost { name: st.name.clone(), runs_on: st.runs_on, at: st.at, seconds }),
+            }
+        }
+    }
+    for c in &mut costs {
+        c.seconds *= match c.at {
+            At::Intersect | At::Composite => 1.0,
+            At::Send | At::Answer => pieces / tasks.max(1.0),
+            At::Finish => pieces / pixels.max(1.0),
+        };
+    }
+    costs
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::recorded::tests::sample;
+    use super::*;
+
+    #[test]
+    fn recorded_costs_per_piece_become_costs_per_unit_of_their_step() {
+        // The sample: 2000 pieces, 1000 tasks, 1000 pixels.
+        let costs = coordinator_costs(&sample());
+        let of = |name: &str| costs.iter().find(|c| c.name == name).unwrap().seconds * 1e9;
+        assert!((of("intersection") - 40.0).abs() < 1e-9, "per piece");
+        assert!((of("dispatch") - 40.0).abs() < 1e-9, "20 ns a piece, half a task a piece: 40 ns a task");
+        assert!((of("image_encoding") - 10.0).abs() < 1e-9, "5 ns a piece, 2 pieces a pixel: 10 ns a pixel");
     }
 }

@@ -67,8 +67,20 @@ const VIEW_HALF: f64 = 1.0;
 const EYE_Z: f64 = 8.0;
 
 impl SceneSpec {
-    /// The scene as TOML text.
+    /// The scene as TOML text, its datasets generated.
     pub(crate) fn toml(&self) -> String {
+        self.text(false)
+    }
+
+    /// The scene as TOML text with every dataset read from `d{i}.raw` beside the scene file,
+    /// `dims`³ u16 (as `crate::table1::write_dataset` writes CT-like heads): what a farm's
+    /// real scenes hold, for timing the worker's caster. The maps span those values (0 to
+    /// about 3000) as the generated scene's span its, and stay non-zero everywhere.
+    pub(crate) fn toml_raw(&self) -> String {
+        self.text(true)
+    }
+
+    fn text(&self, raw: bool) -> String {
         let fov = 2.0 * (VIEW_HALF / EYE_Z).atan().to_degrees();
         let header = Header::new(self.width, [0.0, 0.0, EYE_Z], [0.0, 0.0, 0.0], fov).size(self.width, self.height);
         let mut text = format!("{header}[render]\ntermination = 0.999\n\n");
@@ -83,13 +95,19 @@ impl SceneSpec {
                 [rng.uniform(-VIEW_HALF, VIEW_HALF), rng.uniform(-VIEW_HALF, VIEW_HALF), rng.uniform(-1.0, 1.0)];
             let [x, y, z] = centre.map(|c| c - side / 2.0);
             let step = self.step_voxels * side / n as f64;
+            let (voxels, v) = if raw {
+                (format!("raw = \"d{i}.raw\"\ntype = \"u16\""), 3333.0)
+            } else {
+                ("generator = { kind = \"marschner_lobb\" }".to_string(), 1.0)
+            };
+            let (c0, c1, o0, o1) = (0.2 * v, 0.8 * v, 0.3 * v, 0.9 * v);
             let _ = write!(
                 text,
                 "[[datasets]]\nname = \"d{i}\"\ndims = [{n}, {n}, {n}]\n\
-                 [datasets.channels.voxel]\ngenerator = {{ kind = \"marschner_lobb\" }}\n\
+                 [datasets.channels.voxel]\n{voxels}\n\
                  [[objects]]\nname = \"o{i}\"\ndataset = \"d{i}\"\nsampling_distance = {step:?}\n\
-                 colour = {{ type = \"ramp\", points = [[0.2, 0.2, 0.3, 0.9], [0.8, 1.0, 0.9, 0.6]] }}\n\
-                 opacity = {{ type = \"ramp\", points = [[0.3, 0.001], [0.9, 0.02]] }}\n\
+                 colour = {{ type = \"ramp\", points = [[{c0:?}, 0.2, 0.3, 0.9], [{c1:?}, 1.0, 0.9, 0.6]] }}\n\
+                 opacity = {{ type = \"ramp\", points = [[{o0:?}, 0.001], [{o1:?}, 0.02]] }}\n\
                  transform = {{ matrix = [[{side:?}, 0, 0, {x:?}], [0, {side:?}, 0, {y:?}], [0, 0, {side:?}, {z:?}], [0, 0, 0, 1]] }}\n\n"
             );
         }

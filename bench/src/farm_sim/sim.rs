@@ -1,36 +1,42 @@
-//! The discrete-event model of one farm job, following `coordinator/src/farm/driver.rs`
-//! and `worker/src/cast.rs` step by step:
+//! The discrete-event model of farm jobs, following `coordinator/src/farm/driver/` and
+//! `worker/src/cast.rs` step by step, with each coordinator stage's cost and place (the
+//! job's event loop, or the other threads) read from the recorded inputs:
 //!
-//! * **Coordinator.** The image is worked through in bands of rows, at most
-//!   `bands_in_flight` at once. A band is intersected on the blocking threads (in parallel
-//!   over rows, then `Scheduler::new` on one thread), cast, then composited on the blocking
-//!   threads (in parallel over rays). Everything else happens on the job's one event loop,
-//!   one event at a time: after every event it runs `advance` — start bands while there is
-//!   room, then for every band being cast, for every dataset not finished, `pick_worker`
-//!   (which asks the registry for the dataset's holders) and, while a holder has room,
-//!   `next_batch` and `send`. An answer is recorded on the loop, and only then does its
-//!   worker's slot free. A dataset's waves go one after the other; datasets are independent.
-//! * **Workers.** Each holds some datasets ([`super::placement`]). A batch goes to the
-//!   least-loaded holder with fewer than `max(2·threads, 4)` batches in flight. A worker has
-//!   one stream per job and dataset: its first batch brings the scene (parsed there), the
-//!   dataset is loaded once and stays resident, objects are bound whenever the stream starts
-//!   again after running dry, and its batches are cast one after the other, each spread over
-//!   the worker's threads in chunks of 256 tasks.
+//! * **Bands.** The image is worked through in bands of rows started in bit-reversed order
+//!   (`trove_core::render::dispatch::band_order`), as many at once as
+//!   `trove_core::render::dispatch::Admission` admits: at most `max_bands`, and their
+//!   schedulers' bytes within `memory_bound`, a band not yet intersected counted as large as
+//!   the largest so far (a fair share of the bound before any) — `render/bands.rs`. A band
+//!   is intersected and planned on the blocking threads, cast, then composited there.
+//! * **The job's event loop** handles one event at a time — a band intersected or
+//!   composited, a stream accepted, an answer — paying the stages the record places on it,
+//!   then hands out batches: for every (band, dataset) pair that may have one, earliest
+//!   started band first, while the least-loaded holder with room
+//!   (`trove_core::render::dispatch::least_loaded`, holders kept per job) can take one. A
+//!   holder without a stream for the dataset is first sent the scene; its batches wait until
+//!   it has parsed it and accepted the stream, and meanwhile other holders are asked. Stages
+//!   the record places elsewhere load the coordinator's other cores without delaying the loop.
+//! * **Workers.** Each holds some datasets ([`super::placement`]). A worker has one stream
+//!   per job and dataset: the dataset is loaded once and stays resident, its objects bound
+//!   the first time through the store (cells classified and kept) and again, cheaply,
+//!   whenever the stream starts after running dry; its batches are cast one after the other,
+//!   each over the worker's threads in chunks of 256 tasks.
 //! * **Network.** Every machine has a link each way; messages queue on the sender's link and
 //!   the receiver's, one after the other, with a one-way latency between.
 //!
-//! `coordinators > 1` models several coordinators, each with its own cores and link, that
-//! split the image into tiles of whole bands and share the workers (each counts only its
-//! own batches in flight). [`Dispatch::Indexed`] models the driver keeping each dataset's
-//! holders and the datasets with ready batches instead of scanning every dataset on every
-//! event.
+//! **Layouts.** `coordinators` coordinators of `coordinator_cores` cores each share the
+//! workers, each counting only its own batches in flight (each has its own registry): with
+//! [`Split::Tiles`] they split one image into tiles of whole bands, one job each; with
+//! [`Split::Jobs`] each runs a whole job of its own (the same scene), side by side.
 
 use std::cmp::Ordering;
-use std::collections::{BTreeMap, BTreeSet, BinaryHeap, HashMap, VecDeque};
-use trove_core::render::dispatch::{band_order, least_loaded, Load};
+use std::collections::{BTreeMap, BTreeSet, BinaryHeap, HashMap, HashSet, VecDeque};
 
-use super::inputs::Inputs;
+use trove_core::render::dispatch::{band_order, least_loaded, Admission, Load};
+
+use super::inputs::{Inputs, TASK_BYTES_BACK, TASK_BYTES_OUT};
 use super::pool::{transfer, Link, Pool};
+use super::recorded::{At, RunsOn};
 use super::workload::Workload;
 
 /// Tasks per rayon work item in a worker's batch (`CHUNK_TASKS` in `worker/src/cast.rs`).
@@ -38,16 +44,16 @@ const CHUNK_TASKS: u64 = 256;
 /// Image rows per parallel work item of the intersection (`BAND_ROWS` in
 /// `trove-core/src/render/intersection.rs`).
 const INTERSECT_ROWS: u64 = 4;
+/// Bytes of the small messages: a stream accepted.
+const SMALL_MESSAGE: f64 = 16.0;
 
-/// How the coordinator finds a worker for a dataset's next batch.
+/// How several coordinators share the work.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Dispatch {
-    /// The design as it is: on every event, every unfinished dataset of every band being
-    /// cast asks the registry for its holders (a pass over every registered worker).
-    Scan,
-    /// Holders kept per dataset and a set of datasets with a batch ready: an event costs
-    /// only the batches it sends.
-    Indexed,
+pub(crate) enum Split {
+    /// Each owns a tile of whole bands of one image.
+    Tiles,
+    /// Each owns a whole job of its own.
+    Jobs,
 }
 
 /// The farm being simulated.
@@ -57,83 +63,40 @@ pub(crate) struct FarmConfig {
     pub workers: usize,
     /// Cores (rayon threads) per worker.
     pub worker_threads: usize,
-    /// Cores of each coordinator: its event loops run on some, the blocking threads on the
-    /// rest.
+    /// Cores of each coordinator: the job's event loop runs on one, everything else on the
+    /// rest (one at least).
     pub coordinator_cores: usize,
-    /// Event loops per coordinator, each owning every `loops`-th band (1: the design as it
-    /// is, one loop per job).
-    pub loops: usize,
-    /// Coordinators, each with a tile of whole bands.
+    /// Coordinators sharing the workers.
     pub coordinators: usize,
+    pub split: Split,
     /// Tasks per batch (the job's `batch_tasks`; the driver's default is 4096).
     pub batch_tasks: u64,
-    /// Bands whose pieces a coordinator holds at once (the driver's `BANDS_IN_FLIGHT`),
-    /// counting those being intersected and composited.
-    pub bands_in_flight: usize,
-    pub dispatch: Dispatch,
-    /// Order of the bands: top to bottom, or spread over the image as the driver starts
-    /// them (`trove_core::render::dispatch::band_order`), so that the bands in flight lie
-    /// apart in the image and meet different datasets.
-    pub spread_bands: bool,
-    /// Intersection tests every ray against every object (as it is), or, projected, walks
-    /// a bounding-volume hierarchy: about 2·log₂(objects) boxes plus the objects hit.
-    pub bvh: bool,
+    /// Bands a job holds at once at most (`DriverConfig::max_bands`).
+    pub max_bands: usize,
+    /// Bytes of band bookkeeping a job holds at once at most (`DriverConfig::memory_bound`).
+    pub memory_bound: u64,
 }
 
-/// Where a coordinator's event loop spent its time, in seconds.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub(crate) struct LoopSpent {
-    /// Fixed cost of every event.
-    pub events: f64,
-    /// `pick_worker` for every unfinished dataset on every event (the registry scan).
-    pub scan: f64,
-    /// Batches handed out: `next_batch`, encoding, choosing the worker, sending.
-    pub dispatch: f64,
-    /// Streams opened: the scene and headers copied into the `open` message.
-    pub open: f64,
-    /// Answers recorded.
-    pub record: f64,
-    /// The job's status rebuilt after every answer.
-    pub progress: f64,
-}
-
-impl LoopSpent {
-    /// Every part.
-    pub(crate) fn total(&self) -> f64 {
-        self.events + self.scan + self.dispatch + self.open + self.record + self.progress
-    }
-
-    fn add(&mut self, o: &LoopSpent) {
-        self.events += o.events;
-        self.scan += o.scan;
-        self.dispatch += o.dispatch;
-        self.open += o.open;
-        self.record += o.record;
-        self.progress += o.progress;
-    }
-}
-
-/// What a simulated job took.
+/// What a simulated run took.
 #[derive(Clone, Debug, PartialEq)]
 pub(crate) struct Outcome {
-    /// Wall time of the job, submission to encoded image.
+    /// Wall time, start to the last job's encoded image.
     pub seconds: f64,
-    /// The busiest coordinator's event loop: busy time / job time.
+    /// The busiest event loop: busy time / run time.
     pub loop_busy: f64,
-    /// Event-loop time over all coordinators, by part.
-    pub spent: LoopSpent,
-    /// The busiest coordinator's blocking threads: core-seconds / (cores × job time).
+    /// Event-loop seconds over all coordinators: sending batches, taking answers, the rest.
+    pub loop_send: f64,
+    pub loop_answer: f64,
+    pub loop_other: f64,
+    /// The busiest coordinator's other cores: core-seconds / (cores × run time).
     pub pool_busy: f64,
-    /// Core-seconds of intersection (with planning) and of composition, all coordinators.
-    pub intersect: f64,
-    pub composite: f64,
-    /// The busiest coordinator link (either direction): busy time / job time.
+    /// The busiest coordinator link (either direction): busy time / run time.
     pub link_busy: f64,
-    /// The largest fraction of the job during which a coordinator had no band being cast
-    /// (its bands in flight were all being intersected or composited).
+    /// The largest fraction of the run during which a coordinator had no band being cast.
     pub no_band_cast: f64,
-    /// Workers' core-seconds (open, load, bind, cast) / (threads × job time): the mean and
-    /// the busiest worker's.
+    /// Mean bands a coordinator held at once, over the run.
+    pub bands_held: f64,
+    /// Workers' core-seconds / (threads × run time): the mean and the busiest worker's.
     pub worker_mean: f64,
     pub worker_max: f64,
     /// Core-seconds workers spent casting, and loading.
@@ -179,12 +142,16 @@ impl Ord for Event {
 #[derive(Debug)]
 enum EventKind {
     /// A coordinator's event loop takes its next event.
-    LoopRun(usize, usize),
-    /// A job starts on a coordinator's blocking threads.
+    LoopRun(usize),
+    /// A job starts on a coordinator's other cores.
     Spawn(usize, CoordJob),
     /// Pool completion checks, valid while the pool's version is unchanged.
     CoordPool(usize, u64),
     WorkerPool(usize, u64),
+    /// A stream's scene reaches worker `.0` from coordinator `.1` for dataset `.2`.
+    OpenArrives(usize, usize, usize),
+    /// Worker `.1`'s acceptance of its stream for dataset `.2` reaches coordinator `.0`.
+    OpenedArrives(usize, usize, usize),
     /// A batch reaches its worker.
     BatchArrives(usize),
     /// A batch's answer reaches its coordinator.
@@ -195,24 +162,29 @@ enum EventKind {
 #[derive(Debug)]
 enum LoopEvent {
     Start,
-    /// A worker this loop's bands could use has room again.
-    Wake,
     Intersected(usize),
     Composited(usize),
+    Opened(usize, usize),
     Answer(usize),
 }
 
 #[derive(Clone, Copy, Debug)]
 enum CoordJob {
+    /// A band's stages at [`At::Intersect`]: the parallel part, then the one-thread part.
     Intersect(usize),
     Plan(usize),
+    /// A band's stages at [`At::Composite`], likewise.
     Composite(usize),
-    Png,
+    CompositeOne(usize),
+    /// The stages at [`At::Finish`].
+    Finish,
+    /// Work off the loop for a batch sent or answered: it loads the cores, nothing waits.
+    Background,
 }
 
 #[derive(Clone, Copy, Debug)]
 enum WorkerJob {
-    Open(StreamKey),
+    Parse(usize, usize),
     Load(usize),
     Bind(StreamKey),
     Cast(usize),
@@ -235,45 +207,50 @@ struct LaneState {
     wave: usize,
     handed: u64,
     outstanding: usize,
-    done: bool,
 }
 
 enum BandState {
     Intersecting,
-    Casting { lanes: Vec<LaneState>, unfinished: usize, unfinished_holders: usize },
+    Casting { lanes: Vec<LaneState>, unfinished: usize },
     Compositing,
 }
 
-/// One event loop of a coordinator: it handles its events one at a time.
-#[derive(Default)]
-struct EventLoop {
-    inbox: VecDeque<LoopEvent>,
-    busy_until: f64,
-    scheduled: bool,
-    spent: LoopSpent,
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum StreamState {
+    Opening,
+    Open,
 }
 
+/// One coordinator and its job (its tile of the image, or a whole job).
 struct Shard {
+    /// Its bands in the order they start.
     bands: Vec<usize>,
     next: usize,
     active: BTreeMap<usize, BandState>,
-    /// Lanes that can hand out a batch now: (band, lane).
-    ready: BTreeSet<(usize, usize)>,
-    /// The event loops; band `bands[i]` belongs to loop `i mod loops.len()`.
-    loops: Vec<EventLoop>,
-    /// Per band of the image: its loop, if it is this coordinator's.
-    loop_of: Vec<usize>,
+    /// Per band of the image: its start order, once started.
+    seq: Vec<usize>,
+    /// (start order, band, lane) that can hand out a batch now.
+    ready: BTreeSet<(usize, usize, usize)>,
+    held: u64,
+    largest: u64,
+    inbox: VecDeque<LoopEvent>,
+    busy_until: f64,
+    scheduled: bool,
+    loop_send: f64,
+    loop_answer: f64,
+    loop_other: f64,
     pool: Pool<CoordJob>,
     out: Link,
     into: Link,
+    /// Per worker: this coordinator's batches in flight.
     in_flight: Vec<usize>,
-    answered: Vec<bool>,
-    answered_count: usize,
-    intersect: f64,
-    composite: f64,
-    /// Since when no band has been in the casting state, and the total time so.
+    streams: HashMap<(usize, usize), StreamState>,
+    pixels: u64,
     idle_since: Option<f64>,
     no_band_cast: f64,
+    /// ∫ bands held dt.
+    held_time: f64,
+    last_change: f64,
     finished: Option<f64>,
 }
 
@@ -281,12 +258,8 @@ struct Shard {
 struct Stream {
     /// Batches received and not yet answered, oldest first.
     queue: VecDeque<usize>,
-    /// Whether the stream's thread is working (opening, loading, binding or casting).
+    /// Whether the stream's thread is working (loading, binding or casting).
     running: bool,
-    /// Whether the coordinator has sent the `open` message.
-    opened: bool,
-    /// Whether the worker has parsed the scene.
-    parsed: bool,
 }
 
 #[derive(PartialEq)]
@@ -301,6 +274,8 @@ struct Worker {
     into: Link,
     streams: HashMap<StreamKey, Stream>,
     datasets: HashMap<usize, Residency>,
+    /// Datasets whose cells the store has classified.
+    bound: HashSet<usize>,
     cast: f64,
     load: f64,
 }
@@ -310,6 +285,7 @@ struct Sim<'a> {
     inputs: &'a Inputs,
     config: &'a FarmConfig,
     holders: &'a [Vec<usize>],
+    admission: Admission,
     now: f64,
     seq: u64,
     queue: BinaryHeap<Event>,
@@ -323,8 +299,20 @@ struct Sim<'a> {
 impl<'a> Sim<'a> {
     fn new(work: &'a Workload, inputs: &'a Inputs, config: &'a FarmConfig, holders: &'a [Vec<usize>]) -> Sim<'a> {
         let n = work.bands.len();
-        let k = config.coordinators.clamp(1, n.max(1));
-        let shards = (0..k).map(|s| Shard::new(config, (s * n / k..(s + 1) * n / k).collect(), n)).collect();
+        let k = match config.split {
+            Split::Tiles => config.coordinators.clamp(1, n.max(1)),
+            Split::Jobs => config.coordinators.max(1),
+        };
+        let shards = (0..k)
+            .map(|s| {
+                let tile: Vec<usize> = match config.split {
+                    Split::Tiles => (s * n / k..(s + 1) * n / k).collect(),
+                    Split::Jobs => (0..n).collect(),
+                };
+                let pixels = tile.iter().map(|&b| work.bands[b].rays).sum();
+                Shard::new(config, tile, n, pixels)
+            })
+            .collect();
         let workers = (0..config.workers)
             .map(|_| Worker {
                 pool: Pool::new(config.worker_threads as f64),
@@ -332,6 +320,7 @@ impl<'a> Sim<'a> {
                 into: Link::default(),
                 streams: HashMap::new(),
                 datasets: HashMap::new(),
+                bound: HashSet::new(),
                 cast: 0.0,
                 load: 0.0,
             })
@@ -341,6 +330,7 @@ impl<'a> Sim<'a> {
             inputs,
             config,
             holders,
+            admission: Admission { max_bands: config.max_bands.max(1), memory_bound: config.memory_bound },
             now: 0.0,
             seq: 0,
             queue: BinaryHeap::new(),
@@ -358,63 +348,63 @@ impl<'a> Sim<'a> {
 
     fn run(&mut self) {
         for s in 0..self.shards.len() {
-            self.wake_loop(s, 0);
+            self.wake_loop(s);
         }
         while let Some(event) = self.queue.pop() {
             self.now = event.time;
             match event.kind {
-                EventKind::LoopRun(s, l) => self.loop_run(s, l),
+                EventKind::LoopRun(s) => self.loop_run(s),
                 EventKind::Spawn(s, job) => self.spawn(s, job),
                 EventKind::CoordPool(s, v) if v == self.shards[s].pool.version => self.coord_pool(s),
                 EventKind::WorkerPool(w, v) if v == self.workers[w].pool.version => self.worker_pool(w),
                 EventKind::CoordPool(..) | EventKind::WorkerPool(..) => {}
+                EventKind::OpenArrives(w, s, d) => {
+                    let work = self.work.objects as f64 * self.inputs.parse_per_object;
+                    self.worker_job(w, WorkerJob::Parse(s, d), work, 1.0);
+                }
+                EventKind::OpenedArrives(s, w, d) => self.post(s, LoopEvent::Opened(w, d)),
                 EventKind::BatchArrives(b) => self.batch_arrives(b),
                 EventKind::AnswerArrives(b) => {
-                    let (s, band) = (self.batches[b].shard, self.batches[b].band);
-                    self.post(s, band, LoopEvent::Answer(b));
+                    let s = self.batches[b].shard;
+                    self.post(s, LoopEvent::Answer(b));
                 }
             }
         }
     }
 
-    /// The loop of coordinator `s` that handles band `b`.
-    fn loop_of(&self, s: usize, b: usize) -> usize {
-        self.shards[s].loop_of[b]
+    /// Hands `event` to coordinator `s`'s loop.
+    fn post(&mut self, s: usize, event: LoopEvent) {
+        self.shards[s].inbox.push_back(event);
+        self.wake_loop(s);
     }
 
-    /// Hands `event` about band `b` to its loop.
-    fn post(&mut self, s: usize, b: usize, event: LoopEvent) {
-        let l = self.loop_of(s, b);
-        self.shards[s].loops[l].inbox.push_back(event);
-        self.wake_loop(s, l);
-    }
-
-    /// Makes sure loop `l` of coordinator `s` will take its next event.
-    fn wake_loop(&mut self, s: usize, l: usize) {
-        let lp = &mut self.shards[s].loops[l];
-        if !lp.scheduled && !lp.inbox.is_empty() {
-            lp.scheduled = true;
-            let t = lp.busy_until.max(self.now);
-            self.at(t, EventKind::LoopRun(s, l));
+    /// Makes sure coordinator `s`'s loop will take its next event.
+    fn wake_loop(&mut self, s: usize) {
+        let shard = &mut self.shards[s];
+        if !shard.scheduled && !shard.inbox.is_empty() {
+            shard.scheduled = true;
+            let t = shard.busy_until.max(self.now);
+            self.at(t, EventKind::LoopRun(s));
         }
     }
 
     fn outcome(&self) -> Outcome {
         let seconds = self.shards.iter().filter_map(|s| s.finished).fold(0.0, f64::max);
         let t = seconds.max(1e-12);
-        let mut spent = LoopSpent::default();
-        self.shards.iter().flat_map(|s| &s.loops).for_each(|l| spent.add(&l.spent));
         let threads = self.config.worker_threads as f64;
         let worker_busy: Vec<f64> = self.workers.iter().map(|w| w.pool.busy / (threads * t)).collect();
+        let loop_total = |s: &Shard| s.loop_send + s.loop_answer + s.loop_other;
         Outcome {
             seconds,
-            loop_busy: self.shards.iter().flat_map(|s| &s.loops).map(|l| l.spent.total() / t).fold(0.0, f64::max),
-            spent,
+            loop_busy: self.shards.iter().map(|s| loop_total(s) / t).fold(0.0, f64::max),
+            loop_send: self.shards.iter().map(|s| s.loop_send).sum(),
+            loop_answer: self.shards.iter().map(|s| s.loop_answer).sum(),
+            loop_other: self.shards.iter().map(|s| s.loop_other).sum(),
             pool_busy: self.shards.iter().map(|s| s.pool.busy / (s.pool.capacity() * t)).fold(0.0, f64::max),
-            intersect: self.shards.iter().map(|s| s.intersect).sum(),
-            composite: self.shards.iter().map(|s| s.composite).sum(),
             link_busy: self.shards.iter().map(|s| s.out.busy.max(s.into.busy) / t).fold(0.0, f64::max),
             no_band_cast: self.shards.iter().map(|s| s.no_band_cast / t).fold(0.0, f64::max),
+            bands_held: self.shards.iter().map(|s| s.held_time / s.finished.unwrap_or(t).max(1e-12)).sum::<f64>()
+                / self.shards.len().max(1) as f64,
             worker_mean: worker_busy.iter().sum::<f64>() / worker_busy.len().max(1) as f64,
             worker_max: worker_busy.iter().copied().fold(0.0, f64::max),
             cast: self.workers.iter().map(|w| w.cast).sum(),
@@ -425,65 +415,90 @@ impl<'a> Sim<'a> {
 }
 
 impl Shard {
-    /// A coordinator of the image's `bands` bands that works through `tile`, in the order
-    /// `config.spread_bands` asks for.
-    fn new(config: &FarmConfig, tile: Vec<usize>, bands: usize) -> Shard {
-        let loops = config.loops.max(1);
-        let order: Vec<usize> =
-            if config.spread_bands { band_order(tile.len()).into_iter().map(|i| tile[i]).collect() } else { tile };
-        let mut loop_of = vec![0; bands];
-        order.iter().enumerate().for_each(|(i, &b)| loop_of[b] = i % loops);
-        let start = |l| if l == 0 { VecDeque::from([LoopEvent::Start]) } else { VecDeque::new() };
+    /// A coordinator of an image of `bands` bands that works through `tile` (its bands,
+    /// `pixels` pixels) in the driver's spread order.
+    fn new(config: &FarmConfig, tile: Vec<usize>, bands: usize, pixels: u64) -> Shard {
+        let order: Vec<usize> = band_order(tile.len()).into_iter().map(|i| tile[i]).collect();
         Shard {
             bands: order,
-            loop_of,
             next: 0,
             active: BTreeMap::new(),
+            seq: vec![usize::MAX; bands],
             ready: BTreeSet::new(),
-            loops: (0..loops).map(|l| EventLoop { inbox: start(l), ..EventLoop::default() }).collect(),
-            pool: Pool::new(config.coordinator_cores.saturating_sub(loops).max(1) as f64),
+            held: 0,
+            largest: 0,
+            inbox: VecDeque::from([LoopEvent::Start]),
+            busy_until: 0.0,
+            scheduled: false,
+            loop_send: 0.0,
+            loop_answer: 0.0,
+            loop_other: 0.0,
+            pool: Pool::new(config.coordinator_cores.saturating_sub(1).max(1) as f64),
             out: Link::default(),
             into: Link::default(),
             in_flight: vec![0; config.workers],
-            answered: vec![false; config.workers],
-            answered_count: 0,
-            intersect: 0.0,
-            composite: 0.0,
+            streams: HashMap::new(),
+            pixels,
             idle_since: Some(0.0),
             no_band_cast: 0.0,
+            held_time: 0.0,
+            last_change: 0.0,
             finished: None,
         }
     }
+
+    /// Keeps the time integral of the bands held up to `now`.
+    fn note_held(&mut self, now: f64) {
+        self.held_time += self.active.len() as f64 * (now - self.last_change).max(0.0);
+        self.last_change = self.last_change.max(now);
+    }
+}
+
+/// Where an event-loop cost is counted.
+#[derive(Clone, Copy)]
+enum Part {
+    Send,
+    Answer,
+    Other,
 }
 
 /// The coordinator side.
 impl Sim<'_> {
-    /// Handles the next event of loop `l` of coordinator `s`, charging its cost from now on.
-    fn loop_run(&mut self, s: usize, l: usize) {
-        self.shards[s].loops[l].scheduled = false;
-        let Some(event) = self.shards[s].loops[l].inbox.pop_front() else { return };
+    /// Handles the next event of coordinator `s`'s loop, charging its cost from now on.
+    fn loop_run(&mut self, s: usize) {
+        self.shards[s].scheduled = false;
+        let Some(event) = self.shards[s].inbox.pop_front() else { return };
         let mut clock = self.now;
-        self.charge((s, l), &mut clock, |p| &mut p.events, self.inputs.per_event);
         match event {
-            LoopEvent::Start | LoopEvent::Wake => {}
-            LoopEvent::Intersected(b) => self.intersected(s, b, &clock),
+            LoopEvent::Start => {}
+            LoopEvent::Intersected(b) => self.intersected(s, b, &mut clock),
             LoopEvent::Composited(b) => {
-                self.shards[s].active.remove(&b);
+                let pieces = self.work.bands[b].pieces as f64;
+                self.charge(s, &mut clock, Part::Other, pieces * self.inputs.cost(At::Composite, RunsOn::EventLoop));
+                let shard = &mut self.shards[s];
+                shard.note_held(clock);
+                shard.active.remove(&b);
+                shard.held -= self.work.bands[b].bytes;
             }
-            LoopEvent::Answer(id) => self.record((s, l), id, &mut clock),
+            LoopEvent::Opened(w, d) => {
+                self.shards[s].streams.insert((w, d), StreamState::Open);
+            }
+            LoopEvent::Answer(id) => self.record(s, id, &mut clock),
         }
-        self.advance((s, l), &mut clock);
+        self.advance(s, &mut clock);
         let shard = &mut self.shards[s];
         if shard.finished.is_none() && shard.next == shard.bands.len() && shard.active.is_empty() {
             shard.finished = Some(f64::INFINITY);
             if let Some(since) = shard.idle_since.take() {
                 shard.no_band_cast += clock - since;
             }
-            self.at(clock, EventKind::Spawn(s, CoordJob::Png));
+            let pixels = shard.pixels as f64;
+            self.charge(s, &mut clock, Part::Other, pixels * self.inputs.cost(At::Finish, RunsOn::EventLoop));
+            self.at(clock, EventKind::Spawn(s, CoordJob::Finish));
         }
         self.note_bands(s, clock);
-        self.shards[s].loops[l].busy_until = clock;
-        self.wake_loop(s, l);
+        self.shards[s].busy_until = clock;
+        self.wake_loop(s);
     }
 
     /// Keeps count of the time coordinator `s` has no band being cast.
@@ -500,52 +515,62 @@ impl Sim<'_> {
         }
     }
 
-    /// Spends `seconds` of loop `at` = (coordinator, loop) on the part `part` picks.
-    fn charge(&mut self, at: (usize, usize), clock: &mut f64, part: impl Fn(&mut LoopSpent) -> &mut f64, seconds: f64) {
-        *part(&mut self.shards[at.0].loops[at.1].spent) += seconds;
+    /// Spends `seconds` of coordinator `s`'s loop.
+    fn charge(&mut self, s: usize, clock: &mut f64, part: Part, seconds: f64) {
+        let shard = &mut self.shards[s];
+        match part {
+            Part::Send => shard.loop_send += seconds,
+            Part::Answer => shard.loop_answer += seconds,
+            Part::Other => shard.loop_other += seconds,
+        }
         *clock += seconds;
     }
 
-    fn intersected(&mut self, s: usize, b: usize, clock: &f64) {
-        let work = self.work;
-        let band = &work.bands[b];
+    /// Work off the loop that nothing waits for: it takes one core of the coordinator's
+    /// others while it runs.
+    fn background(&mut self, s: usize, clock: f64, seconds: f64) {
+        if seconds > 0.0 {
+            self.shards[s].pool.add(clock.max(self.now), CoordJob::Background, seconds, 1.0);
+            self.check_coord_pool(s);
+        }
+    }
+
+    fn intersected(&mut self, s: usize, b: usize, clock: &mut f64) {
+        let band = &self.work.bands[b];
+        self.charge(s, clock, Part::Other, band.pieces as f64 * self.inputs.cost(At::Intersect, RunsOn::EventLoop));
         let lanes = vec![LaneState::default(); band.lanes.len()];
-        let unfinished_holders = band.lanes.iter().map(|l| self.holders[l.dataset].len()).sum();
         let shard = &mut self.shards[s];
-        shard.ready.extend((0..band.lanes.len()).map(|l| (b, l)));
-        shard.active.insert(b, BandState::Casting { lanes, unfinished: band.lanes.len(), unfinished_holders });
+        shard.held += band.bytes;
+        shard.largest = shard.largest.max(band.bytes);
+        let seq = shard.seq[b];
+        shard.ready.extend((0..band.lanes.len()).map(|l| (seq, b, l)));
+        shard.active.insert(b, BandState::Casting { lanes, unfinished: band.lanes.len() });
         if band.lanes.is_empty() {
             self.band_cast(s, b, *clock);
         }
     }
 
-    /// Band `b` is wholly cast: composite it on the blocking threads.
+    /// Band `b` is wholly cast: composite it on the other cores.
     fn band_cast(&mut self, s: usize, b: usize, clock: f64) {
         self.shards[s].active.insert(b, BandState::Compositing);
         self.at(clock, EventKind::Spawn(s, CoordJob::Composite(b)));
     }
 
-    fn record(&mut self, at: (usize, usize), id: usize, clock: &mut f64) {
-        let s = at.0;
+    fn record(&mut self, s: usize, id: usize, clock: &mut f64) {
         let (band, lane, worker, tasks) = {
             let b = &self.batches[id];
             (b.band, b.lane, b.worker, b.tasks)
         };
-        let shard = &mut self.shards[s];
-        if !shard.answered[worker] {
-            shard.answered[worker] = true;
-            shard.answered_count += 1;
-        }
-        shard.in_flight[worker] -= 1;
-        let progress = shard.answered_count as f64 * self.inputs.progress_per_worker;
-        self.charge(at, clock, |p| &mut p.record, tasks as f64 * self.inputs.record_per_task);
-        self.charge(at, clock, |p| &mut p.progress, progress);
-        self.wake_others(at, worker);
+        self.shards[s].in_flight[worker] -= 1;
+        let i = self.inputs;
+        self.charge(s, clock, Part::Answer, tasks as f64 * i.cost(At::Answer, RunsOn::EventLoop));
+        let off = i.cost(At::Answer, RunsOn::Parallel) + i.cost(At::Answer, RunsOn::OneThread);
+        self.background(s, *clock, tasks as f64 * off);
         let work = self.work;
         let spec = &work.bands[band].lanes[lane];
-        let holders = self.holders[spec.dataset].len();
         let shard = &mut self.shards[s];
-        let Some(BandState::Casting { lanes, unfinished, unfinished_holders }) = shard.active.get_mut(&band) else {
+        let seq = shard.seq[band];
+        let Some(BandState::Casting { lanes, unfinished }) = shard.active.get_mut(&band) else {
             unreachable!("an answer for a band that is not being cast")
         };
         let l = &mut lanes[lane];
@@ -554,101 +579,79 @@ impl Sim<'_> {
             return;
         }
         if l.wave + 1 < spec.waves.len() {
-            shard.ready.insert((band, lane));
+            shard.ready.insert((seq, band, lane));
             return;
         }
-        l.done = true;
         *unfinished -= 1;
-        *unfinished_holders -= holders;
         if *unfinished == 0 {
             self.band_cast(s, band, *clock);
         }
     }
 
-    /// The driver's `advance`: start bands while there is room, then hand out batches.
-    fn advance(&mut self, at: (usize, usize), clock: &mut f64) {
-        let (s, l) = at;
+    /// The driver's `advance`: start bands while admission allows, then hand out batches.
+    fn advance(&mut self, s: usize, clock: &mut f64) {
         loop {
             let shard = &mut self.shards[s];
-            if shard.active.len() >= self.config.bands_in_flight || shard.next >= shard.bands.len() {
+            let Some(&b) = shard.bands.get(shard.next) else { break };
+            let expected = if shard.largest > 0 {
+                shard.largest
+            } else {
+                self.admission.memory_bound / self.admission.max_bands as u64
+            };
+            if !self.admission.admits(shard.active.len(), shard.held, expected) {
                 break;
             }
-            let b = shard.bands[shard.next];
+            shard.note_held(*clock);
+            shard.seq[b] = shard.next;
             shard.next += 1;
             shard.active.insert(b, BandState::Intersecting);
             self.at(*clock, EventKind::Spawn(s, CoordJob::Intersect(b)));
         }
-        if self.config.dispatch == Dispatch::Scan {
-            // Every unfinished dataset of every band being cast calls `pick_worker` once,
-            // whatever it then finds.
-            let (mut lanes, mut holders) = (0usize, 0usize);
-            for (&b, state) in &self.shards[s].active {
-                if self.loop_of(s, b) != l {
+        let ready: Vec<(usize, usize, usize)> = self.shards[s].ready.iter().copied().collect();
+        for key @ (_, band, lane) in ready {
+            let d = self.work.bands[band].lanes[lane].dataset;
+            while let Some(worker) = self.pick(s, d) {
+                if !self.shards[s].streams.contains_key(&(worker, d)) {
+                    self.open(s, worker, d, *clock);
                     continue;
                 }
-                if let BandState::Casting { unfinished, unfinished_holders, .. } = state {
-                    lanes += unfinished;
-                    holders += unfinished_holders;
-                }
-            }
-            let cost = lanes as f64 * self.inputs.holders_per_worker * self.config.workers as f64
-                + holders as f64 * self.inputs.pick_per_holder;
-            self.charge(at, clock, |p| &mut p.scan, cost);
-        }
-        let ready: Vec<(usize, usize)> =
-            self.shards[s].ready.iter().copied().filter(|&(b, _)| self.loop_of(s, b) == l).collect();
-        let work = self.work;
-        for (band, lane) in ready {
-            while let Some(worker) = self.pick(s, work.bands[band].lanes[lane].dataset) {
-                self.send(at, band, lane, worker, clock);
-                if !self.shards[s].ready.contains(&(band, lane)) {
+                self.send(s, band, lane, worker, clock);
+                if !self.shards[s].ready.contains(&key) {
                     break;
                 }
             }
         }
     }
 
-    /// A slot of `worker` freed on loop `at`: the coordinator's other loops that have a
-    /// ready dataset held by it are woken (each loop owns its bands' schedulers; the
-    /// workers' counts are shared).
-    fn wake_others(&mut self, at: (usize, usize), worker: usize) {
-        let (s, l) = at;
-        let loops = self.shards[s].loops.len();
-        if loops == 1 {
-            return;
-        }
-        let mut wake = vec![false; loops];
-        for &(b, lane) in &self.shards[s].ready {
-            let other = self.loop_of(s, b);
-            if other != l && self.holders[self.work.bands[b].lanes[lane].dataset].contains(&worker) {
-                wake[other] = true;
-            }
-        }
-        for (other, _) in wake.iter().enumerate().filter(|(_, w)| **w) {
-            let lp = &mut self.shards[s].loops[other];
-            if lp.inbox.is_empty() {
-                lp.inbox.push_back(LoopEvent::Wake);
-                self.wake_loop(s, other);
-            }
-        }
+    /// The holder of dataset `d` that casts its next batch: the driver's own policy over
+    /// holders in worker order, passing over those whose stream is still opening.
+    fn pick(&self, s: usize, d: usize) -> Option<usize> {
+        let shard = &self.shards[s];
+        let threads = self.config.worker_threads as u32;
+        let usable: Vec<usize> = self.holders[d]
+            .iter()
+            .copied()
+            .filter(|&w| shard.streams.get(&(w, d)) != Some(&StreamState::Opening))
+            .collect();
+        let loads = usable.iter().map(|&w| Load { in_flight: shard.in_flight[w] as u64, threads });
+        least_loaded(loads).map(|i| usable[i])
     }
 
-    /// The holder of dataset `d` that casts its next batch: the driver's own policy
-    /// (`trove_core::render::dispatch::least_loaded`), over holders in worker order.
-    fn pick(&self, s: usize, d: usize) -> Option<usize> {
-        let in_flight = &self.shards[s].in_flight;
-        let threads = self.config.worker_threads as u32;
-        let loads = self.holders[d].iter().map(|&w| Load { in_flight: in_flight[w] as u64, threads });
-        least_loaded(loads).map(|i| self.holders[d][i])
+    /// Opens a stream to `worker` for dataset `d`: the scene and its headers go first.
+    fn open(&mut self, s: usize, worker: usize, d: usize, clock: f64) {
+        self.shards[s].streams.insert((worker, d), StreamState::Opening);
+        let seconds = self.inputs.wire_seconds(self.scene_bytes);
+        let arrival =
+            transfer(clock, seconds, &mut self.shards[s].out, &mut self.workers[worker].into, self.inputs.latency);
+        self.at(arrival, EventKind::OpenArrives(worker, s, d));
     }
 
     /// `next_batch` on a ready lane and `send` to `worker`.
-    fn send(&mut self, at: (usize, usize), band: usize, lane: usize, worker: usize, clock: &mut f64) {
-        let s = at.0;
+    fn send(&mut self, s: usize, band: usize, lane: usize, worker: usize, clock: &mut f64) {
         let work = self.work;
         let spec = &work.bands[band].lanes[lane];
-        let d = spec.dataset;
         let shard = &mut self.shards[s];
+        let seq = shard.seq[band];
         let Some(BandState::Casting { lanes, .. }) = shard.active.get_mut(&band) else { unreachable!("ready lane") };
         let l = &mut lanes[lane];
         if l.handed == spec.waves[l.wave].tasks {
@@ -663,62 +666,40 @@ impl Sim<'_> {
         l.handed += tasks;
         l.outstanding += 1;
         if l.handed == wave.tasks {
-            shard.ready.remove(&(band, lane));
+            shard.ready.remove(&(seq, band, lane));
         }
         shard.in_flight[worker] += 1;
-        let pick = match self.config.dispatch {
-            Dispatch::Scan => self.inputs.holders_per_worker * self.config.workers as f64,
-            Dispatch::Indexed => 0.0,
-        } + self.inputs.pick_per_holder * self.holders[d].len() as f64;
-        let cost = tasks as f64 * self.inputs.dispatch_per_task + self.inputs.per_send + pick;
-        self.charge(at, clock, |p| &mut p.dispatch, cost);
-        let stream = self.workers[worker].streams.entry((s, d)).or_default();
-        let mut payload = 24.0 * tasks as f64;
-        if !stream.opened {
-            stream.opened = true;
-            payload += self.scene_bytes;
-            self.charge(at, clock, |p| &mut p.open, self.scene_bytes * self.inputs.open_per_byte);
-        }
-        let seconds = self.inputs.wire_seconds(payload);
-        let arrival =
-            transfer(*clock, seconds, &mut self.shards[s].out, &mut self.workers[worker].into, self.inputs.latency);
+        let i = self.inputs;
+        self.charge(s, clock, Part::Send, tasks as f64 * i.cost(At::Send, RunsOn::EventLoop));
+        let off = i.cost(At::Send, RunsOn::Parallel) + i.cost(At::Send, RunsOn::OneThread);
+        self.background(s, *clock, tasks as f64 * off);
+        let seconds = i.wire_seconds(TASK_BYTES_OUT * tasks as f64);
+        let arrival = transfer(*clock, seconds, &mut self.shards[s].out, &mut self.workers[worker].into, i.latency);
         self.batches.push(Batch { shard: s, band, lane, worker, tasks, samples });
         self.at(arrival, EventKind::BatchArrives(self.batches.len() - 1));
     }
 
-    /// A job starts on coordinator `s`'s blocking threads.
+    /// A job starts on coordinator `s`'s other cores.
     fn spawn(&mut self, s: usize, job: CoordJob) {
         let i = self.inputs;
         let cores = self.shards[s].pool.capacity();
+        let band_pieces = |b: usize| self.work.bands[b].pieces as f64;
         let (work, cap) = match job {
             CoordJob::Intersect(b) => {
-                let band = &self.work.bands[b];
-                let rows = band.rays / self.work.width as u64;
-                let objects = self.work.objects as f64;
-                let tested = if self.config.bvh {
-                    (2.0 * objects.log2().max(1.0) + band.tasks() as f64 / band.rays.max(1) as f64).min(objects)
-                } else {
-                    objects
-                };
-                let work =
-                    band.rays as f64 * tested * i.intersect_per_ray_object + band.tasks() as f64 * i.intersect_per_task;
-                (work, cores.min(rows.div_ceil(INTERSECT_ROWS) as f64))
+                let rows = self.work.bands[b].rays / self.work.width as u64;
+                let cap = cores.min(rows.div_ceil(INTERSECT_ROWS) as f64);
+                (band_pieces(b) * i.cost(At::Intersect, RunsOn::Parallel), cap)
             }
-            CoordJob::Plan(b) => (self.work.bands[b].tasks() as f64 * i.plan_per_task, 1.0),
-            CoordJob::Composite(b) => {
-                let band = &self.work.bands[b];
-                (band.rays as f64 * i.composite_per_ray + band.pieces as f64 * i.composite_per_piece, cores)
+            CoordJob::Plan(b) => (band_pieces(b) * i.cost(At::Intersect, RunsOn::OneThread), 1.0),
+            CoordJob::Composite(b) => (band_pieces(b) * i.cost(At::Composite, RunsOn::Parallel), cores),
+            CoordJob::CompositeOne(b) => (band_pieces(b) * i.cost(At::Composite, RunsOn::OneThread), 1.0),
+            CoordJob::Finish => {
+                let one = i.cost(At::Finish, RunsOn::OneThread);
+                let work = self.shards[s].pixels as f64 * (one + i.cost(At::Finish, RunsOn::Parallel));
+                (work, if one > 0.0 { 1.0 } else { cores })
             }
-            CoordJob::Png => {
-                let rays: u64 = self.shards[s].bands.iter().map(|&b| self.work.bands[b].rays).sum();
-                (rays as f64 * i.png_per_pixel, 1.0)
-            }
+            CoordJob::Background => unreachable!("background work is added directly"),
         };
-        match job {
-            CoordJob::Intersect(_) | CoordJob::Plan(_) => self.shards[s].intersect += work,
-            CoordJob::Composite(_) => self.shards[s].composite += work,
-            CoordJob::Png => {}
-        }
         self.shards[s].pool.add(self.now, job, work, cap);
         self.check_coord_pool(s);
     }
@@ -735,9 +716,11 @@ impl Sim<'_> {
         for job in self.shards[s].pool.take_finished(self.now) {
             match job {
                 CoordJob::Intersect(b) => self.spawn(s, CoordJob::Plan(b)),
-                CoordJob::Plan(b) => self.post(s, b, LoopEvent::Intersected(b)),
-                CoordJob::Composite(b) => self.post(s, b, LoopEvent::Composited(b)),
-                CoordJob::Png => self.shards[s].finished = Some(self.now),
+                CoordJob::Plan(b) => self.post(s, LoopEvent::Intersected(b)),
+                CoordJob::Composite(b) => self.spawn(s, CoordJob::CompositeOne(b)),
+                CoordJob::CompositeOne(b) => self.post(s, LoopEvent::Composited(b)),
+                CoordJob::Finish => self.shards[s].finished = Some(self.now),
+                CoordJob::Background => {}
             }
         }
         self.check_coord_pool(s);
@@ -755,13 +738,7 @@ impl Sim<'_> {
         stream.queue.push_back(id);
         if !stream.running {
             stream.running = true;
-            if stream.parsed {
-                self.prepare(w, key);
-            } else {
-                stream.parsed = true;
-                let work = self.work.objects as f64 * self.inputs.parse_per_object;
-                self.worker_job(w, WorkerJob::Open(key), work, 1.0);
-            }
+            self.prepare(w, key);
         }
     }
 
@@ -781,8 +758,9 @@ impl Sim<'_> {
     }
 
     fn bind(&mut self, w: usize, key: StreamKey) {
-        let work = self.work.dataset_voxels as f64 * self.inputs.bind_per_voxel;
-        self.worker_job(w, WorkerJob::Bind(key), work, 1.0);
+        let first = self.workers[w].bound.insert(key.1);
+        let per_voxel = if first { self.inputs.bind_per_voxel } else { self.inputs.rebind_per_voxel };
+        self.worker_job(w, WorkerJob::Bind(key), self.work.dataset_voxels as f64 * per_voxel, 1.0);
     }
 
     /// Casts the batch at the head of the stream's queue, or lets the stream run dry.
@@ -815,7 +793,17 @@ impl Sim<'_> {
     fn worker_pool(&mut self, w: usize) {
         for job in self.workers[w].pool.take_finished(self.now) {
             match job {
-                WorkerJob::Open(key) => self.prepare(w, key),
+                WorkerJob::Parse(s, d) => {
+                    let seconds = self.inputs.wire_seconds(SMALL_MESSAGE);
+                    let arrival = transfer(
+                        self.now,
+                        seconds,
+                        &mut self.workers[w].out,
+                        &mut self.shards[s].into,
+                        self.inputs.latency,
+                    );
+                    self.at(arrival, EventKind::OpenedArrives(s, w, d));
+                }
                 WorkerJob::Load(d) => {
                     let Some(Residency::Loading(waiting)) = self.workers[w].datasets.insert(d, Residency::Resident)
                     else {
@@ -836,7 +824,7 @@ impl Sim<'_> {
             let b = &self.batches[id];
             (b.shard, b.tasks, (b.shard, self.work.bands[b.band].lanes[b.lane].dataset))
         };
-        let seconds = self.inputs.wire_seconds(16.0 * tasks as f64);
+        let seconds = self.inputs.wire_seconds(TASK_BYTES_BACK * tasks as f64);
         let arrival =
             transfer(self.now, seconds, &mut self.workers[w].out, &mut self.shards[s].into, self.inputs.latency);
         self.at(arrival, EventKind::AnswerArrives(id));
@@ -847,40 +835,31 @@ impl Sim<'_> {
 
 #[cfg(test)]
 mod tests {
+    use super::super::inputs::Cost;
     use super::super::placement::Placement;
+    use super::super::recorded::tests::sample;
+    use super::super::recorded::WorkerRecord;
     use super::super::workload::{Band, Lane, Wave};
     use super::*;
 
     /// Only casting costs anything: no coordinator work, no network, no loads.
     fn cast_only() -> Inputs {
-        let mut i = Inputs::recorded();
-        i.cast_per_sample = 1e-8;
-        i.cast_per_task = 1e-7;
-        for zero in [
-            &mut i.bind_per_voxel,
-            &mut i.load_per_byte,
-            &mut i.parse_per_object,
-            &mut i.intersect_per_ray_object,
-            &mut i.intersect_per_task,
-            &mut i.plan_per_task,
-            &mut i.composite_per_ray,
-            &mut i.composite_per_piece,
-            &mut i.png_per_pixel,
-            &mut i.dispatch_per_task,
-            &mut i.record_per_task,
-            &mut i.holders_per_worker,
-            &mut i.pick_per_holder,
-            &mut i.progress_per_worker,
-            &mut i.open_per_byte,
-            &mut i.per_event,
-            &mut i.per_send,
-            &mut i.latency,
-            &mut i.message_overhead_bytes,
-            &mut i.per_message,
-        ] {
-            *zero = 0.0;
+        Inputs {
+            cast_per_sample: 1e-8,
+            cast_per_task: 1e-7,
+            bind_per_voxel: 0.0,
+            rebind_per_voxel: 0.0,
+            load_per_byte: 0.0,
+            parse_per_object: 0.0,
+            stages: Vec::new(),
+            link_bytes_per_s: f64::INFINITY,
+            latency: 0.0,
+            message_overhead_bytes: 0.0,
         }
-        i.link_bytes_per_s = f64::INFINITY;
+    }
+
+    fn with_stage(mut i: Inputs, runs_on: RunsOn, at: At, seconds: f64) -> Inputs {
+        i.stages.push(Cost { name: "test".into(), runs_on, at, seconds });
         i
     }
 
@@ -896,7 +875,12 @@ mod tests {
             dataset_voxels: 1 << 18,
             scene_bytes: 1000,
             bands: (0..bands)
-                .map(|_| Band { rays: 64 * 64, pieces: 64 * 64, lanes: (0..datasets).map(lane).collect() })
+                .map(|_| Band {
+                    rays: 64 * 64,
+                    pieces: 64 * 64,
+                    bytes: 1 << 20,
+                    lanes: (0..datasets).map(lane).collect(),
+                })
                 .collect(),
         }
     }
@@ -906,13 +890,11 @@ mod tests {
             workers,
             worker_threads: threads,
             coordinator_cores: 4,
-            loops: 1,
             coordinators: 1,
-            spread_bands: false,
+            split: Split::Tiles,
             batch_tasks: 256 * threads as u64,
-            bands_in_flight: 2,
-            dispatch: Dispatch::Scan,
-            bvh: false,
+            max_bands: 2,
+            memory_bound: 256 << 20,
         }
     }
 
@@ -951,8 +933,8 @@ mod tests {
         // Some 5 µs of casting per task: the coordinator's link (24 bytes a task) and loop
         // stay far from busy.
         inputs.cast_per_sample = 1e-7;
-        inputs.dispatch_per_task = 2e-9;
-        inputs.record_per_task = 1e-9;
+        let inputs = with_stage(inputs, RunsOn::EventLoop, At::Send, 2e-9);
+        let inputs = with_stage(inputs, RunsOn::EventLoop, At::Answer, 1e-9);
         let t8 = run(&work, &inputs, &config(8, 8), 1).seconds;
         let t16 = run(&work, &inputs, &config(16, 8), 1).seconds;
         let t32 = run(&work, &inputs, &config(32, 8), 1).seconds;
@@ -961,18 +943,28 @@ mod tests {
     }
 
     #[test]
-    fn a_coordinator_bound_farm_stops_getting_faster() {
+    fn a_farm_bound_by_the_event_loop_stops_getting_faster_and_more_coordinators_lift_it() {
         let work = workload(4, 64, &[4096]);
-        let mut inputs = cast_only();
         // Handing out a task costs the loop as much as casting it costs one worker core.
-        inputs.dispatch_per_task = work.samples() as f64 / work.tasks() as f64 * inputs.cast_per_sample;
+        let per_task = work.samples() as f64 / work.tasks() as f64 * 1e-8 + 1e-7;
+        let inputs = with_stage(cast_only(), RunsOn::EventLoop, At::Send, per_task);
         let runs: Vec<Outcome> = [8, 16, 32].iter().map(|&w| run(&work, &inputs, &config(w, 8), 1)).collect();
-        let loop_work = work.tasks() as f64 * inputs.dispatch_per_task;
+        let loop_work = work.tasks() as f64 * per_task;
         for out in &runs {
             assert!(out.seconds >= loop_work, "the loop's own work bounds the job");
             assert!(out.loop_busy > 0.9, "loop busy {}", out.loop_busy);
         }
         assert!(runs[2].seconds > 0.9 * runs[0].seconds, "{} vs {}", runs[2].seconds, runs[0].seconds);
+        // The same stage placed off the loop, on 32 cores, no longer bounds it.
+        let off = with_stage(cast_only(), RunsOn::Parallel, At::Send, per_task);
+        let mut wide = config(32, 8);
+        wide.coordinator_cores = 33;
+        assert!(run(&work, &off, &wide, 1).seconds < 0.5 * runs[2].seconds);
+        // Four coordinators, each a tile of one band, share the loop's work.
+        let mut tiles = config(32, 8);
+        tiles.coordinators = 4;
+        let t = run(&work, &inputs, &tiles, 1).seconds;
+        assert!(t < 0.3 * runs[2].seconds, "4 tiles: {t} vs {}", runs[2].seconds);
     }
 
     #[test]
@@ -984,6 +976,74 @@ mod tests {
         // Two datasets, one wave each, one on each worker: side by side.
         let parallel = run(&workload(1, 2, &[2048]), &inputs, &config, 1).seconds;
         assert!((serial / parallel - 2.0).abs() < 1e-9, "{serial} vs {parallel}");
+    }
+
+    #[test]
+    fn admission_holds_the_bands_within_the_count_and_the_memory_bound() {
+        let work = workload(16, 4, &[2048]);
+        let mut config = config(4, 8);
+        config.max_bands = 8;
+        let many = run(&work, &cast_only(), &config, 1);
+        assert!(many.bands_held > 2.5 && many.bands_held <= 8.0, "{}", many.bands_held);
+        // Each band holds 1 MiB: once one is measured, a bound of 2 MiB admits two at once
+        // (before then, a fair share of the bound is expected of each).
+        config.memory_bound = 2 << 20;
+        let bounded = run(&work, &cast_only(), &config, 1);
+        assert!(bounded.bands_held < 0.75 * many.bands_held, "{} vs {}", bounded.bands_held, many.bands_held);
+        config.max_bands = 2;
+        config.memory_bound = 256 << 20;
+        let two = run(&work, &cast_only(), &config, 1);
+        assert!(two.bands_held <= 2.0 + 1e-9, "{}", two.bands_held);
+    }
+
+    #[test]
+    fn whole_jobs_on_two_coordinators_take_twice_the_work_of_one() {
+        let work = workload(2, 8, &[4096]);
+        let one = run(&work, &cast_only(), &config(1, 8), 1).seconds;
+        let mut two = config(1, 8);
+        two.coordinators = 2;
+        two.split = Split::Jobs;
+        let t = run(&work, &cast_only(), &two, 1).seconds;
+        assert!((t / one - 2.0).abs() < 1e-9, "{t} vs {one}");
+    }
+
+    /// The recorded sample's inputs reproduce a case worked out by hand: one band of one
+    /// dataset, one batch, one worker of 8 threads, a free and instant network.
+    #[test]
+    fn inputs_from_a_record_give_the_time_worked_out_by_hand() {
+        let worker = WorkerRecord {
+            processor: String::new(),
+            simd: String::new(),
+            commit: String::new(),
+            cast_per_sample: 1e-8,
+            cast_per_task: 1e-7,
+            bind_per_voxel: 0.0,
+            rebind_per_voxel: 0.0,
+            load_per_byte: 0.0,
+            parse_per_object: 0.0,
+        };
+        let mut inputs = Inputs::from_records(&sample(), &worker);
+        inputs.link_bytes_per_s = f64::INFINITY;
+        inputs.latency = 0.0;
+        // 64×64 pixels, 4096 pieces, one wave of 2048 tasks of 50 samples each.
+        let work = workload(1, 1, &[2048]);
+        let mut config = config(1, 8);
+        config.coordinator_cores = 5; // 4 cores besides the loop
+        let out = run(&work, &inputs, &config, 1);
+        // The sample, per piece: intersection 40 ns (parallel: 64 rows in 16 items, on 4
+        // cores), planning 10 ns (one thread), composition 15 ns (4 cores); per task (half a
+        // task a piece): dispatch 40 ns, recording 20 ns on the loop; per pixel (2 pieces a
+        // pixel): the image 10 ns.
+        let pieces = 4096.0;
+        let expected = pieces * 40e-9 / 4.0
+            + pieces * 10e-9
+            + 2048.0 * 40e-9
+            + (2048.0 * 1e-7 + 2048.0 * 50.0 * 1e-8) / 8.0
+            + 2048.0 * 20e-9
+            + pieces * 15e-9 / 4.0
+            + 4096.0 * 10e-9;
+        assert!((out.seconds / expected - 1.0).abs() < 1e-9, "{} vs {expected}", out.seconds);
+        assert!((out.loop_send - 2048.0 * 40e-9).abs() < 1e-15 && (out.loop_answer - 2048.0 * 20e-9).abs() < 1e-15);
     }
 
     #[test]

@@ -1,5 +1,5 @@
 //! The work of one job, as the farm's coordinator would meet it: the image in bands of rows
-//! (as `coordinator/src/farm/driver.rs` cuts it), and in each band, per dataset, the waves
+//! (as `coordinator/src/farm/driver/` cuts it), and in each band, per dataset, the waves
 //! that the scheduler hands out one after the other, each with its tasks and samples.
 //!
 //! It is taken from `trove-core` itself: the scene is intersected with
@@ -17,9 +17,10 @@ use trove_core::scene::Scene;
 
 use super::scene::SceneSpec;
 
-/// Pixels per band when the job does not say (`BAND_PIXELS` in the coordinator's driver):
-/// the band has `BAND_PIXELS / width` rows.
-pub(crate) const BAND_PIXELS: u32 = 1 << 18;
+/// Pixels per band when the job does not say (`BAND_PIXELS` in
+/// `coordinator/src/farm/driver/raster.rs`, private there): the band has
+/// `BAND_PIXELS / width` rows.
+pub(crate) const BAND_PIXELS: u32 = 1 << 16;
 
 /// Bytes of one file's registration in an `open` message (`DatasetFile`: key, size, dims,
 /// voxel type, protobuf framing).
@@ -50,7 +51,10 @@ pub(crate) struct Band {
     pub rays: u64,
     /// Pieces over those rays.
     pub pieces: u64,
-    /// Datasets with tasks, in the scheduler's front-to-back order.
+    /// Bytes the band's scheduler holds (`Scheduler::heap_bytes` right after planning,
+    /// which the driver's admission counts).
+    pub bytes: u64,
+    /// Datasets with tasks, in dataset order (the order the driver's ready set visits).
     pub lanes: Vec<Lane>,
 }
 
@@ -140,6 +144,7 @@ fn band_work(scene: &Scene, rows: std::ops::Range<u32>, scale: f64, rays: u64) -
     let pieces = inter.pieces() as f64 * scale;
     // One batch is one whole wave: the scheduler cuts batches out of a wave, never across.
     let mut scheduler = Scheduler::new(scene, inter, u32::MAX as usize)?;
+    let bytes = (scheduler.heap_bytes() as f64 * scale).round() as u64;
     let (w, h) = (scene.image().width, scene.image().height);
     let mut lanes = Vec::new();
     for d in scheduler.datasets().to_vec() {
@@ -162,7 +167,8 @@ fn band_work(scene: &Scene, rows: std::ops::Range<u32>, scale: f64, rays: u64) -
         lanes.push(Lane { dataset: d, waves });
     }
     anyhow::ensure!(scheduler.is_complete(), "the scheduler did not finish a band");
-    Ok(Band { rays, pieces: pieces.round() as u64, lanes })
+    lanes.sort_by_key(|l| l.dataset);
+    Ok(Band { rays, pieces: pieces.round() as u64, bytes, lanes })
 }
 
 #[cfg(test)]
@@ -205,11 +211,14 @@ mod tests {
 
     #[test]
     fn sampling_fewer_rows_scales_counts_to_the_full_image() {
-        // 1024×1024 pixels: bands of 256 rows. Two sampled rows per band stand for 256.
-        let coarse = extract(&spec(1024, 1024), BAND_PIXELS, 2, 1).unwrap();
-        let fine = extract(&spec(1024, 1024), BAND_PIXELS, 16, 1).unwrap();
+        // 1024×1024 pixels in bands of 256 rows. Two sampled rows per band stand for 256.
+        let coarse = extract(&spec(1024, 1024), 1 << 18, 2, 1).unwrap();
+        let fine = extract(&spec(1024, 1024), 1 << 18, 16, 1).unwrap();
         assert_eq!(coarse.bands.len(), 4);
         assert!(coarse.bands.iter().all(|b| b.rays == 1024 * 256));
+        let ratio = coarse.bands.iter().map(|b| b.bytes).sum::<u64>() as f64
+            / fine.bands.iter().map(|b| b.bytes).sum::<u64>() as f64;
+        assert!((0.85..1.15).contains(&ratio), "bytes scale: {ratio}");
         let ratio = coarse.tasks() as f64 / fine.tasks() as f64;
         assert!((0.85..1.15).contains(&ratio), "tasks scale: {ratio}");
         let ratio = coarse.samples() as f64 / fine.samples() as f64;
