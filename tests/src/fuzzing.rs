@@ -179,7 +179,7 @@ pub fn submit_job(bytes: &[u8]) -> Result<Planned, JobRefusal> {
         }
         return Ok(Planned::NotCounted);
     }
-    let (work, band_rows) = driver.check_work(&scene, &options).map_err(|e| refused(convert::limit_failure(&e)))?;
+    let (work, band_rows, _) = driver.check_work(&scene, &options).map_err(|e| refused(convert::limit_failure(&e)))?;
     Ok(Planned::Counted { band_rows, tasks: work.tasks_in(0..h) })
 }
 

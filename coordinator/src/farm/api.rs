@@ -71,7 +71,7 @@ fn plan(farm: &Farm, request: pb::SubmitJobRequest) -> Result<JobPlan, Status> {
         f.file = name.clone();
         convert::limit_status(f)
     };
-    let (_, band_rows) = farm.driver.check_work(&scene, &options).map_err(limited)?;
+    let (_, band_rows, kept) = farm.driver.check_work(&scene, &options).map_err(limited)?;
     let dataset_keys: Vec<Vec<String>> = scene.datasets().iter().map(|d| d.file_keys()).collect();
     for d in scene.used_datasets() {
         if farm.registry.holders(&dataset_keys[d]).is_empty() {
@@ -102,6 +102,7 @@ fn plan(farm: &Farm, request: pb::SubmitJobRequest) -> Result<JobPlan, Status> {
         headers,
         dataset_keys,
         band_rows,
+        kept: kept.into_iter().map(Some).collect(),
     })
 }
 
@@ -133,7 +134,19 @@ fn spawn_job(farm: Arc<Farm>, job: Arc<Job>, pending: Pending) {
         let (registry, config, admission) = (farm.registry.clone(), farm.driver.clone(), farm.admission.clone());
         match plan {
             None => admission.leave(&job),
-            Some(plan) => match admission.admit(&job).await {
+            Some(mut plan) => match {
+                // A job that must wait for its turn drops the bands its count kept: waiting
+                // jobs hold no pieces, so the queue's memory does not grow with its length.
+                let mut admit = std::pin::pin!(admission.admit(&job));
+                tokio::select! {
+                    biased;
+                    slot = &mut admit => slot,
+                    () = std::future::ready(()) => {
+                        plan.kept.clear();
+                        admit.await
+                    }
+                }
+            } {
                 Some(slot) => {
                     let jobs = farm.jobs.clone();
                     let running = job.clone();

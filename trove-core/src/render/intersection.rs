@@ -65,6 +65,12 @@ impl Intersections {
         self.piece_start[p]..self.piece_start[p + 1]
     }
 
+    /// Bytes of its three lists.
+    pub fn heap_bytes(&self) -> u64 {
+        (self.tasks.len() * std::mem::size_of::<PieceTask>() + (self.piece_start.len() + self.ray_start.len()) * 8)
+            as u64
+    }
+
     /// The piece that task `t` belongs to (binary search within its ray).
     pub fn piece_of(&self, t: usize) -> usize {
         let pieces = self.pieces_of(self.local_ray(self.tasks[t].ray));

@@ -13,7 +13,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use rayon::prelude::*;
 use thiserror::Error;
 
-use super::intersection::RowCounter;
+use super::intersection::{intersect_within, Intersections, RowCounter};
 use crate::scene::Scene;
 
 /// Most piece tasks (one per object per piece of a ray) in one render. 2²⁹ ≈ 5.4·10⁸ admits
@@ -37,6 +37,10 @@ pub const BYTES_PER_BAND_TASK: u64 = 24 + 24 + 1 + 16 + 4 + 8;
 /// scene (about 80 MiB of bookkeeping), so that a tiny band memory means one-row bands
 /// rather than refusals.
 pub const MIN_BAND_TASKS: u64 = 1 << 20;
+
+/// Bytes a kept band ([`Work::count_keeping`]) takes per task at most: the task, and its
+/// piece's and its ray's index entries.
+pub const KEPT_BYTES_PER_TASK: u64 = 24 + 8 + 8;
 
 /// Most pixels of an image written as a PFM: 4096² (192 MiB of floats, and as much again
 /// for the file's bytes). A PNG may take the scene's largest side, 16384² (768 MiB of RGB
@@ -172,6 +176,51 @@ impl Work {
         Ok(Work { tasks, pieces, tasks_per_row: rows.into_iter().map(|r| r.1).collect() })
     }
 
+    /// [`Work::count`] by intersecting the image in bands of `band_rows` rows, keeping each
+    /// band's [`Intersections`] while all of them fit `keep` bytes, so that a driver whose
+    /// bands are those rows never intersects the image twice: counting is most of an
+    /// intersection's cost (slab tests and splits; only storing the tasks is not), and on
+    /// the farm's coordinator it was half of all intersection work. Where the image's
+    /// tasks do not fit (`keep` is a small share of the memory bound), or a band is refused,
+    /// it counts as [`Work::count`] does and keeps nothing; the count, and every refusal,
+    /// is the same either way.
+    pub fn count_keeping(scene: &Scene, band_rows: u32, keep: u64) -> Result<(Work, Vec<Intersections>), LimitError> {
+        let (width, height) = (scene.image().width, scene.image().height);
+        let objects = scene.objects().len();
+        let tests = width as u64 * height as u64 * objects as u64;
+        if tests > MAX_RAY_OBJECT_TESTS {
+            return Err(LimitError::RayObjectTests { width, height, objects, tests, max: MAX_RAY_OBJECT_TESTS });
+        }
+        let band_rows = band_rows.clamp(1, height.max(1));
+        let mut kept: Vec<Intersections> = Vec::new();
+        let mut held = 0u64;
+        for start in (0..height).step_by(band_rows as usize) {
+            let rows = start..(start + band_rows).min(height);
+            // What the rest of `keep` holds, at the bytes a kept task takes at most (its
+            // piece and its ray each own a slot only once, so this over-counts).
+            let room = keep.saturating_sub(held) / KEPT_BYTES_PER_TASK;
+            match intersect_within(scene, rows.clone(), room, keep) {
+                Ok(inter) => {
+                    held += inter.heap_bytes();
+                    kept.push(inter);
+                }
+                Err(_) => return Work::count(scene).map(|work| (work, Vec::new())),
+            }
+        }
+        let mut tasks_per_row = Vec::with_capacity(height as usize);
+        let mut pieces = 0u64;
+        for inter in &kept {
+            let w = width as usize;
+            for r in 0..inter.rays() / w.max(1) {
+                let (first, last) = (inter.ray_start[r * w], inter.ray_start[(r + 1) * w]);
+                tasks_per_row.push((inter.piece_start[last] - inter.piece_start[first]) as u64);
+            }
+            pieces += inter.pieces() as u64;
+        }
+        let tasks = tasks_per_row.iter().sum();
+        Ok((Work { tasks, pieces, tasks_per_row }, kept))
+    }
+
     /// Tasks of image rows `rows`.
     pub fn tasks_in(&self, rows: Range<u32>) -> u64 {
         let end = (rows.end as usize).min(self.tasks_per_row.len());
@@ -250,6 +299,29 @@ mod tests {
         assert_eq!((work.tasks, work.pieces), (inter.tasks.len() as u64, inter.pieces() as u64));
         assert_eq!(work.tasks_in(0..24), work.tasks);
         assert!(work.tasks > 24 * 24 * 5, "nested boxes share pieces: {}", work.tasks);
+    }
+
+    #[test]
+    fn counting_while_keeping_the_bands_counts_the_same_and_keeps_what_intersecting_makes() {
+        let scene = nested_boxes(5, 24, "0.1");
+        let work = Work::count(&scene).unwrap();
+        let (kept_work, kept) = Work::count_keeping(&scene, 7, u64::MAX).unwrap();
+        assert_eq!(kept_work, work);
+        assert_eq!(kept.len(), 4, "bands of 7 rows of 24");
+        for (band, inter) in kept.iter().enumerate() {
+            let rows = band as u32 * 7..(band as u32 * 7 + 7).min(24);
+            let fresh = super::super::intersection::intersect(&scene, rows);
+            assert_eq!(
+                (&inter.tasks, &inter.piece_start, &inter.ray_start),
+                (&fresh.tasks, &fresh.piece_start, &fresh.ray_start)
+            );
+        }
+        // Too little room to keep: the same count, nothing kept.
+        let (small, none) = Work::count_keeping(&scene, 7, 1000).unwrap();
+        assert_eq!((small, none.len()), (work, 0));
+        // A hostile scene is refused as counting refuses it.
+        let err = Work::count_keeping(&nested_boxes(300, 512, "1e9"), 32, 1 << 26).unwrap_err();
+        assert!(matches!(err, LimitError::TasksPerRender { .. }), "{err}");
     }
 
     #[test]

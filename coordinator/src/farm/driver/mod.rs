@@ -48,7 +48,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::Status;
 use trove_core::render::bands::Bands;
 use trove_core::render::dispatch::Admission;
-use trove_core::render::intersection::intersect_within;
+use trove_core::render::intersection::{intersect_within, Intersections};
 use trove_core::render::limits::{check_pfm, max_band_tasks, LimitError, Work, MAX_PFM_PIXELS};
 use trove_core::render::wire::{decode_results, encode_tasks};
 use trove_core::render::{Algorithm, Batch, Scheduler};
@@ -145,15 +145,27 @@ impl DriverConfig {
     /// ([`DriverConfig::band_rows`]) and each checked against the memory bound. Returns the
     /// count and the rows per band; `SubmitJob` calls it, and so does the job-request fuzz
     /// target, so that what is fuzzed is what a submission runs.
-    pub fn check_work(&self, scene: &Scene, options: &pb::JobOptions) -> Result<(Work, u32), LimitError> {
+    ///
+    /// The count intersects the image in the bands the driver will most likely use and
+    /// keeps them when they fit a quarter of the memory bound ([`Work::count_keeping`]), so
+    /// that the driver does not intersect the image a second time; the third value is those
+    /// bands, one per band of the returned rows, or none.
+    pub fn check_work(
+        &self,
+        scene: &Scene,
+        options: &pb::JobOptions,
+    ) -> Result<(Work, u32, Vec<Intersections>), LimitError> {
         let (w, h) = (scene.image().width, scene.image().height);
         if options.want_pfm {
             check_pfm(w, h, self.max_pfm_pixels)?;
         }
-        let work = Work::count(scene)?;
+        // The rows a band has unless the memory bound narrows it (it rarely does).
+        let likely = raster::rows_per_band(options.band_rows, w, h, h);
+        let (work, kept) = Work::count_keeping(scene, likely, self.memory_bound / 4)?;
         let band_rows = self.band_rows(scene, &work, options)?;
         work.check_bands(band_rows, self.memory_bound)?;
-        Ok((work, band_rows))
+        let kept = if band_rows == likely { kept } else { Vec::new() };
+        Ok((work, band_rows, kept))
     }
 
     /// Panics if this step is the configured fault (debug builds only).
@@ -203,6 +215,11 @@ pub struct JobPlan {
     pub dataset_keys: Vec<Vec<String>>,
     /// Rows per band ([`DriverConfig::band_rows`]), checked against the band limit.
     pub band_rows: u32,
+    /// Bands the submission's count intersected and kept ([`DriverConfig::check_work`]),
+    /// each taken by the driver when the band starts (at most a quarter of the memory bound
+    /// per running job, on top of the bands in flight); none for a job that waited in the
+    /// queue (they are dropped so that waiting jobs hold no pieces).
+    pub kept: Vec<Option<Intersections>>,
 }
 
 /// A `Cast` stream: (worker id, dataset).
@@ -383,6 +400,7 @@ impl Driver {
     fn advance(&mut self) -> Result<(), JobError> {
         while let Some((band, rows)) = self.bands.start_next() {
             let (scene, events, batch_tasks) = (self.scene().clone(), self.events.clone(), self.batch_tasks);
+            let kept = self.plan.kept.get_mut(band).and_then(Option::take);
             let config = self.config.clone();
             tokio::task::spawn_blocking(move || {
                 let started = Instant::now();
@@ -391,7 +409,10 @@ impl Driver {
                     // The band's share of the bound: a band denser than its sizing expected is
                     // refused as it is intersected, before its tasks are stored.
                     let bound = config.memory_bound;
-                    let inter = intersect_within(&scene, rows.clone(), max_band_tasks(bound), bound)?;
+                    let inter = match kept {
+                        Some(inter) => inter,
+                        None => intersect_within(&scene, rows.clone(), max_band_tasks(bound), bound)?,
+                    };
                     let planned = Instant::now();
                     Scheduler::new(&scene, inter, batch_tasks)
                         .map(|s| (s, planned))
