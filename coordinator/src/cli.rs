@@ -276,7 +276,10 @@ fn render_command(args: RenderArgs) -> Result<()> {
         band_memory: args.band_memory,
         progress: bar.clone().map(|b| Arc::new(move |rows: u64| b.set_position(rows)) as render::Progress),
     };
-    let rendered = render::render(&scene, &options).map_err(|e| {
+    // The image as its file holds it (3 bytes a pixel, plus f32 values for a PFM), not the
+    // library's 24 bytes of f64: an 8192² PNG then renders within the band memory plus
+    // 192 MiB.
+    let rendered = render::render_raster(&scene, &options, is_pfm(&args.output)).map_err(|e| {
         let hint = match &e {
             render::RenderError::Store(render::StoreError::BudgetTooSmall { .. }) => " (see --memory-budget)",
             _ => "",

@@ -2,7 +2,10 @@
 //! by dataset — each loaded once, every piece of every object that uses it cast while it is
 //! resident, then unloaded — and finally composite each ray's pieces front to back. An
 //! image whose pieces do not fit the band memory is worked through in bands of rows, each
-//! band as above ([`crate::render::bands`], the shape the farm's driver shares).
+//! band as above ([`crate::render::bands`], the shape the farm's driver shares), and each
+//! band is composited into the canvas as soon as it is cast, its pieces then dropped: a
+//! [`super::Raster`] of 8-bit values for a file, so that the image costs what the file
+//! holds, or an [`super::Image`] of linear values for the library.
 //!
 //! This is the local driver of the [`Scheduler`]: it visits datasets in the scheduler's
 //! front-to-back order, and casts each dataset's batches on as many threads as rayon has,
@@ -19,9 +22,10 @@ use std::time::{Duration, Instant};
 use super::bands::Bands;
 use super::dispatch::Admission;
 use super::intersection::intersect;
+use super::raster::Canvas;
 use super::schedule::Scheduler;
 use super::workunit::{BatchCaster, PieceRgba};
-use super::{Image, Progress, RenderError, RenderStats, Rendered, VolumeStore};
+use super::{Progress, RenderError, RenderStats, Rendered, VolumeStore};
 use crate::scene::Scene;
 
 /// Tasks per batch: large enough to amortise scheduling and to keep a batch's last pieces,
@@ -32,17 +36,18 @@ const BATCH_TASKS: usize = 1024;
 /// Renders with Algorithm 2, in bands of rows whose bookkeeping stays within
 /// `band_memory` bytes ([`Bands`], the shape the farm's driver shares): one band, and so
 /// each dataset loaded once, for any image whose pieces fit; more for larger images, which
-/// then render in bounded memory instead of holding every piece at once.
-pub(super) fn render(
+/// then render in bounded memory instead of holding every piece at once. Each band is
+/// composited into `canvas` before the next one starts.
+pub(super) fn render<C: Canvas>(
     scene: &Scene,
     store: &VolumeStore,
     progress: Option<&Progress>,
     (band_rows, band_memory): (u32, u64),
-) -> Result<Rendered, RenderError> {
-    let (w, h) = (scene.image().width, scene.image().height);
+    mut canvas: C,
+) -> Result<Rendered<C>, RenderError> {
+    let h = scene.image().height;
     let mut stats = RenderStats::default();
     let mut bands = Bands::new(h, band_rows, Admission { max_bands: 1, memory_bound: band_memory });
-    let mut pixels = vec![[0.0; 3]; w as usize * h as usize];
     let mut loading = Duration::ZERO;
     let mut casting = Duration::ZERO;
     while let Some((band, rows)) = bands.start_next() {
@@ -83,9 +88,7 @@ pub(super) fn render(
         // Phase 3: composition, front to back per ray.
         let started = Instant::now();
         let (rows, scheduler) = bands.take_complete(band).expect("every task of the band is cast or culled");
-        let row_len = w as usize;
-        let composited = scheduler.composite_pixels(scene.image().background);
-        pixels[rows.start as usize * row_len..rows.end as usize * row_len].copy_from_slice(&composited);
+        canvas.composite_rows(rows.start, &scheduler, scene.image().background);
         drop(scheduler);
         bands.composited(band);
         stats.seconds.composition += started.elapsed().as_secs_f64();
@@ -95,7 +98,7 @@ pub(super) fn render(
     if let Some(p) = progress {
         p(h as u64);
     }
-    Ok(Rendered { image: Image::new(w, h, pixels), stats })
+    Ok(Rendered { image: canvas, stats })
 }
 
 /// Casts dataset `d`'s batches until its turn is done, on as many threads as rayon has;

@@ -1,9 +1,12 @@
-//! The rendered image and its two file forms: an 8-bit PNG (SPEC §4.4's quantisation) and
-//! an unquantised Portable FloatMap.
+//! The rendered image of linear values, for the library's callers that read them (accuracy,
+//! numerics), and the two file forms' encoders: an 8-bit PNG (SPEC §4.4's quantisation) and
+//! an unquantised Portable FloatMap. Files are written through [`Raster`], the compact form
+//! the command line renders into.
 
 use std::path::Path;
 
 use super::error::{OutputError, RenderError};
+use super::raster::{is_pfm, Raster};
 
 /// Linear RGB pixels, row 0 at the top.
 #[derive(Clone, Debug, PartialEq)]
@@ -40,6 +43,11 @@ impl Image {
         &self.pixels
     }
 
+    /// All pixels, row-major, for the composition step to fill.
+    pub(super) fn pixels_mut(&mut self) -> &mut [[f64; 3]] {
+        &mut self.pixels
+    }
+
     /// round(255 · clamp(C, 0, 1)) per channel, half away from zero, no gamma.
     pub fn to_rgb8(&self) -> Vec<u8> {
         self.pixels.iter().flat_map(|p| p.map(quantize)).collect()
@@ -50,13 +58,9 @@ impl Image {
         self.pixels.iter().flat_map(|p| p.map(|c| c as f32)).collect()
     }
 
-    /// Writes a PNG, or a PFM when the path ends in `.pfm`.
+    /// Writes a PNG, or a PFM when the path ends in `.pfm`, through [`Raster::save`].
     pub fn save(&self, path: &Path) -> Result<(), RenderError> {
-        let is_pfm = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("pfm"));
-        let bytes = if is_pfm { Ok(encode_pfm(self.width, self.height, &self.to_rgb32f())) } else { self.encode_png() };
-        bytes
-            .and_then(|b| std::fs::write(path, b).map_err(OutputError::from))
-            .map_err(|source| RenderError::Output { path: path.to_path_buf(), source })
+        Raster::from_image(self, is_pfm(path)).save(path)
     }
 
     /// The PNG file's bytes.

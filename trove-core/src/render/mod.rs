@@ -26,6 +26,7 @@ mod image;
 pub mod intersection;
 pub mod limits;
 mod per_ray;
+mod raster;
 pub mod schedule;
 mod stats;
 mod store;
@@ -36,12 +37,14 @@ use std::sync::Arc;
 
 pub use error::{CastError, OutputError, RenderError, ScheduleError, StoreError};
 pub use image::{encode_pfm, encode_png, quantize, Image};
+pub use raster::Raster;
 pub use schedule::{Batch, Scheduler};
 pub use stats::{RenderStats, Seconds};
 pub use store::{Pinned, StoreStats, VolumeStore};
 pub use workunit::{BatchCaster, BindTarget, PieceRgba, PieceTask};
 
 use crate::scene::Scene;
+use raster::Canvas;
 
 /// Which ray-casting algorithm renders the scene.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -89,17 +92,33 @@ pub struct RenderOptions {
 /// one takes a few bands instead of 5.6 GiB of pieces.
 pub const DEFAULT_BAND_MEMORY: u64 = 1 << 30;
 
-/// An image and how it was made.
+/// An image and how it was made: linear values ([`render`]) or a file's compact form
+/// ([`render_raster`]).
 #[derive(Clone, Debug)]
-pub struct Rendered {
-    /// The final linear RGB image.
-    pub image: Image,
+pub struct Rendered<I = Image> {
+    /// The final image.
+    pub image: I,
     /// Counts and timings.
     pub stats: RenderStats,
 }
 
-/// Renders `scene` with the chosen algorithm.
+/// Renders `scene` with the chosen algorithm, to linear values: 24 bytes a pixel, for the
+/// callers that read them. A render to a file uses [`render_raster`].
 pub fn render(scene: &Scene, options: &RenderOptions) -> Result<Rendered, RenderError> {
+    render_onto(scene, options, false)
+}
+
+/// Renders `scene` with the chosen algorithm into a [`Raster`]: the same bytes as
+/// [`render`]'s image quantised (and, when `linear`, its values as f32 for a PFM), holding
+/// 3 bytes a pixel (15 with `linear`) instead of 24. Algorithm 2 composites each band into
+/// it as the band is done, so an image of any size renders within the band memory plus
+/// the raster.
+pub fn render_raster(scene: &Scene, options: &RenderOptions, linear: bool) -> Result<Rendered<Raster>, RenderError> {
+    render_onto(scene, options, linear)
+}
+
+/// Renders onto a canvas of type `C` (`linear`: a raster keeps f32 values).
+fn render_onto<C: Canvas>(scene: &Scene, options: &RenderOptions, linear: bool) -> Result<Rendered<C>, RenderError> {
     let started = std::time::Instant::now();
     let store = VolumeStore::new(options.memory_budget);
     store.check_budget(scene)?;
@@ -107,11 +126,16 @@ pub fn render(scene: &Scene, options: &RenderOptions) -> Result<Rendered, Render
     // bands are sized from that exact count, so each fits the band memory.
     let work = limits::Work::count(scene)?;
     let mut rendered = match options.algorithm {
-        Algorithm::PerRay => per_ray::render(scene, &store, options.progress.as_ref())?,
+        Algorithm::PerRay => {
+            let Rendered { image, stats } = per_ray::render(scene, &store, options.progress.as_ref())?;
+            Rendered { image: C::from_image(image, linear), stats }
+        }
         Algorithm::Grouped => {
             let band_memory = options.band_memory.unwrap_or(DEFAULT_BAND_MEMORY);
             let band_rows = work.rows_within(band_memory)?;
-            grouped::render(scene, &store, options.progress.as_ref(), (band_rows, band_memory))?
+            let (w, h) = (scene.image().width, scene.image().height);
+            let canvas = C::blank(w, h, linear);
+            grouped::render(scene, &store, options.progress.as_ref(), (band_rows, band_memory), canvas)?
         }
     };
     let total = started.elapsed().as_secs_f64();

@@ -1,7 +1,8 @@
 //! One job, driven to its end: the farm's driver of `trove-core`'s [`Scheduler`].
 //!
 //! The image is worked through in *bands* of rows (`trove_core::render::bands`, the shape
-//! local mode shares; the image fills up in [`raster`]): the coordinator holds only
+//! local mode shares; the image, `trove_core`'s `Raster` as in local mode, fills up band
+//! by band from [`raster`]): the coordinator holds only
 //! the pieces of the bands in flight, as many as [`DriverConfig::memory_bound`] and
 //! [`DriverConfig::max_bands`] admit, started in an order spread over the image so that
 //! many datasets are busy at once. For each band the driver runs the intersection phase
@@ -51,7 +52,7 @@ use trove_core::render::dispatch::Admission;
 use trove_core::render::intersection::{intersect_within, Intersections};
 use trove_core::render::limits::{check_pfm, max_band_tasks, LimitError, Work, MAX_PFM_PIXELS};
 use trove_core::render::wire::{decode_results, encode_tasks};
-use trove_core::render::{Algorithm, Batch, Scheduler};
+use trove_core::render::{Algorithm, Batch, Raster, Scheduler};
 use trove_core::scene::Scene;
 use trove_proto::convert::{self, JOB_HEADER};
 use trove_proto::v1 as pb;
@@ -62,7 +63,7 @@ use super::metrics::FarmMetrics;
 use super::registry::{Registry, WorkerHandle};
 use dispatch::{Dispatch, InFlight, Rest};
 pub use error::JobError;
-use raster::{Composited, Raster};
+use raster::Composited;
 use tally::Tally;
 
 /// Tasks per batch when the job does not say.
@@ -619,7 +620,7 @@ impl Driver {
                 Ok(())
             }
             Event::Composited { band, part } => {
-                self.raster.place(&part);
+                self.raster.place(part.rows.start, &part.raster);
                 self.bands.composited(band);
                 self.tally.stats.samples_skipped += part.samples_skipped;
                 self.tally.stats.seconds.composition += part.seconds;
@@ -793,15 +794,14 @@ impl Driver {
             tally.stats.seconds.volume_rendering =
                 (cast.elapsed().as_secs_f64() - tally.stats.seconds.composition).max(0.0);
         }
-        let (w, h) = (plan.scene.image().width, plan.scene.image().height);
+        let h = plan.scene.image().height;
         let tasks = bands.tasks_composited();
-        let Raster { rgb8, rgb32f, .. } = raster;
         let encoded = tokio::task::spawn_blocking(move || {
             unwinding("encoding", || {
                 config.inject("encoding");
                 let started = Instant::now();
-                let png = trove_core::render::encode_png(w, h, &rgb8);
-                let pfm = rgb32f.map(|f| trove_core::render::encode_pfm(w, h, &f));
+                let png = raster.encode_png();
+                let pfm = raster.encode_pfm();
                 (png, pfm, started.elapsed().as_secs_f64())
             })
         })

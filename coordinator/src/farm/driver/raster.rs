@@ -1,10 +1,12 @@
-//! The farm job's image as it fills up, band by band: the PNG's bytes, and floats for a
-//! PFM when the job asked for one. Each band's pixels are composited on a blocking thread
-//! with the scheduler's one composition step and placed here.
+//! The farm job's bands and their share of the image. The image is `trove_core`'s
+//! [`Raster`] (the PNG's bytes, and floats for a PFM when the job asked for one), local
+//! mode's too: each band's pixels are composited on a blocking thread with the one
+//! composition step, [`Raster::composite_rows`], into a band-sized raster, and placed into
+//! the job's as it arrives.
 
 use std::ops::Range;
 
-use trove_core::render::{quantize, Scheduler};
+use trove_core::render::{Raster, Scheduler};
 use trove_core::scene::Scene;
 
 /// Pixels per band when the job does not say: some tens of thousands of pieces in most
@@ -24,47 +26,23 @@ pub fn rows_per_band(asked: u32, width: u32, height: u32, within: u32) -> u32 {
     rows.clamp(1, height.max(1))
 }
 
-/// A band's share of the image, composited.
+/// A band's share of the image, composited: its rows as a [`Raster`] as wide as the image,
+/// for [`Raster::place`] on the event loop, and the band's statistics.
 pub(super) struct Composited {
     pub rows: Range<u32>,
-    pub rgb8: Vec<u8>,
-    pub rgb32f: Option<Vec<f32>>,
+    pub raster: Raster,
     pub samples_skipped: u64,
     pub seconds: f64,
 }
 
 impl Composited {
-    /// Composites the band of `rows` whose every task `scheduler` has cast or culled.
+    /// Composites the band of `rows` whose every task `scheduler` has cast or culled, with
+    /// the composition step local mode uses ([`Raster::composite_rows`]).
     pub fn of(scene: &Scene, rows: Range<u32>, scheduler: &Scheduler, want_pfm: bool) -> Composited {
         let started = std::time::Instant::now();
-        let pixels = scheduler.composite_pixels(scene.image().background);
-        let rgb8 = pixels.iter().flat_map(|p| p.map(quantize)).collect();
-        let rgb32f = want_pfm.then(|| pixels.iter().flat_map(|p| p.map(|c| c as f32)).collect());
+        let mut raster = Raster::new(scene.image().width, rows.len() as u32, want_pfm);
+        raster.composite_rows(0, scheduler, scene.image().background);
         let samples_skipped = scheduler.culled_samples(scene);
-        Composited { rows, rgb8, rgb32f, samples_skipped, seconds: started.elapsed().as_secs_f64() }
-    }
-}
-
-/// The image: 8-bit, and floats when the job asked for a PFM.
-pub(super) struct Raster {
-    width: u32,
-    pub rgb8: Vec<u8>,
-    pub rgb32f: Option<Vec<f32>>,
-}
-
-impl Raster {
-    pub fn new(width: u32, height: u32, want_pfm: bool) -> Raster {
-        let pixels = width as usize * height as usize * 3;
-        Raster { width, rgb8: vec![0; pixels], rgb32f: want_pfm.then(|| vec![0.0; pixels]) }
-    }
-
-    /// Copies a composited band into the image.
-    pub fn place(&mut self, part: &Composited) {
-        let row_len = self.width as usize * 3;
-        let start = part.rows.start as usize * row_len;
-        self.rgb8[start..start + part.rgb8.len()].copy_from_slice(&part.rgb8);
-        if let (Some(all), Some(band)) = (&mut self.rgb32f, &part.rgb32f) {
-            all[start..start + band.len()].copy_from_slice(band);
-        }
+        Composited { rows, raster, samples_skipped, seconds: started.elapsed().as_secs_f64() }
     }
 }
