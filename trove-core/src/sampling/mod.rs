@@ -38,12 +38,14 @@
 mod bind;
 mod kernel;
 mod lanes;
-#[cfg(target_arch = "x86_64")]
+mod packed;
 mod packet;
+pub mod simd;
 mod skip;
 
 use std::sync::Arc;
 
+pub use simd::{SimdError, SimdPath};
 pub(crate) use skip::{ClassKey, Classes};
 
 use crate::composite::Rgba;
@@ -72,6 +74,10 @@ pub enum BindError {
         /// Dims of the volume handed in.
         found: crate::dataset::Dims,
     },
+    /// The SIMD path asked for (`TROVE_SIMD`, or [`ObjectCaster::on_path`]) is unknown or
+    /// not one this processor has.
+    #[error(transparent)]
+    Simd(#[from] SimdError),
 }
 
 /// What one object contributed over one piece.
@@ -172,7 +178,20 @@ impl<'a> ObjectCaster<'a> {
         opacity_correction: bool,
         options: CastOptions,
     ) -> Result<ObjectCaster<'a>, BindError> {
-        ObjectCaster::bind(object, volume, opacity_correction, options, None)
+        ObjectCaster::bind(object, volume, opacity_correction, options, None, SimdPath::configured()?)
+    }
+
+    /// [`ObjectCaster::with_options`] with the vector loops in `path` instead of the
+    /// configured one ([`SimdPath::configured`]); refused where the processor lacks it.
+    /// What tests and benchmarks use to run every path in one process.
+    pub fn on_path(
+        object: &'a Object,
+        volume: &'a Volume,
+        opacity_correction: bool,
+        options: CastOptions,
+        path: SimdPath,
+    ) -> Result<ObjectCaster<'a>, BindError> {
+        ObjectCaster::bind(object, volume, opacity_correction, options, None, path.checked()?)
     }
 
     /// [`ObjectCaster::with_options`] for a volume whose classifications `cache` keeps: the
@@ -185,15 +204,17 @@ impl<'a> ObjectCaster<'a> {
         options: CastOptions,
         cache: &'a dyn ClassificationCache,
     ) -> Result<ObjectCaster<'a>, BindError> {
-        ObjectCaster::bind(object, volume, opacity_correction, options, Some(cache))
+        ObjectCaster::bind(object, volume, opacity_correction, options, Some(cache), SimdPath::configured()?)
     }
 
+    /// Binds with the vector loops in `path`, which the processor has.
     fn bind(
         object: &'a Object,
         volume: &'a Volume,
         opacity_correction: bool,
         options: CastOptions,
         cache: Option<&'a dyn ClassificationCache>,
+        path: SimdPath,
     ) -> Result<ObjectCaster<'a>, BindError> {
         let expected = object.placement().dims();
         if volume.dims() != expected {
@@ -219,6 +240,7 @@ impl<'a> ObjectCaster<'a> {
             correction: opacity_correction,
             classify_upfront: options.classify_upfront,
             cache,
+            path,
         };
         let skip = if options.skip_empty_space { skipper(object, volume) } else { None };
         let kernel = if options.specialise {
@@ -235,15 +257,20 @@ impl<'a> ObjectCaster<'a> {
     }
 
     /// Whether straight lines are cast eight samples at a time in AVX2 registers (trilinear
-    /// over u8 or u16 with LUT or ramp maps, where the processor has AVX2).
+    /// over u8 or u16 with LUT or ramp maps, on the AVX2 and AVX-512 paths).
     pub fn uses_avx2(&self) -> bool {
         self.kernel.uses_avx2()
     }
 
-    /// Whether [`ObjectCaster::cast_many`] casts straight pieces sixteen at a time in AVX-512
-    /// registers (objects with the AVX2 loop, where the processor has AVX-512).
+    /// Whether [`ObjectCaster::cast_many`] casts straight pieces many at a time in f32 lanes
+    /// (trilinear over u8 or u16 with a small LUT or ramp map whose numbers fit f32).
     pub fn casts_packets(&self) -> bool {
-        self.kernel.casts_packets()
+        self.kernel.packet_path().is_some()
+    }
+
+    /// The instruction set [`ObjectCaster::cast_many`] casts in, where it casts packets.
+    pub fn packet_path(&self) -> Option<SimdPath> {
+        self.kernel.packet_path()
     }
 
     /// Whether the cast jumps over empty macrocells (off when the opacity map is zero
@@ -267,9 +294,9 @@ impl<'a> ObjectCaster<'a> {
     }
 
     /// [`ObjectCaster::cast`] for each of `pieces`, result `i` into `out[i]`, computed
-    /// several pieces at a time where the object's loop can (sixteen straight pieces in f32
-    /// AVX-512 lanes at once, [`ObjectCaster::casts_packets`], whose results differ from
-    /// `cast`'s by rounding).
+    /// several pieces at a time where the object's loop can (straight pieces in f32 lanes,
+    /// sixteen to a register on AVX-512, [`ObjectCaster::casts_packets`], whose results
+    /// differ from `cast`'s by rounding).
     ///
     /// # Panics
     /// If `out` is shorter than `pieces`.
