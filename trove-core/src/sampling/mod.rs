@@ -20,20 +20,33 @@
 //!   the commonest combination: trilinear over u8 or u16 voxels with LUT or ramp maps that
 //!   merge into a small joint map. It runs the generic loop's operations in its order, so
 //!   it changes no sample.
-//! * `packet.rs` casts a batch's straight pieces of such an object sixteen at a time, one
-//!   per f32 lane of an AVX-512 register (two registers side by side), pipelined one sample
-//!   ahead ([`ObjectCaster::cast_many`], what `BatchCaster` calls): across rays there is no
-//!   compositing chain to wait on. `lanes/avx512.rs` holds the f32 forms of the object's
-//!   grid and map it reads and its sixteen-lane steps. In f32 a piece's result agrees with
-//!   the f64 loops to rounding (tests hold it to 1e-5), a value within rounding of a LUT
-//!   bound takes its segment from its f64 value so that no sample changes class, and jumps
-//!   over empty cells widen their margins by f32's rounding.
+//! * `packet.rs` casts a batch's straight pieces of such an object many at a time, one per
+//!   f32 lane, two registers side by side, pipelined one sample ahead
+//!   ([`ObjectCaster::cast_many`], what `BatchCaster` calls): across rays there is no
+//!   compositing chain to wait on. `packed.rs` holds the f32 forms of the object's grid and
+//!   map and the steps over them (cells, index, trilinear value, segment, classification).
+//!   In f32 a piece's result agrees with the f64 loops to rounding (tests hold it to 1e-5
+//!   per piece, and images to 1/255, on every path), a value within rounding of a LUT bound
+//!   takes its segment from its f64 value so that no sample changes class, and jumps over
+//!   empty cells widen their margins by f32's rounding.
+//! * `simd.rs` is what `packet.rs` and `packed.rs` are written in, once: a [`simd`] trait
+//!   of lane operations with one implementation per instruction set (`simd/avx512.rs`:
+//!   sixteen lanes, `simd/avx2.rs`: eight, with FMA, `simd/neon.rs`: four,
+//!   `simd/scalar.rs`: eight in plain arrays), each entry point compiled with its
+//!   instruction set's `#[target_feature]` so that the intrinsics inline into one loop per
+//!   set. [`SimdPath`] names them: the widest the processor has runs unless `TROVE_SIMD`
+//!   names another, and a path the processor lacks is refused ([`BindError::Simd`]), never
+//!   quietly replaced; [`ObjectCaster::on_path`] forces one in-process (tests and benchmarks
+//!   run every path the machine has), and `--stats` reports the path (`simd`).
 //! * `skip.rs` jumps over empty macrocells: walking cells, or, where cells were classified
 //!   at bind, leaping out of a cube of empty ones by each cell's distance to the nearest
 //!   non-empty cell; its margins keep every jump from passing a sample that is not empty.
 //!
-//! Without AVX2, or on other targets, the generic loop runs; without AVX-512,
-//! [`ObjectCaster::cast_many`] casts its pieces one by one.
+//! On the AVX2 and AVX-512 paths single pieces ([`ObjectCaster::cast`]) go through
+//! `lanes.rs`; on the scalar and NEON paths, and for other combinations, through the
+//! generic loop. The packet loop runs on every path. The NEON implementation is compiled
+//! (`cargo check --target aarch64-unknown-linux-gnu`) but has not been run: no ARM machine
+//! was at hand.
 
 mod bind;
 mod kernel;
@@ -342,5 +355,7 @@ pub fn corrected_opacity(opacity: f64, ell: f64) -> f64 {
     }
 }
 
+#[cfg(test)]
+mod simd_tests;
 #[cfg(test)]
 mod tests;

@@ -680,3 +680,25 @@ fn values_near_a_lut_bound_are_classified_as_the_f64_loop_classifies_them() {
     casts_agree(&o, &vol, false, &rays);
     assert!(ObjectCaster::new(&o, &vol, false).unwrap().casts_packets());
 }
+
+#[test]
+fn binding_on_a_path_the_processor_lacks_is_refused() {
+    let dims = Dims::new([9, 8, 7]).unwrap();
+    let values = sparse(dims, 3, 4);
+    let vol = volume(dims, vec![(ChannelName::Voxel, channel(VoxelType::U8, Endian::Little, &values, dims))]);
+    let (size, at) = (1.0, DVec3::new(-0.5, -0.5, -0.5));
+    let o = object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, affine(size, at), Extent::FULL, dims);
+    for path in SimdPath::ALL {
+        match ObjectCaster::on_path(&o, &vol, false, CastOptions::default(), path) {
+            Ok(caster) => {
+                assert!(path.is_available());
+                assert_eq!(caster.packet_path(), Some(path));
+                assert_eq!(caster.uses_avx2(), matches!(path, SimdPath::Avx2 | SimdPath::Avx512));
+            }
+            Err(BindError::Simd(SimdError::Unavailable { path: refused, .. })) => {
+                assert!(!path.is_available() && refused == path);
+            }
+            Err(e) => panic!("{path}: {e}"),
+        }
+    }
+}
