@@ -32,7 +32,7 @@
 //! * `simd.rs` is what `packet.rs` and `packed.rs` are written in, once: a [`simd`] trait
 //!   of lane operations with one implementation per instruction set (`simd/avx512.rs`:
 //!   sixteen lanes, `simd/avx2.rs`: eight, with FMA, `simd/neon.rs`: four,
-//!   `simd/scalar.rs`: eight in plain arrays), each entry point compiled with its
+//!   `simd/scalar.rs`: four in plain arrays), each entry point compiled with its
 //!   instruction set's `#[target_feature]` so that the intrinsics inline into one loop per
 //!   set. [`SimdPath`] names them: the widest the processor has runs unless `TROVE_SIMD`
 //!   names another, and a path the processor lacks is refused ([`BindError::Simd`]), never

@@ -2,7 +2,7 @@
 //! with a small joint LUT or ramp map when it casts many pieces at once (a batch of
 //! Algorithm 2, a farm batch): [`Packets`]. The loop is written once over a SIMD width
 //! ([`Simd`]) and compiled for each instruction set ([`SimdPath`]): two registers of
-//! sixteen lanes on AVX-512, of eight on AVX2 with FMA, of four on NEON, and of eight plain
+//! sixteen lanes on AVX-512, of eight on AVX2 with FMA, of four on NEON, and of four plain
 //! array lanes anywhere.
 //!
 //! Along one ray, compositing is a chain (each sample waits for the opacity before it) and

@@ -4,7 +4,7 @@
 //! [`Simd`] is a handful of f32 and i32 lane operations: arithmetic, comparisons giving lane
 //! masks, selects, gathers and a small table lookup. Each instruction set implements it for
 //! its own registers ([`avx512`]: sixteen lanes, [`avx2`]: eight with FMA, [`neon`]: four,
-//! [`scalar`]: eight lanes in plain arrays that any target compiles), and the packet loop is
+//! [`scalar`]: four lanes in plain arrays that any target compiles), and the packet loop is
 //! one generic body monomorphised per implementation. Every method is `#[inline(always)]` and
 //! every entry point into the body carries its instruction set's `#[target_feature]`, so the
 //! intrinsics inline into one loop per instruction set (as Open VKL's ISPC targets do, and

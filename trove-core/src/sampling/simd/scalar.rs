@@ -7,9 +7,10 @@
 
 use super::Simd;
 
-/// Lanes per "register": as many as AVX2's, so that the two halves the loop keeps in flight
-/// give the compiler as much independent work.
-pub(in crate::sampling) const LANES: usize = 8;
+/// Lanes per "register": four, the width of an SSE2 or NEON register, so that where the
+/// compiler vectorises an array's lanes they fill one register (eight were 7–15% slower on
+/// the CT head and the synthetic volume, BENCHMARKS.md, issue 19).
+pub(in crate::sampling) const LANES: usize = 4;
 
 /// The token: always available.
 #[derive(Clone, Copy, Debug)]
