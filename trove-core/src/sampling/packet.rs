@@ -644,12 +644,12 @@ impl Cast<'_, '_, '_> {
     fn empty_lanes<S: Simd>(&self, s: S, skip: &Skipper<'_>, lanes: &mut Lanes, h: usize, x0: [S::F; 3]) -> u32 {
         let base = [integers(s, x0[0]), integers(s, x0[1]), integers(s, x0[2])];
         let mut empty = 0;
-        for l in 0..S::LANES {
+        for (l, ((&x, &y), &z)) in base[0].iter().zip(&base[1]).zip(&base[2]).take(S::LANES).enumerate() {
             let lane = S::LANES * h + l;
             if lanes.piece[lane].is_none() {
                 continue;
             }
-            let c = cell_of([base[0][l] as u32, base[1][l] as u32, base[2][l] as u32]);
+            let c = cell_of([x as u32, y as u32, z as u32]);
             if c != lanes.cell[lane] {
                 lanes.cell[lane] = c;
                 lanes.empty[lane] = skip.is_empty(&self.packets.interp, Level::Fine, c);

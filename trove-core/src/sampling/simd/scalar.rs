@@ -61,7 +61,7 @@ fn test(a: F, b: F, f: impl Fn(f32, f32) -> bool) -> M {
 /// other side of zero.
 #[inline(always)]
 fn round(x: f32, up: bool) -> f32 {
-    if !(x.abs() < 8_388_608.0) {
+    if x.is_nan() || x.abs() >= 8_388_608.0 {
         return x;
     }
     let t = x as i32 as f32;
