@@ -10,6 +10,7 @@ mod coordinator;
 mod distorted;
 mod farm;
 mod farm_sim;
+mod machine;
 mod peers;
 mod stats;
 mod table1;
@@ -80,9 +81,9 @@ fn main() -> ExitCode {
     }
 }
 
-/// Renders `repeat` times (at least once) and keeps the run with the median total time: the
-/// machines are shared and noisy, so one fast run proves little. `each` sees every run as it
-/// finishes (for progress lines).
+/// Renders `repeat` times (at least once) and keeps the run with the median total time
+/// ([`stats::median_run`]): the machines are shared and noisy, so one fast run proves little.
+/// `each` sees every run as it finishes (for progress lines).
 fn median_render(
     scene: &Scene,
     options: &RenderOptions,
@@ -95,7 +96,5 @@ fn median_render(
         each(&r);
         runs.push(r);
     }
-    runs.sort_by(|a, b| a.stats.seconds.total.total_cmp(&b.stats.seconds.total));
-    let middle = runs.len() / 2;
-    Ok(runs.swap_remove(middle))
+    Ok(stats::median_run(runs))
 }

@@ -132,6 +132,7 @@ pub fn run(args: Args) -> Result<()> {
         println!("Python's `vtk` module is absent (pip install vtk): TROVE is timed alone.");
     }
     let pool = rayon::ThreadPoolBuilder::new().num_threads(args.threads).build()?;
+    println!("{}, {} threads\n", crate::machine::describe()?, args.threads);
     println!(
         "| scene | VTK re-render | TROVE volume rendering | VTK/TROVE (median of rounds) | VTK load + first | TROVE total | TROVE samples/s | RMSE VTK | RMSE TROVE |"
     );

@@ -1,5 +1,8 @@
 //! The one `median` every experiment reports, so that two tables of the same runs never
-//! disagree by which middle value each picked.
+//! disagree by which middle value each picked, and the run a table shows as the median
+//! run ([`median_run`]), chosen by it.
+
+use trove_core::render::Rendered;
 
 /// The median of `values`: for an even count, the mean of the two middle values, so that
 /// it leans towards neither the slower nor the faster of them; `None` for none. Sorting uses `f64::total_cmp`, so a NaN (a failed measurement's ratio) cannot
@@ -16,9 +19,36 @@ pub fn median(values: impl IntoIterator<Item = f64>) -> Option<f64> {
     }
 }
 
+/// The run with the median total time of `runs`: the middle one for an odd count; for an
+/// even count, whose [`median`] is the mean of the two middle times, the slower of those two
+/// runs (a run cannot be averaged, and the slower one does not flatter).
+///
+/// # Panics
+/// If `runs` is empty (every caller renders at least once).
+pub fn median_run(runs: Vec<Rendered>) -> Rendered {
+    median_item(runs, |r| r.stats.seconds.total).expect("at least one run")
+}
+
+/// The item of `items` whose `key` is the median, as [`median_run`] picks it.
+fn median_item<T>(mut items: Vec<T>, key: impl Fn(&T) -> f64) -> Option<T> {
+    if items.is_empty() {
+        return None;
+    }
+    items.sort_by(|a, b| key(a).total_cmp(&key(b)));
+    let middle = items.len() / 2;
+    Some(items.swap_remove(middle))
+}
+
 #[cfg(test)]
 mod tests {
-    use super::median;
+    use super::{median, median_item};
+
+    #[test]
+    fn the_median_item_is_the_middle_one_or_the_slower_of_the_two_middle_ones() {
+        assert_eq!(median_item(vec![3.0, 1.0, 2.0], |&x| x), Some(2.0));
+        assert_eq!(median_item(vec![4.0, 1.0, 3.0, 2.0], |&x| x), Some(3.0));
+        assert_eq!(median_item(Vec::<f64>::new(), |&x| x), None);
+    }
 
     #[test]
     fn an_odd_count_gives_the_middle_value_whatever_the_order() {

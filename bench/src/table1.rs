@@ -24,7 +24,7 @@ use trove_core::render::{Algorithm, RenderOptions, RenderStats, Rendered};
 use trove_core::scene::Scene;
 use trove_tests::Header;
 
-use crate::stats::median;
+use crate::stats::{median, median_run};
 
 /// `trove-bench table1` options.
 #[derive(clap::Args)]
@@ -118,6 +118,7 @@ fn run_in(args: &Args, dir: &Path) -> Result<()> {
     let dataset_bytes = 2 * (n as u64).pow(3);
     let budget = 15 * dataset_bytes / 4;
     let threads = rayon::current_num_threads();
+    println!("{}", crate::machine::describe()?);
     println!(
         "Table 1: 15 objects, {s}×{s} pixels, datasets {n}³ u16 ({} bytes each, {} files), memory budget {budget} bytes \
          (a quarter of the 15 datasets), {threads} threads",
@@ -224,13 +225,6 @@ fn alternate(
         }
     }
     Ok((runs_a, runs_b))
-}
-
-/// The run with the median total time.
-fn median_run(mut runs: Vec<Rendered>) -> Rendered {
-    runs.sort_by(|a, b| a.stats.seconds.total.total_cmp(&b.stats.seconds.total));
-    let middle = runs.len() / 2;
-    runs.swap_remove(middle)
 }
 
 /// `--shared-only`: the 15/1 configuration, per-ray and grouped alternately for `repeat`

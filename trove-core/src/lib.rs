@@ -29,4 +29,4 @@ pub use composite::Rgba;
 pub use error::{DatasetError, SceneError};
 pub use interp::Interpolation;
 pub use render::RenderError;
-pub use sampling::{corrected_opacity, CastOptions, ObjectCaster};
+pub use sampling::{corrected_opacity, CastOptions, ObjectCaster, SimdError, SimdPath};

@@ -3,6 +3,7 @@
 use serde::Serialize;
 
 use super::{Algorithm, StoreStats};
+use crate::sampling::SimdPath;
 use crate::scene::Scene;
 
 /// Wall-clock seconds per phase. The grouped algorithm runs its phases one after another,
@@ -30,6 +31,10 @@ pub struct Seconds {
 pub struct RenderStats {
     /// `per-ray` or `grouped`.
     pub algorithm: String,
+    /// The SIMD path the sampler's vector loops took in this process (`scalar`, `avx2`,
+    /// `avx512` or `neon`: [`SimdPath::configured`], which `TROVE_SIMD` forces). On a farm
+    /// it is the coordinator's; each worker takes its own processor's.
+    pub simd: String,
     /// Image width.
     pub width: u32,
     /// Image height.
@@ -73,6 +78,8 @@ impl RenderStats {
     /// the voxel store (or, in a farm, every worker's store together) did.
     pub fn finish(&mut self, scene: &Scene, algorithm: Algorithm, store: &StoreStats, budget: Option<u64>, total: f64) {
         self.algorithm = algorithm.name().to_string();
+        // A path refused would have refused every bind before the render got here.
+        self.simd = SimdPath::configured().map(|p| p.name().to_string()).unwrap_or_default();
         self.width = scene.image().width;
         self.height = scene.image().height;
         self.objects = scene.objects().len();
@@ -135,5 +142,35 @@ mod tests {
             ..part(11)
         };
         assert_eq!(a, expected);
+    }
+
+    #[test]
+    fn finishing_names_the_simd_path_the_sampler_took() {
+        let text = r#"
+[image]
+width = 2
+height = 2
+background = [0.0, 0.0, 0.0]
+[camera]
+eye = [0.5, 0.5, 3.0]
+target = [0.5, 0.5, 0.5]
+up = [0.0, 1.0, 0.0]
+fov_y = 30.0
+[[datasets]]
+name = "cube"
+dims = [2, 2, 2]
+[datasets.channels.voxel]
+generator = { kind = "constant", value = 9, type = "u8" }
+[[objects]]
+name = "cube"
+dataset = "cube"
+colour = { type = "lut", bounds = [5.0], colours = [[0, 0, 0], [1, 1, 1]] }
+opacity = { type = "lut", bounds = [5.0], values = [0.0, 0.5] }
+"#;
+        let scene = Scene::parse(text, "stats.toml").unwrap();
+        let mut stats = RenderStats::default();
+        stats.finish(&scene, Algorithm::Grouped, &StoreStats::default(), None, 1.0);
+        assert_eq!(stats.simd, SimdPath::configured().unwrap().name());
+        assert!(!stats.simd.is_empty());
     }
 }

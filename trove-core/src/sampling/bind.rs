@@ -15,9 +15,12 @@ use super::kernel::{
     Cast, ColourFn, GeneralColour, GeneralOpacity, Kernel, Maps, MaybeVoxel, NoVoxel, OpacityFn, RawAlpha, RawRgb,
     Read, Separate,
 };
-use super::lanes::{Stored, Trilinear4};
 use std::sync::Arc;
 
+use super::lanes::Trilinear4;
+use super::packed::Stored;
+use super::packet::Packets;
+use super::simd::SimdPath;
 use super::skip::Skipper;
 use super::ClassificationCache;
 use crate::dataset::{ChannelReader, F32LeVoxels, U16LeVoxels, U8Voxels};
@@ -43,6 +46,8 @@ pub(super) struct Parts<'a> {
     pub classify_upfront: bool,
     /// Where the volume's classifications are kept, if anywhere.
     pub cache: Option<&'a dyn ClassificationCache>,
+    /// The instruction set the vector loops run in (one this processor has).
+    pub path: SimdPath,
 }
 
 impl<'a> Parts<'a> {
@@ -73,10 +78,11 @@ impl<'a> Parts<'a> {
         V: super::kernel::VoxelSource + 'a,
         M: Maps + 'a,
     {
-        self.kernel_with_lanes(interp, voxels, maps, skip, None)
+        self.kernel_with_lanes(interp, voxels, maps, skip, None, None)
     }
 
-    /// [`Parts::kernel`] with the AVX2 loop for its lines, when there is one.
+    /// [`Parts::kernel`] with the AVX2 loop for its lines and the packet loop for many
+    /// pieces, where there are.
     fn kernel_with_lanes<I, V, M>(
         &self,
         interp: I,
@@ -84,6 +90,7 @@ impl<'a> Parts<'a> {
         maps: M,
         skip: Option<Skipper<'a>>,
         lanes: Option<Trilinear4<'a>>,
+        packets: Option<Packets<'a>>,
     ) -> Bound<'a>
     where
         I: Interp + 'a,
@@ -91,7 +98,7 @@ impl<'a> Parts<'a> {
         M: Maps + 'a,
     {
         let skip = self.prepared(&interp, skip);
-        Box::new(Kernel { interp, voxels, maps, skip, correction: self.correction, specialised: true, lanes })
+        Box::new(Kernel { interp, voxels, maps, skip, correction: self.correction, specialised: true, lanes, packets })
     }
 
     /// The general loop.
@@ -113,6 +120,7 @@ impl<'a> Parts<'a> {
             correction: self.correction,
             specialised: false,
             lanes: None,
+            packets: None,
         })
     }
 
@@ -146,17 +154,24 @@ impl<'a> Parts<'a> {
     fn joint(&self, colour: &Piecewise<3>, opacity: &Piecewise<1>, skip: Option<Skipper<'a>>) -> Choice<'a> {
         let maps = JointPiecewise::new(colour, opacity);
         if let (Interpolation::Trilinear, Some(voxel)) = (self.object.interpolation(), self.voxel) {
-            // Trilinear over u8 or u16: the AVX2 loop where the processor has it.
+            // Trilinear over u8 or u16: lines in AVX2 where the path is AVX2 or AVX-512, and
+            // many pieces at once in f32 lanes on every path.
             let interp = Linear::new(self.dims, Identity);
-            let range = skip.as_ref().and_then(Skipper::value_range);
-            let lanes = |stored| Trilinear4::new(&interp, stored, &maps, range);
-            if let Some(v) = U8Voxels::of(voxel) {
-                if let Some(lanes) = lanes(Stored::U8(v)) {
-                    return Ok(self.kernel_with_lanes(interp, Read(v), maps, skip, Some(lanes)));
-                }
-            } else if let Some(v) = U16LeVoxels::of(voxel) {
-                if let Some(lanes) = lanes(Stored::U16(v)) {
-                    return Ok(self.kernel_with_lanes(interp, Read(v), maps, skip, Some(lanes)));
+            let stored = match (U8Voxels::of(voxel), U16LeVoxels::of(voxel)) {
+                (Some(v), _) => Some(Stored::U8(v)),
+                (None, Some(v)) => Some(Stored::U16(v)),
+                (None, None) => None,
+            };
+            if let Some(stored) = stored {
+                let avx2 = matches!(self.path, SimdPath::Avx2 | SimdPath::Avx512);
+                let lanes = if avx2 { Trilinear4::new(&interp, stored, &maps) } else { None };
+                let range = skip.as_ref().and_then(Skipper::value_range);
+                let packets = Packets::new(&interp, stored, &maps, range, self.path);
+                if lanes.is_some() || packets.is_some() {
+                    return Ok(match stored {
+                        Stored::U8(v) => self.kernel_with_lanes(interp, Read(v), maps, skip, lanes, packets),
+                        Stored::U16(v) => self.kernel_with_lanes(interp, Read(v), maps, skip, lanes, packets),
+                    });
                 }
             }
         }

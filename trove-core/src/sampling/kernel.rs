@@ -7,6 +7,8 @@
 //! tested against.
 
 use super::lanes::{Located, Trilinear4};
+use super::packet::{Line, Packets};
+use super::simd::SimdPath;
 use super::skip::{cell_of, Jumps, Skipper};
 use super::{corrected_opacity, PieceResult};
 use crate::composite::Rgba;
@@ -40,8 +42,9 @@ pub(super) trait Cast: Send + Sync {
     fn skips(&self) -> bool;
     /// Whether lines are cast in AVX2 registers (for tests).
     fn uses_avx2(&self) -> bool;
-    /// Whether [`Cast::cast_many`] casts sixteen pieces at a time in AVX-512 registers.
-    fn casts_packets(&self) -> bool;
+    /// The instruction set [`Cast::cast_many`] casts many pieces at a time in, one per f32
+    /// lane ([`super::packet`]), if it does.
+    fn packet_path(&self) -> Option<SimdPath>;
 }
 
 /// The value of the `voxel` channel at a sample, if the maps read it.
@@ -236,6 +239,8 @@ pub(super) struct Kernel<'a, I, V, M> {
     pub specialised: bool,
     /// The group's work in AVX2 registers, for the combinations that have it.
     pub lanes: Option<Trilinear4<'a>>,
+    /// Many pieces at a time in f32 lanes, for the combinations that have it.
+    pub packets: Option<Packets<'a>>,
 }
 
 /// Where a group's samples are: one stencil each, or the AVX2 loop's lanes.
@@ -409,15 +414,22 @@ impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
     }
 
     fn cast_many(&self, pieces: Vec<(usize, SampleWalk<'_>, f64, f64)>, out: &mut [PieceResult]) {
-        #[cfg(target_arch = "x86_64")]
-        if let Some((fast, packed)) = self.lanes.as_ref().and_then(|fast| Some((fast, fast.packed()?))) {
-            // SAFETY: `packed` exists only where the processor has AVX-512.
-            unsafe { self.cast_many_packed(fast, packed, pieces, out) };
+        let Some(packets) = &self.packets else {
+            for (slot, walk, alpha_in, stop_at) in pieces {
+                out[slot] = self.cast(walk, alpha_in, stop_at);
+            }
             return;
-        }
+        };
+        // Straight pieces in lanes; the others (exact distorted walks, lines too long for
+        // f32 indices) one by one.
+        let mut lines = Vec::with_capacity(pieces.len());
         for (slot, walk, alpha_in, stop_at) in pieces {
-            out[slot] = self.cast(walk, alpha_in, stop_at);
+            match walk.line().filter(Line::fits) {
+                Some(line) => lines.push(Line { slot, line, alpha_in, stop_at }),
+                None => out[slot] = self.cast(walk, alpha_in, stop_at),
+            }
         }
+        packets.cast(self.skip.as_ref(), self.correction, &lines, out);
     }
 
     fn is_specialised(&self) -> bool {
@@ -432,7 +444,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
         self.lanes.is_some()
     }
 
-    fn casts_packets(&self) -> bool {
-        self.lanes.as_ref().is_some_and(|fast| fast.packed().is_some())
+    fn packet_path(&self) -> Option<SimdPath> {
+        self.packets.as_ref().map(Packets::path)
     }
 }

@@ -9,22 +9,20 @@
 //! operation by operation in the same order, and x86's `min`/`max` get the operand order
 //! that makes NaN and signed zeros come out as Rust's `clamp` and `min` do. Rust never fuses
 //! a multiply and an add, so every lane is the scalar sample bit for bit, and images do not
-//! depend on which path ran (tests compare the two). Without AVX2, or on other targets, the
-//! generic loop runs.
+//! depend on which path ran (tests compare the two). Without AVX2, on other targets, or
+//! where the scalar or NEON path is chosen ([`super::simd::SimdPath`]), the generic loop
+//! runs.
 //!
-//! The f32 forms and sixteen-lane steps that the AVX-512 packet loop casts such an object
-//! with, which agree with these only to within rounding, are in [`avx512`].
+//! The f32 packet loop that casts many pieces of such an object at once, and agrees with
+//! this loop only to within rounding, is [`super::packet`].
 
 // Elsewhere no `Trilinear4` is ever made, and what serves the AVX2 bodies goes unused.
-#![cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+#![cfg_attr(not(target_arch = "x86_64"), allow(dead_code, unused_variables))]
 
-pub(super) mod avx512;
-
-use crate::dataset::{U16LeVoxels, U8Voxels, Voxels};
+use super::packed::Stored;
 use crate::geometry::LineSamples;
 use crate::interp::{Identity, Linear};
 use crate::mapping::{JointPiecewise, SMALL_MAP};
-use avx512::{has_avx512, Packed};
 
 /// Where the L samples of a group are: their cells' lower corners and weights.
 pub(super) struct Located<const L: usize> {
@@ -62,23 +60,13 @@ pub(super) struct Trilinear4<'a> {
 
     /// Per joint segment, field by field ([`JointPiecewise::tables`]).
     tables: [Vec<f64>; 12],
-    /// The f32 forms [`super::packet`] casts with, where the processor has AVX-512 F, DQ
-    /// and VL and the map's numbers are finite in f32.
-    packed: Option<Box<Packed>>,
 }
 
 impl<'a> Trilinear4<'a> {
     /// The loop for `interp` over `voxels` with `maps`, where the processor has AVX2, the
     /// map at most [`SMALL_MAP`] break points and the dataset fewer than 2³⁰ voxels (so
     /// indices and their neighbours' fit in i32 lanes).
-    ///
-    /// `range` is the channel's range of values where it is known (else its type's).
-    pub(super) fn new(
-        interp: &Linear<Identity>,
-        voxels: Stored<'a>,
-        maps: &JointPiecewise,
-        range: Option<[f64; 2]>,
-    ) -> Option<Self> {
+    pub(super) fn new(interp: &Linear<Identity>, voxels: Stored<'a>, maps: &JointPiecewise) -> Option<Self> {
         if !has_avx2() {
             return None;
         }
@@ -89,40 +77,16 @@ impl<'a> Trilinear4<'a> {
         }
         let (rule, offsets) = interp.rule();
         let [nx, ny, _] = dims.as_array();
-        let width = if voxels.is_wide() { 2 } else { 1 };
-        let reach = (voxels.bytes().len() as i64 - 4).div_euclid(width) - (offsets[1] + offsets[2]) as i64;
         Some(Trilinear4 {
             voxels,
             rule,
             offsets: offsets.map(|o| o as i32),
             nx: nx as i32,
             ny: ny as i32,
-            safe: reach.clamp(-1, i32::MAX as i64) as i32,
+            safe: voxels.safe_corner(offsets[1], offsets[2]),
             breaks: breaks.to_vec(),
-            packed: has_avx512()
-                .then(|| {
-                    let type_range = [0.0, if voxels.is_wide() { f64::from(u16::MAX) } else { f64::from(u8::MAX) }];
-                    Packed::new(&rule, dims.voxel_count(), breaks, &tables, range.unwrap_or(type_range))
-                })
-                .flatten()
-                .map(Box::new),
             tables,
         })
-    }
-
-    /// What the sixteen-lane loop of [`super::packet`] needs, where the processor has it.
-    pub(super) fn packed(&self) -> Option<&Packed> {
-        self.packed.as_deref()
-    }
-
-    /// Voxels along x and y.
-    pub(super) fn nx_ny(&self) -> (u32, u32) {
-        (self.nx as u32, self.ny as u32)
-    }
-
-    /// The map's break points (f64), which the f32 lanes count themselves near a jump.
-    pub(super) fn breaks(&self) -> &[f64] {
-        &self.breaks
     }
 
     /// Samples k, k + 1, … of `line` located (lanes from `m` on repeat sample k + m − 1).
@@ -147,36 +111,6 @@ impl<'a> Trilinear4<'a> {
         }
         #[cfg(not(target_arch = "x86_64"))]
         unreachable!("no Trilinear4 is made without AVX2")
-    }
-}
-
-/// The voxel channels the AVX2 loop reads.
-#[derive(Clone, Copy, Debug)]
-pub(super) enum Stored<'a> {
-    U8(U8Voxels<'a>),
-    U16(U16LeVoxels<'a>),
-}
-
-impl<'a> Stored<'a> {
-    fn bytes(&self) -> &'a [u8] {
-        match self {
-            Stored::U8(v) => v.bytes(),
-            Stored::U16(v) => v.bytes(),
-        }
-    }
-
-    /// Two bytes per voxel.
-    fn is_wide(&self) -> bool {
-        matches!(self, Stored::U16(_))
-    }
-
-    /// Voxels `i` and `i + dx` ([`Voxels::pair`]).
-    #[inline]
-    pub(super) fn pair(&self, i: usize, dx: usize) -> [f64; 2] {
-        match self {
-            Stored::U8(v) => v.pair(i, dx),
-            Stored::U16(v) => v.pair(i, dx),
-        }
     }
 }
 

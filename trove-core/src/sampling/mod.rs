@@ -20,30 +20,45 @@
 //!   the commonest combination: trilinear over u8 or u16 voxels with LUT or ramp maps that
 //!   merge into a small joint map. It runs the generic loop's operations in its order, so
 //!   it changes no sample.
-//! * `packet.rs` casts a batch's straight pieces of such an object sixteen at a time, one
-//!   per f32 lane of an AVX-512 register (two registers side by side), pipelined one sample
-//!   ahead ([`ObjectCaster::cast_many`], what `BatchCaster` calls): across rays there is no
-//!   compositing chain to wait on. `lanes/avx512.rs` holds the f32 forms of the object's
-//!   grid and map it reads and its sixteen-lane steps. In f32 a piece's result agrees with
-//!   the f64 loops to rounding (tests hold it to 1e-5), a value within rounding of a LUT
-//!   bound takes its segment from its f64 value so that no sample changes class, and jumps
-//!   over empty cells widen their margins by f32's rounding.
+//! * `packet.rs` casts a batch's straight pieces of such an object many at a time, one per
+//!   f32 lane, two registers side by side, pipelined one sample ahead
+//!   ([`ObjectCaster::cast_many`], what `BatchCaster` calls): across rays there is no
+//!   compositing chain to wait on. `packed.rs` holds the f32 forms of the object's grid and
+//!   map and the steps over them (cells, index, trilinear value, segment, classification).
+//!   In f32 a piece's result agrees with the f64 loops to rounding (tests hold it to 1e-5
+//!   per piece, and images to 1/255, on every path), a value within rounding of a LUT bound
+//!   takes its segment from its f64 value so that no sample changes class, and jumps over
+//!   empty cells widen their margins by f32's rounding.
+//! * `simd.rs` is what `packet.rs` and `packed.rs` are written in, once: a [`simd`] trait
+//!   of lane operations with one implementation per instruction set (`simd/avx512.rs`:
+//!   sixteen lanes, `simd/avx2.rs`: eight, with FMA, `simd/neon.rs`: four,
+//!   `simd/scalar.rs`: four in plain arrays), each entry point compiled with its
+//!   instruction set's `#[target_feature]` so that the intrinsics inline into one loop per
+//!   set. [`SimdPath`] names them: the widest the processor has runs unless `TROVE_SIMD`
+//!   names another, and a path the processor lacks is refused ([`BindError::Simd`]), never
+//!   quietly replaced; [`ObjectCaster::on_path`] forces one in-process (tests and benchmarks
+//!   run every path the machine has), and `--stats` reports the path (`simd`).
 //! * `skip.rs` jumps over empty macrocells: walking cells, or, where cells were classified
 //!   at bind, leaping out of a cube of empty ones by each cell's distance to the nearest
 //!   non-empty cell; its margins keep every jump from passing a sample that is not empty.
 //!
-//! Without AVX2, or on other targets, the generic loop runs; without AVX-512,
-//! [`ObjectCaster::cast_many`] casts its pieces one by one.
+//! On the AVX2 and AVX-512 paths single pieces ([`ObjectCaster::cast`]) go through
+//! `lanes.rs`; on the scalar and NEON paths, and for other combinations, through the
+//! generic loop. The packet loop runs on every path. The NEON implementation is compiled
+//! (`cargo check --target aarch64-unknown-linux-gnu`) but has not been run: no ARM machine
+//! was at hand.
 
 mod bind;
 mod kernel;
 mod lanes;
-#[cfg(target_arch = "x86_64")]
+mod packed;
 mod packet;
+pub mod simd;
 mod skip;
 
 use std::sync::Arc;
 
+pub use simd::{SimdError, SimdPath};
 pub(crate) use skip::{ClassKey, Classes};
 
 use crate::composite::Rgba;
@@ -72,6 +87,10 @@ pub enum BindError {
         /// Dims of the volume handed in.
         found: crate::dataset::Dims,
     },
+    /// The SIMD path asked for (`TROVE_SIMD`, or [`ObjectCaster::on_path`]) is unknown or
+    /// not one this processor has.
+    #[error(transparent)]
+    Simd(#[from] SimdError),
 }
 
 /// What one object contributed over one piece.
@@ -172,7 +191,20 @@ impl<'a> ObjectCaster<'a> {
         opacity_correction: bool,
         options: CastOptions,
     ) -> Result<ObjectCaster<'a>, BindError> {
-        ObjectCaster::bind(object, volume, opacity_correction, options, None)
+        ObjectCaster::bind(object, volume, opacity_correction, options, None, SimdPath::configured()?)
+    }
+
+    /// [`ObjectCaster::with_options`] with the vector loops in `path` instead of the
+    /// configured one ([`SimdPath::configured`]); refused where the processor lacks it.
+    /// What tests and benchmarks use to run every path in one process.
+    pub fn on_path(
+        object: &'a Object,
+        volume: &'a Volume,
+        opacity_correction: bool,
+        options: CastOptions,
+        path: SimdPath,
+    ) -> Result<ObjectCaster<'a>, BindError> {
+        ObjectCaster::bind(object, volume, opacity_correction, options, None, path.checked()?)
     }
 
     /// [`ObjectCaster::with_options`] for a volume whose classifications `cache` keeps: the
@@ -185,15 +217,17 @@ impl<'a> ObjectCaster<'a> {
         options: CastOptions,
         cache: &'a dyn ClassificationCache,
     ) -> Result<ObjectCaster<'a>, BindError> {
-        ObjectCaster::bind(object, volume, opacity_correction, options, Some(cache))
+        ObjectCaster::bind(object, volume, opacity_correction, options, Some(cache), SimdPath::configured()?)
     }
 
+    /// Binds with the vector loops in `path`, which the processor has.
     fn bind(
         object: &'a Object,
         volume: &'a Volume,
         opacity_correction: bool,
         options: CastOptions,
         cache: Option<&'a dyn ClassificationCache>,
+        path: SimdPath,
     ) -> Result<ObjectCaster<'a>, BindError> {
         let expected = object.placement().dims();
         if volume.dims() != expected {
@@ -219,6 +253,7 @@ impl<'a> ObjectCaster<'a> {
             correction: opacity_correction,
             classify_upfront: options.classify_upfront,
             cache,
+            path,
         };
         let skip = if options.skip_empty_space { skipper(object, volume) } else { None };
         let kernel = if options.specialise {
@@ -235,15 +270,20 @@ impl<'a> ObjectCaster<'a> {
     }
 
     /// Whether straight lines are cast eight samples at a time in AVX2 registers (trilinear
-    /// over u8 or u16 with LUT or ramp maps, where the processor has AVX2).
+    /// over u8 or u16 with LUT or ramp maps, on the AVX2 and AVX-512 paths).
     pub fn uses_avx2(&self) -> bool {
         self.kernel.uses_avx2()
     }
 
-    /// Whether [`ObjectCaster::cast_many`] casts straight pieces sixteen at a time in AVX-512
-    /// registers (objects with the AVX2 loop, where the processor has AVX-512).
+    /// Whether [`ObjectCaster::cast_many`] casts straight pieces many at a time in f32 lanes
+    /// (trilinear over u8 or u16 with a small LUT or ramp map whose numbers fit f32).
     pub fn casts_packets(&self) -> bool {
-        self.kernel.casts_packets()
+        self.kernel.packet_path().is_some()
+    }
+
+    /// The instruction set [`ObjectCaster::cast_many`] casts in, where it casts packets.
+    pub fn packet_path(&self) -> Option<SimdPath> {
+        self.kernel.packet_path()
     }
 
     /// Whether the cast jumps over empty macrocells (off when the opacity map is zero
@@ -267,9 +307,9 @@ impl<'a> ObjectCaster<'a> {
     }
 
     /// [`ObjectCaster::cast`] for each of `pieces`, result `i` into `out[i]`, computed
-    /// several pieces at a time where the object's loop can (sixteen straight pieces in f32
-    /// AVX-512 lanes at once, [`ObjectCaster::casts_packets`], whose results differ from
-    /// `cast`'s by rounding).
+    /// several pieces at a time where the object's loop can (straight pieces in f32 lanes,
+    /// sixteen to a register on AVX-512, [`ObjectCaster::casts_packets`], whose results
+    /// differ from `cast`'s by rounding).
     ///
     /// # Panics
     /// If `out` is shorter than `pieces`.
@@ -315,5 +355,7 @@ pub fn corrected_opacity(opacity: f64, ell: f64) -> f64 {
     }
 }
 
+#[cfg(test)]
+mod simd_tests;
 #[cfg(test)]
 mod tests;

@@ -1,40 +1,46 @@
-//! Sixteen pieces at a time, one per f32 lane of an AVX-512 register (two registers side
-//! by side), for an object with the vector loop ([`super::lanes`]) when it casts many
-//! pieces at once (a batch of Algorithm 2, a farm batch) on a processor with AVX-512.
+//! Many pieces at a time, one per f32 lane, for a trilinear object over u8 or u16 voxels
+//! with a small joint LUT or ramp map when it casts many pieces at once (a batch of
+//! Algorithm 2, a farm batch): [`Packets`]. The loop is written once over a SIMD width
+//! ([`Simd`]) and compiled for each instruction set ([`SimdPath`]): two registers of
+//! sixteen lanes on AVX-512, of eight on AVX2 with FMA, of four on NEON, and of four plain
+//! array lanes anywhere.
 //!
 //! Along one ray, compositing is a chain (each sample waits for the opacity before it) and
 //! a group of samples needs a long sequence of dependent steps, so the processor cannot run
 //! far enough ahead to keep its units busy. Across rays there is no chain: each lane walks
 //! its own piece sample by sample, and each step (position, cell, voxels, map, compositing)
-//! does sixteen pieces' samples in one register. A lane whose piece ends (its last sample,
-//! or the opacity at which it may stop) takes the batch's next piece. Neighbouring pieces of
-//! a batch are neighbouring pixels, so the lanes read nearby voxels.
+//! does a register's worth of pieces' samples at once. Two registers ("halves") go side by
+//! side, so that their chains of dependent steps interleave. A lane whose piece ends (its
+//! last sample, or the opacity at which it may stop) takes the batch's next piece.
+//! Neighbouring pieces of a batch are neighbouring pixels, so the lanes read nearby voxels.
 //!
 //! Each lane runs the operations the single-sample loop runs for its piece, in the same
-//! order, in f32 ([`Packed`]): sixteen lanes to a register halve the
-//! instructions per sample against f64. Sample k is where the f64 loop puts it up to a few
-//! f32 roundings (about 1e-7 of the coordinates), so results differ from
-//! [`super::kernel::Cast::cast`]'s by rounding (tests bound it); a value that rounding could
-//! move across a LUT bound takes its segment from the f64 value, so no sample changes
-//! class. Jumps over empty cells widen their margins by f32's rounding of positions
-//! ([`Jumps::for_f32`]), and a sample is tested empty by the cell of its f32 base, which is
-//! where its f32 value reads: skipping changes no result.
+//! order, in f32 ([`Packed`]): a register holds twice as many f32 lanes as f64 ones. Sample
+//! k is where the f64 loop puts it up to a few f32 roundings (about 1e-7 of the
+//! coordinates), so results differ from the f64 loops' by rounding (tests bound it to 1e-5
+//! per piece on every path); a value that rounding could move across a LUT bound takes its
+//! segment from the f64 value, so no sample changes class. Jumps over empty cells widen
+//! their margins by f32's rounding of positions ([`Jumps::for_f32`]), and a sample is tested
+//! empty by the cell of its f32 base, which is where its f32 value reads: skipping changes
+//! no result.
 
-use std::arch::x86_64::*;
-
-use super::kernel::{Cast, Kernel, Maps, VoxelSource};
-use super::lanes::avx512::{floor, Packed};
-use super::lanes::Trilinear4;
+use super::packed::{Grid, Packed, Stored};
+use super::simd::avx2::Avx2;
+use super::simd::avx512::Avx512;
+use super::simd::neon::Neon;
+use super::simd::scalar::Scalar;
+use super::simd::{Simd, SimdPath};
 use super::skip::{cell_of, FineClasses, Jumps, Skipper};
 use super::{corrected_opacity, PieceResult};
 use crate::composite::Rgba;
 use crate::dataset::macrocell::{Level, MACROCELL_SHIFT};
-use crate::geometry::{LineSamples, SampleWalk};
-use crate::interp::Interp;
+use crate::geometry::LineSamples;
+use crate::interp::{Identity, Interp, Linear};
+use crate::mapping::{JointPiecewise, SMALL_MAP};
 
 /// A straight piece waiting for a lane: its slot in the results, its samples, the opacity
 /// in front of it and where it may stop.
-struct Line {
+pub(super) struct Line {
     pub slot: usize,
     pub line: LineSamples,
     pub alpha_in: f64,
@@ -43,67 +49,165 @@ struct Line {
 
 impl Line {
     /// Whether a lane can cast it: sample indices must be exact in f32.
-    fn fits(line: &LineSamples) -> bool {
+    pub(super) fn fits(line: &LineSamples) -> bool {
         line.len() < 1 << 24
     }
 }
 
-/// Lanes per register, and registers side by side: two halves of sixteen lanes, whose
-/// chains of dependent steps (position → cell → voxels → map → compositing) interleave in
-/// the processor, as two registers' groups do along a line ([`super::kernel::AVX2_LANES`]).
-const LANES: usize = 16;
+/// Registers side by side: two halves, whose chains of dependent steps (position → cell →
+/// voxels → map → compositing) interleave in the processor, as two registers' groups do
+/// along a line ([`super::kernel::AVX2_LANES`]).
 const HALVES: usize = 2;
-const W: usize = LANES * HALVES;
 
-/// Lanes idle (their pieces ended) before they all take new pieces.
-const REFILL_AT: usize = 8;
+/// Lanes of the widest path (AVX-512's sixteen, two halves): the size of the lane-by-lane
+/// arrays, of which a narrower path uses the first `LANES · HALVES`.
+const MAX_W: usize = 32;
+
+/// The instruction set a [`Packets`] runs in, as the token its loop needs.
+#[derive(Clone, Copy, Debug)]
+enum Token {
+    Avx512(Avx512),
+    Avx2(Avx2),
+    Neon(Neon),
+    Scalar(Scalar),
+}
+
+impl Token {
+    fn of(path: SimdPath) -> Option<Token> {
+        Some(match path {
+            SimdPath::Avx512 => Token::Avx512(Avx512::detect()?),
+            SimdPath::Avx2 => Token::Avx2(Avx2::detect()?),
+            SimdPath::Neon => Token::Neon(Neon::detect()?),
+            SimdPath::Scalar => Token::Scalar(Scalar),
+        })
+    }
+}
+
+/// One object's packet loop: the f32 forms of its grid and map, the f64 interpolation and
+/// break points it classifies values near a LUT bound with, and the instruction set.
+pub(super) struct Packets<'a> {
+    interp: Linear<Identity>,
+    grid: Grid<'a>,
+    packed: Packed,
+    breaks: Vec<f64>,
+    token: Token,
+}
+
+impl<'a> Packets<'a> {
+    /// The loop for `interp` over `voxels` with `maps` on `path`, where the processor has
+    /// it, the map has at most [`SMALL_MAP`] break points and finite f32 forms, and the
+    /// dataset fewer than 2³⁰ voxels (so indices and their neighbours' fit in i32 lanes).
+    /// `range` is the channel's range of values where it is known (else its type's).
+    pub(super) fn new(
+        interp: &Linear<Identity>,
+        voxels: Stored<'a>,
+        maps: &JointPiecewise,
+        range: Option<[f64; 2]>,
+        path: SimdPath,
+    ) -> Option<Packets<'a>> {
+        // Gathers read voxels, and macrocell bits, as little-endian words.
+        if cfg!(target_endian = "big") {
+            return None;
+        }
+        let token = Token::of(path)?;
+        let dims = interp.dims();
+        let (breaks, tables) = maps.tables();
+        if dims.voxel_count() >= 1 << 30 || breaks.len() > SMALL_MAP {
+            return None;
+        }
+        let (rule, offsets) = interp.rule();
+        let type_range = [0.0, if voxels.is_wide() { f64::from(u16::MAX) } else { f64::from(u8::MAX) }];
+        let packed = Packed::new(&rule, dims.voxel_count(), breaks, &tables, range.unwrap_or(type_range))?;
+        let [nx, ny, _] = dims.as_array();
+        let grid = Grid {
+            voxels,
+            offsets: offsets.map(|o| o as i32),
+            nx,
+            ny,
+            safe: voxels.safe_corner(offsets[1], offsets[2]),
+        };
+        Some(Packets { interp: *interp, grid, packed, breaks: breaks.to_vec(), token })
+    }
+
+    /// The instruction set the loop runs in.
+    pub(super) fn path(&self) -> SimdPath {
+        match self.token {
+            Token::Avx512(_) => SimdPath::Avx512,
+            Token::Avx2(_) => SimdPath::Avx2,
+            Token::Neon(_) => SimdPath::Neon,
+            Token::Scalar(_) => SimdPath::Scalar,
+        }
+    }
+
+    /// Casts `lines` (each [`Line::fits`]), writing each result to `out[line.slot]`;
+    /// `skip` is the object's empty-space skipper, `correction` whether opacity is
+    /// corrected for the step.
+    pub(super) fn cast(&self, skip: Option<&Skipper<'_>>, correction: bool, lines: &[Line], out: &mut [PieceResult]) {
+        let cast = Cast { packets: self, skip, correction, lines };
+        match self.token {
+            // SAFETY: a token exists only where the processor has its instructions.
+            Token::Avx512(s) => unsafe { cast.avx512(s, out) },
+            Token::Avx2(s) => unsafe { cast.avx2(s, out) },
+            Token::Neon(s) => unsafe { cast.neon(s, out) },
+            Token::Scalar(s) => cast.run(s, out),
+        }
+    }
+}
+
+/// One call's casting: the loop and what it is given.
+struct Cast<'p, 'a, 's> {
+    packets: &'p Packets<'a>,
+    skip: Option<&'p Skipper<'s>>,
+    correction: bool,
+    lines: &'p [Line],
+}
 
 /// Each lane's piece and where it has got to, lane by lane: what the registers are loaded
 /// from when a lane changes piece, and stored to when one ends.
 struct Lanes {
     /// Index in the batch's lines of each lane's piece; `None` for an idle lane, whose
     /// registers keep positions inside the volume and which is never composited.
-    piece: [Option<usize>; W],
-    /// Sample k is at `origin + step·k` ([`Lanes::refill`]).
-    origin: [[f32; W]; 3],
-    step: [[f32; W]; 3],
-    n: [f32; W],
+    piece: [Option<usize>; MAX_W],
+    /// Sample k is at `origin + step·k` ([`Cast::refill`]).
+    origin: [[f32; MAX_W]; 3],
+    step: [[f32; MAX_W]; 3],
+    n: [f32; MAX_W],
     /// The piece's own opacity at which it may stop ([`stop_alpha`]).
-    stop_alpha: [f32; W],
+    stop_alpha: [f32; MAX_W],
     /// How far a sample's f32 value may be from its f64 value ([`Packed::slack`]).
-    slack: [f32; W],
-    ell: [f64; W],
+    slack: [f32; MAX_W],
+    ell: [f64; MAX_W],
     /// The sample each lane is at (an integer, exact in f32: pieces have fewer than 2²⁴).
-    k: [f32; W],
+    k: [f32; MAX_W],
     /// Σ c·w per colour channel, then A.
-    acc: [[f32; W]; 4],
-    samples: [f32; W],
+    acc: [[f32; MAX_W]; 4],
+    samples: [f32; MAX_W],
     /// The macrocell of the lane's last sample and whether it is empty, where cells are
     /// classified on entry.
-    cell: [[u32; 3]; W],
-    empty: [bool; W],
-    jumps: [Option<Jumps>; W],
+    cell: [[u32; 3]; MAX_W],
+    empty: [bool; MAX_W],
+    jumps: [Option<Jumps>; MAX_W],
     /// Each lane's [`Jumps::parts`]: start, samples per unit and margin, per axis.
-    leap: [[[f32; W]; 3]; 3],
+    leap: [[[f32; MAX_W]; 3]; 3],
 }
 
 impl Lanes {
     fn idle() -> Lanes {
         Lanes {
-            piece: [None; W],
-            origin: [[0.0; W]; 3],
-            step: [[0.0; W]; 3],
-            n: [0.0; W],
-            stop_alpha: [0.0; W],
-            slack: [0.0; W],
-            ell: [0.0; W],
-            k: [0.0; W],
-            acc: [[0.0; W]; 4],
-            samples: [0.0; W],
-            cell: [[u32::MAX; 3]; W],
-            empty: [false; W],
-            jumps: [const { None }; W],
-            leap: [[[0.0; W]; 3]; 3],
+            piece: [None; MAX_W],
+            origin: [[0.0; MAX_W]; 3],
+            step: [[0.0; MAX_W]; 3],
+            n: [0.0; MAX_W],
+            stop_alpha: [0.0; MAX_W],
+            slack: [0.0; MAX_W],
+            ell: [0.0; MAX_W],
+            k: [0.0; MAX_W],
+            acc: [[0.0; MAX_W]; 4],
+            samples: [0.0; MAX_W],
+            cell: [[u32::MAX; 3]; MAX_W],
+            empty: [false; MAX_W],
+            jumps: [const { None }; MAX_W],
+            leap: [[[0.0; MAX_W]; 3]; 3],
         }
     }
 
@@ -133,264 +237,272 @@ fn stop_alpha(alpha_in: f64, stop_at: f64) -> f32 {
     }
 }
 
-/// Half `h`'s lanes of `m`.
-fn half(m: u32, h: usize) -> __mmask16 {
-    (m >> (LANES * h)) as __mmask16
+/// Half `h`'s bits of the lane bits `m` (`lanes` to a half).
+#[inline(always)]
+fn half(m: u32, h: usize, lanes: usize) -> u32 {
+    (m >> (lanes * h)) & ((1u64 << lanes) - 1) as u32
 }
 
 /// Half `h` of a lane-by-lane array as a register.
-#[inline]
-#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-unsafe fn load(a: &[f32; W], h: usize) -> __m512 {
-    _mm512_loadu_ps(a.as_ptr().add(LANES * h))
+#[inline(always)]
+fn load<S: Simd>(s: S, a: &[f32; MAX_W], h: usize) -> S::F {
+    s.load(&a[S::LANES * h..])
 }
 
 /// A register into half `h` of a lane-by-lane array.
-#[inline]
-#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-unsafe fn store(a: &mut [f32; W], h: usize, v: __m512) {
-    _mm512_storeu_ps(a.as_mut_ptr().add(LANES * h), v)
+#[inline(always)]
+fn store<S: Simd>(s: S, a: &mut [f32; MAX_W], h: usize, v: S::F) {
+    s.store(&mut a[S::LANES * h..], v)
 }
 
-/// Sixteen integer lanes of `v` (integers as f32), lane by lane.
-#[inline]
-#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-unsafe fn integers(v: __m512) -> [u32; LANES] {
-    let mut a = [0u32; LANES];
-    _mm512_storeu_si512(a.as_mut_ptr().cast(), _mm512_cvttps_epi32(v));
+/// The integer lanes of `v` (integers as f32), lane by lane (the first `S::LANES`).
+#[inline(always)]
+fn integers<S: Simd>(s: S, v: S::F) -> [i32; 16] {
+    let mut a = [0; 16];
+    s.store_i(&mut a, s.to_i32(v));
     a
 }
 
-/// Which of the cells `i` have their bit set in `bits` (read as 32-bit words: x86 is
-/// little-endian, so bit i of the u64 words is bit i % 32 of word i / 32).
-#[inline]
-#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-unsafe fn bit_set(bits: &[u64], i: __m512i) -> __mmask16 {
-    let words = _mm512_i32gather_epi32::<4>(_mm512_srli_epi32::<5>(i), bits.as_ptr().cast());
-    let bit = _mm512_and_si512(i, _mm512_set1_epi32(31));
-    let set = _mm512_and_si512(_mm512_srlv_epi32(words, bit), _mm512_set1_epi32(1));
-    _mm512_test_epi32_mask(set, set)
+/// Which of the cells `i` have their bit set in `bits` (read as 32-bit words: on a
+/// little-endian processor bit i of the u64 words is bit i % 32 of word i / 32).
+#[inline(always)]
+fn bit_set<S: Simd>(s: S, bits: &[u64], i: S::I) -> u32 {
+    // SAFETY: cell indices are below the cell count, whose bits lie inside `bits`.
+    let words = unsafe { s.gather::<4>(bits.as_ptr().cast(), s.shr_i(i, 5)) };
+    let bit = s.and_i(i, s.splat_i(31));
+    let set = s.and_i(s.shr_each_i(words, bit), s.splat_i(1));
+    s.bits(s.gt_i(set, s.splat_i(0)))
 }
 
 /// [`Jumps::skip`] for the lanes of half `h`, whose samples k lie in empty cells `cells`
 /// (coordinates as f32, index) of a skipper with distances: `Jumps::leap`, operation by
 /// operation, in f32 (whose rounding [`Jumps::for_f32`]'s margins cover; lanes not in empty
 /// cells get a value that is not used).
-#[inline]
-#[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-unsafe fn leaps(
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn leaps<S: Simd>(
+    s: S,
     lanes: &Lanes,
     h: usize,
     distance: &[u8],
     grid: &[(f32, f32); 3],
-    (cell, index): ([__m512; 3], __m512i),
-    k: __m512,
-    n: __m512,
-) -> __m512 {
-    let one = _mm512_set1_ps(1.0);
-    let zero = _mm512_setzero_ps();
-    let infinity = _mm512_set1_ps(f32::INFINITY);
-    let size = _mm512_set1_ps((1u32 << MACROCELL_SHIFT) as f32);
-    // The distance table has three bytes of padding: four bytes at any cell are inside.
-    let d = _mm512_and_si512(_mm512_i32gather_epi32::<1>(index, distance.as_ptr().cast()), _mm512_set1_epi32(0xff));
-    let reach = _mm512_sub_ps(_mm512_max_ps(_mm512_cvtepi32_ps(d), one), one);
-    let after = _mm512_add_ps(k, one);
+    (cell, index): ([S::F; 3], S::I),
+    k: S::F,
+    n: S::F,
+) -> S::F {
+    let one = s.splat(1.0);
+    let zero = s.splat(0.0);
+    let infinity = s.splat(f32::INFINITY);
+    let size = s.splat((1u32 << MACROCELL_SHIFT) as f32);
+    // SAFETY: the distance table has three bytes of padding: four bytes at any cell are
+    // inside.
+    let d = s.and_i(unsafe { s.gather::<1>(distance.as_ptr(), index) }, s.splat_i(0xff));
+    let reach = s.sub(s.max(s.to_f32(d), one), one);
+    let after = s.add(k, one);
     let mut next = n;
     for (a, &(last, offset)) in grid.iter().enumerate() {
-        let [start, per_unit, margin] = [0, 1, 2].map(|p| load(&lanes.leap[p][a], h));
+        let start = load(s, &lanes.leap[0][a], h);
+        let per_unit = load(s, &lanes.leap[1][a], h);
+        let margin = load(s, &lanes.leap[2][a], h);
         let c = cell[a];
-        let finite = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(_mm512_andnot_ps(_mm512_set1_ps(-0.0), per_unit), infinity);
-        let up = finite
-            & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(per_unit, zero)
-            & _mm512_cmp_ps_mask::<_CMP_LT_OQ>(_mm512_add_ps(c, reach), _mm512_set1_ps(last));
-        let down =
-            finite & _mm512_cmp_ps_mask::<_CMP_LT_OQ>(per_unit, zero) & _mm512_cmp_ps_mask::<_CMP_GT_OQ>(c, reach);
-        let offset = _mm512_set1_ps(offset);
-        let above = _mm512_fmadd_ps(_mm512_add_ps(_mm512_add_ps(c, reach), one), size, offset);
-        let below = _mm512_fmadd_ps(_mm512_sub_ps(c, reach), size, offset);
-        let bound = _mm512_mask_blend_ps(up, below, above);
-        let j = _mm512_sub_ps(_mm512_mul_ps(_mm512_sub_ps(bound, start), per_unit), _mm512_set1_ps(0.5));
+        let finite = s.lt(s.abs(per_unit), infinity);
+        let up = s.and_m(finite, s.and_m(s.gt(per_unit, zero), s.lt(s.add(c, reach), s.splat(last))));
+        let down = s.and_m(finite, s.and_m(s.lt(per_unit, zero), s.gt(c, reach)));
+        let offset = s.splat(offset);
+        let above = s.mul_add(s.add(s.add(c, reach), one), size, offset);
+        let below = s.mul_add(s.sub(c, reach), size, offset);
+        let bound = s.select(up, above, below);
+        let j = s.sub(s.mul(s.sub(bound, start), per_unit), s.splat(0.5));
         // `ceil_index(j − margin)`, and k + 1 for a NaN j.
-        let x = _mm512_sub_ps(j, margin);
-        let ceil = _mm512_roundscale_ps::<{ _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC }>(x);
-        let first_unsafe = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask::<_CMP_GT_OQ>(x, zero), ceil);
-        let first_unsafe = _mm512_mask_blend_ps(_mm512_cmp_ps_mask::<_CMP_UNORD_Q>(j, j), first_unsafe, after);
-        next = _mm512_mask_min_ps(next, up | down, next, first_unsafe);
+        let x = s.sub(j, margin);
+        let first_unsafe = s.select(s.gt(x, zero), s.ceil(x), zero);
+        let first_unsafe = s.select(s.is_nan(j), after, first_unsafe);
+        next = s.select(s.or_m(up, down), s.min(next, first_unsafe), next);
     }
-    _mm512_max_ps(next, after)
+    s.max(next, after)
 }
 
 /// One half's registers: its lanes' pieces and where they have got to.
-#[derive(Clone, Copy)]
-struct Half {
-    origin: [__m512; 3],
-    step: [__m512; 3],
-    n: __m512,
-    stop_alpha: __m512,
-    k: __m512,
-    acc: [__m512; 4],
-    samples: __m512,
+struct Half<S: Simd> {
+    origin: [S::F; 3],
+    step: [S::F; 3],
+    n: S::F,
+    stop_alpha: S::F,
+    k: S::F,
+    acc: [S::F; 4],
+    samples: S::F,
 }
 
-impl Half {
-    #[inline]
-    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    unsafe fn load(lanes: &Lanes, h: usize) -> Half {
-        let mut origin = [_mm512_setzero_ps(); 3];
-        let mut step = [_mm512_setzero_ps(); 3];
-        let mut acc = [_mm512_setzero_ps(); 4];
+impl<S: Simd> Half<S> {
+    #[inline(always)]
+    fn load(s: S, lanes: &Lanes, h: usize) -> Half<S> {
+        let zero = s.splat(0.0);
+        let mut origin = [zero; 3];
+        let mut step = [zero; 3];
+        let mut acc = [zero; 4];
         for a in 0..3 {
-            origin[a] = load(&lanes.origin[a], h);
-            step[a] = load(&lanes.step[a], h);
+            origin[a] = load(s, &lanes.origin[a], h);
+            step[a] = load(s, &lanes.step[a], h);
         }
         for (acc, lane) in acc.iter_mut().zip(&lanes.acc) {
-            *acc = load(lane, h);
+            *acc = load(s, lane, h);
         }
         Half {
             origin,
             step,
-            n: load(&lanes.n, h),
-            stop_alpha: load(&lanes.stop_alpha, h),
-            k: load(&lanes.k, h),
+            n: load(s, &lanes.n, h),
+            stop_alpha: load(s, &lanes.stop_alpha, h),
+            k: load(s, &lanes.k, h),
             acc,
-            samples: load(&lanes.samples, h),
+            samples: load(s, &lanes.samples, h),
         }
     }
 
     /// Puts back what changes as the lanes walk.
-    #[inline]
-    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    unsafe fn store(&self, lanes: &mut Lanes, h: usize) {
-        store(&mut lanes.k, h, self.k);
+    #[inline(always)]
+    fn store(&self, s: S, lanes: &mut Lanes, h: usize) {
+        store(s, &mut lanes.k, h, self.k);
         for (lane, &acc) in lanes.acc.iter_mut().zip(&self.acc) {
-            store(lane, h, acc);
+            store(s, lane, h, acc);
         }
-        store(&mut lanes.samples, h, self.samples);
+        store(s, &mut lanes.samples, h, self.samples);
     }
 }
 
 /// The samples at each lane's k, looked up ahead of compositing them (so that their
 /// voxels are fetched while the samples before are composited): per half, their values,
 /// which lanes composite them (not those in empty cells), and the k each lane goes on to.
-struct Looked {
-    value: [__m512; HALVES],
+struct Looked<S: Simd> {
+    value: [S::F; HALVES],
     live: u32,
-    next_k: [__m512; HALVES],
+    next_k: [S::F; HALVES],
 }
 
 /// What stays fixed over a batch.
 struct Batch<'c> {
-    fast: &'c Trilinear4<'c>,
-    packed: &'c Packed,
     classified: Option<FineClasses<'c>>,
     /// Per axis: the last macrocell a sample can be based in, and the base grid's offset.
     grid: [(f32, f32); 3],
 }
 
-impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
-    /// [`Cast::cast_many`] for an object whose loop has packed forms: straight pieces
-    /// sixteen at a time; the others (exact distorted walks, lines too long for f32
-    /// indices) one by one.
+impl Cast<'_, '_, '_> {
+    /// [`Cast::run`] compiled for AVX-512.
     ///
     /// # Safety
-    /// As for [`Kernel::cast_packets`].
-    pub(super) unsafe fn cast_many_packed(
-        &self,
-        fast: &Trilinear4<'_>,
-        packed: &Packed,
-        pieces: Vec<(usize, SampleWalk<'_>, f64, f64)>,
-        out: &mut [PieceResult],
-    ) {
-        let mut lines = Vec::with_capacity(pieces.len());
-        for (slot, walk, alpha_in, stop_at) in pieces {
-            match walk.line().filter(Line::fits) {
-                Some(line) => lines.push(Line { slot, line, alpha_in, stop_at }),
-                None => out[slot] = self.cast(walk, alpha_in, stop_at),
-            }
-        }
-        // SAFETY: the caller's promise is this function's.
-        unsafe { self.cast_packets(fast, packed, &lines, out) };
+    /// The processor must have what [`Avx512`] detects (the token proves it).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2,fma")]
+    unsafe fn avx512(&self, s: Avx512, out: &mut [PieceResult]) {
+        self.run(s, out)
     }
 
-    /// Casts `lines` (each [`Line::fits`]), writing each result to `out[line.slot]`.
-    ///
-    /// The loop is pipelined by one sample: the samples at k + 1 (or where a lane jumps to)
-    /// are located, tested for empty space and interpolated before the samples at k are
-    /// mapped and composited, so the voxel gathers of the one overlap the other's chain of
-    /// dependent steps.
+    /// [`Cast::run`] compiled for AVX2 and FMA.
     ///
     /// # Safety
-    /// The processor must have AVX-512 F, DQ and VL ([`Trilinear4::packed`] is `Some`).
-    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    unsafe fn cast_packets(&self, fast: &Trilinear4<'_>, packed: &Packed, lines: &[Line], out: &mut [PieceResult]) {
+    /// The processor must have what [`Avx2`] detects (the token proves it).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn avx2(&self, s: Avx2, out: &mut [PieceResult]) {
+        self.run(s, out)
+    }
+
+    /// [`Cast::run`] compiled for NEON.
+    ///
+    /// # Safety
+    /// The processor must have NEON (the token proves it).
+    #[cfg(target_arch = "aarch64")]
+    #[target_feature(enable = "neon")]
+    unsafe fn neon(&self, s: Neon, out: &mut [PieceResult]) {
+        self.run(s, out)
+    }
+
+    /// Where the instruction set cannot be, neither can its token.
+    #[cfg(not(target_arch = "x86_64"))]
+    unsafe fn avx512(&self, s: Avx512, _out: &mut [PieceResult]) {
+        match s {}
+    }
+
+    #[cfg(not(target_arch = "x86_64"))]
+    unsafe fn avx2(&self, s: Avx2, _out: &mut [PieceResult]) {
+        match s {}
+    }
+
+    #[cfg(not(target_arch = "aarch64"))]
+    unsafe fn neon(&self, s: Neon, _out: &mut [PieceResult]) {
+        match s {}
+    }
+
+    /// The loop, for any instruction set: casts the lines, each result to
+    /// `out[line.slot]`.
+    ///
+    /// It is pipelined by one sample: the samples at k + 1 (or where a lane jumps to) are
+    /// located, tested for empty space and interpolated before the samples at k are mapped
+    /// and composited, so the voxel gathers of the one overlap the other's chain of
+    /// dependent steps.
+    #[inline(always)]
+    fn run<S: Simd>(&self, s: S, out: &mut [PieceResult]) {
+        let (packets, lines) = (self.packets, self.lines);
+        let w = S::LANES * HALVES;
+        // Lanes idle (their pieces ended) before they all take new pieces: a quarter.
+        let refill_at = w / 4;
         let batch = Batch {
-            fast,
-            packed,
-            classified: self.skip.as_ref().and_then(Skipper::fine_classes),
+            classified: self.skip.and_then(Skipper::fine_classes),
             grid: std::array::from_fn(|a| {
-                let (max_base, offset) = self.interp.base_grid(a);
+                let (max_base, offset) = packets.interp.base_grid(a);
                 ((max_base >> MACROCELL_SHIFT) as f32, offset as f32)
             }),
         };
         let mut lanes = Lanes::idle();
         let mut next = 0;
-        for l in 0..W {
-            next = self.refill(packed, &mut lanes, l, lines, next);
+        for l in 0..w {
+            next = self.refill(&mut lanes, l, next);
         }
-        let one = _mm512_set1_ps(1.0);
-        let jumps = !packed.jumps.is_empty();
+        let one = s.splat(1.0);
+        let zero = s.splat(0.0);
+        let jumps = !packets.packed.jumps.is_empty();
         // Lanes change pieces only here: the registers are loaded from `lanes`, the loop runs
         // until some lane ends, and its state goes back to `lanes`.
         'refilled: while lanes.active() != 0 {
             let mut active = lanes.active();
-            let mut regs = [Half::load(&lanes, 0), Half::load(&lanes, 1)];
-            let mut looked = self.look(&batch, &mut lanes, &regs, [regs[0].k, regs[1].k], active);
+            let mut regs = [Half::load(s, &lanes, 0), Half::load(s, &lanes, 1)];
+            let mut looked = self.look(s, &batch, &mut lanes, &regs, [regs[0].k, regs[1].k], active);
             loop {
-                let ahead = self.look(&batch, &mut lanes, &regs, looked.next_k, active);
+                let ahead = self.look(s, &batch, &mut lanes, &regs, looked.next_k, active);
                 let mut ended = 0;
                 for (h, r) in regs.iter_mut().enumerate() {
-                    let live = half(looked.live & active, h);
+                    let live_bits = half(looked.live & active, h, S::LANES);
+                    let live = s.mask(live_bits);
                     let v = looked.value[h];
-                    let mut segment = packed.segments16(v);
+                    let mut segment = packets.packed.segments(s, v);
                     if jumps {
-                        let near = packed.near_jumps16(v, load(&lanes.slack, h)) & live;
+                        let near = packets.packed.near_jumps(s, v, load(s, &lanes.slack, h)) & live_bits;
                         if near != 0 {
-                            segment = self.exact_segments(fast.breaks(), lines, &lanes, h, near, r.k, segment);
+                            segment = self.exact_segments(s, &lanes, h, near, r.k, segment);
                         }
                     }
-                    let (opacity, colour) = packed.map16(v, segment);
-                    let alpha = if self.correction {
-                        let mut alpha = [0.0; LANES];
-                        _mm512_storeu_ps(alpha.as_mut_ptr(), opacity);
-                        for (alpha, &ell) in alpha.iter_mut().zip(&lanes.ell[LANES * h..]) {
-                            *alpha = corrected_opacity(f64::from(*alpha), ell) as f32;
-                        }
-                        _mm512_loadu_ps(alpha.as_ptr())
-                    } else {
-                        opacity
-                    };
+                    let (opacity, colour) = packets.packed.map(s, v, segment);
+                    let alpha =
+                        if self.correction { corrected(s, opacity, &lanes.ell[S::LANES * h..]) } else { opacity };
                     // `Rgba::add_sample` in live lanes, then the stopping test of `composite`.
-                    let w = _mm512_fnmadd_ps(alpha, r.acc[3], alpha);
+                    let weight = s.neg_mul_add(alpha, r.acc[3], alpha);
                     for (acc, &c) in r.acc.iter_mut().zip(&colour) {
-                        *acc = _mm512_mask3_fmadd_ps(c, w, *acc, live);
+                        *acc = s.select(live, s.mul_add(c, weight, *acc), *acc);
                     }
-                    r.acc[3] = _mm512_mask_add_ps(r.acc[3], live, r.acc[3], w);
-                    let done = live
-                        & _mm512_cmp_ps_mask::<_CMP_NEQ_UQ>(alpha, _mm512_setzero_ps())
-                        & _mm512_cmp_ps_mask::<_CMP_GE_OQ>(r.acc[3], r.stop_alpha);
-                    r.samples = _mm512_mask_add_ps(r.samples, live, r.samples, one);
+                    r.acc[3] = s.select(live, s.add(r.acc[3], weight), r.acc[3]);
+                    let done = live_bits & s.bits(s.and_m(s.ne(alpha, zero), s.ge(r.acc[3], r.stop_alpha)));
+                    r.samples = s.select(live, s.add(r.samples, one), r.samples);
                     r.k = looked.next_k[h];
-                    let end = half(active, h) & (done | _mm512_cmp_ps_mask::<_CMP_GE_OQ>(r.k, r.n));
-                    ended |= u32::from(end) << (LANES * h);
+                    let end = half(active, h, S::LANES) & (done | s.bits(s.ge(r.k, r.n)));
+                    ended |= end << (S::LANES * h);
                 }
                 if ended != 0 {
                     // Ended lanes give their results and idle; they take new pieces only when
                     // a few are idle, since refilling reloads every register and looks at
                     // every lane's sample again.
                     for (h, r) in regs.iter().enumerate() {
-                        r.store(&mut lanes, h);
+                        r.store(s, &mut lanes, h);
                     }
-                    for l in (0..W).filter(|l| ended >> l & 1 == 1) {
+                    for l in (0..w).filter(|l| ended >> l & 1 == 1) {
                         let piece = lanes.piece[l].take().expect("an ended lane was active");
                         let acc = &lanes.acc;
                         out[lines[piece].slot] = PieceResult {
@@ -402,11 +514,11 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
                         };
                     }
                     active &= !ended;
-                    let idle = W - active.count_ones() as usize;
-                    if active == 0 || (idle >= REFILL_AT && next < lines.len()) {
-                        for l in 0..W {
+                    let idle = w - active.count_ones() as usize;
+                    if active == 0 || (idle >= refill_at && next < lines.len()) {
+                        for l in 0..w {
                             if lanes.piece[l].is_none() {
-                                next = self.refill(packed, &mut lanes, l, lines, next);
+                                next = self.refill(&mut lanes, l, next);
                             }
                         }
                         continue 'refilled;
@@ -421,65 +533,65 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
     /// ([`LineSamples::point`], then `Axis::cell`), tested for empty space (lanes in empty
     /// cells jump, as the single-sample loop does, and are not composited) and
     /// interpolated.
-    #[inline]
-    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    unsafe fn look(
+    #[inline(always)]
+    fn look<S: Simd>(
         &self,
+        s: S,
         batch: &Batch<'_>,
         lanes: &mut Lanes,
-        regs: &[Half; HALVES],
-        k: [__m512; HALVES],
+        regs: &[Half<S>; HALVES],
+        k: [S::F; HALVES],
         active: u32,
-    ) -> Looked {
-        let (packed, fast) = (batch.packed, batch.fast);
-        let one = _mm512_set1_ps(1.0);
-        let (nx, ny) = fast.nx_ny();
+    ) -> Looked<S> {
+        let (packed, grid) = (&self.packets.packed, &self.packets.grid);
+        let one = s.splat(1.0);
         let mut x0 = [[one; 3]; HALVES];
         let mut weights = [[one; 3]; HALVES];
         let mut next_k = [one; HALVES];
         for (h, r) in regs.iter().enumerate() {
             let mut u = [one; 3];
             for (a, u) in u.iter_mut().enumerate() {
-                *u = _mm512_fmadd_ps(r.step[a], k[h], r.origin[a]);
+                *u = s.mul_add(r.step[a], k[h], r.origin[a]);
             }
-            (x0[h], weights[h]) = packed.cells16(u);
-            next_k[h] = _mm512_mask_add_ps(k[h], half(active, h), k[h], one);
+            (x0[h], weights[h]) = packed.cells(s, u);
+            next_k[h] = s.select(s.mask(half(active, h, S::LANES)), s.add(k[h], one), k[h]);
         }
         let mut live = active;
-        if let Some(skip) = &self.skip {
+        if let Some(skip) = self.skip {
             let mut empty = 0;
-            let mut cells = [([one; 3], _mm512_setzero_si512()); HALVES];
+            let mut cells = [([one; 3], s.splat_i(0)); HALVES];
             for (h, &x0) in x0.iter().enumerate() {
                 let e = match &batch.classified {
                     Some(classes) => {
-                        let scale = _mm512_set1_ps(1.0 / (1u32 << MACROCELL_SHIFT) as f32);
-                        let c = x0.map(|x| floor(_mm512_mul_ps(x, scale)));
+                        let scale = s.splat(1.0 / (1u32 << MACROCELL_SHIFT) as f32);
+                        let c =
+                            [s.floor(s.mul(x0[0], scale)), s.floor(s.mul(x0[1], scale)), s.floor(s.mul(x0[2], scale))];
                         let [cx, cy, _] = classes.dims;
-                        cells[h] = (c, packed.index16(c, cx, cy));
-                        bit_set(classes.bits, cells[h].1)
+                        cells[h] = (c, packed.index(s, c, cx, cy));
+                        bit_set(s, classes.bits, cells[h].1)
                     }
-                    None => self.empty_lanes(skip, lanes, h, x0),
+                    None => self.empty_lanes(s, skip, lanes, h, x0),
                 };
-                empty |= u32::from(e) << (LANES * h);
+                empty |= e << (S::LANES * h);
             }
             empty &= active;
             if empty != 0 {
                 if let Some(FineClasses { distance, .. }) = batch.classified {
                     // Leaps over cubes of empty cells, in registers.
                     for (h, r) in regs.iter().enumerate() {
-                        let e = half(empty, h);
+                        let e = half(empty, h, S::LANES);
                         if e != 0 {
-                            let leap = leaps(lanes, h, distance, &batch.grid, cells[h], k[h], r.n);
-                            next_k[h] = _mm512_mask_blend_ps(e, next_k[h], leap);
+                            let leap = leaps(s, lanes, h, distance, &batch.grid, cells[h], k[h], r.n);
+                            next_k[h] = s.select(s.mask(e), leap, next_k[h]);
                         }
                     }
                 } else {
                     for (h, &k) in k.iter().enumerate() {
-                        store(&mut lanes.k, h, k);
+                        store(s, &mut lanes.k, h, k);
                     }
-                    self.jump(lanes, skip, empty, x0);
+                    self.jump(s, lanes, skip, empty, x0);
                     for (h, next_k) in next_k.iter_mut().enumerate() {
-                        *next_k = _mm512_mask_blend_ps(half(empty, h), *next_k, load(&lanes.k, h));
+                        *next_k = s.select(s.mask(half(empty, h, S::LANES)), load(s, &lanes.k, h), *next_k);
                     }
                 }
                 live &= !empty;
@@ -487,80 +599,90 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         }
         let mut value = [one; HALVES];
         for (h, value) in value.iter_mut().enumerate() {
-            *value = fast.trilinear16(packed.index16(x0[h], nx, ny), weights[h]);
+            *value = grid.trilinear(s, packed.index(s, x0[h], grid.nx, grid.ny), weights[h]);
         }
         Looked { value, live, next_k }
     }
 
     /// The segments of half `h`'s lanes `near`, whose f32 values lie within rounding of a
-    /// break point where the map jumps, counted from their f64 values as the single-sample
-    /// loop computes them (the rest of `segment` as it is).
-    #[cold]
-    #[inline(never)]
-    #[allow(clippy::too_many_arguments)]
-    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    unsafe fn exact_segments(
-        &self,
-        breaks: &[f64],
-        lines: &[Line],
-        lanes: &Lanes,
-        h: usize,
-        near: __mmask16,
-        k: __m512,
-        segment: __m512i,
-    ) -> __m512i {
-        let (mut ks, mut segments) = ([0.0f32; LANES], [0i32; LANES]);
-        _mm512_storeu_ps(ks.as_mut_ptr(), k);
-        _mm512_storeu_si512(segments.as_mut_ptr().cast(), segment);
-        for l in (0..LANES).filter(|l| near >> l & 1 == 1) {
-            let piece = lanes.piece[LANES * h + l].expect("a live lane has a piece");
-            let s = self.interp.locate(lines[piece].line.point(ks[l] as u64));
-            let v = self.voxels.value(&self.interp, &s);
-            segments[l] = breaks.iter().filter(|&&b| b <= v).count() as i32;
-        }
-        _mm512_loadu_si512(segments.as_ptr().cast())
+    /// break point where the map jumps, counted from their f64 values (the rest of
+    /// `segment` as it is).
+    #[inline(always)]
+    fn exact_segments<S: Simd>(&self, s: S, lanes: &Lanes, h: usize, near: u32, k: S::F, segment: S::I) -> S::I {
+        let (mut ks, mut segments) = ([0.0f32; 16], [0i32; 16]);
+        s.store(&mut ks, k);
+        s.store_i(&mut segments, segment);
+        self.exact_segments_of(lanes, S::LANES * h, near, &ks[..S::LANES], &mut segments[..S::LANES]);
+        s.load_i(&segments)
     }
 
-    /// The lanes of half `h` whose samples, with lower corners `x0`, lie in empty
+    /// [`Cast::exact_segments`] lane by lane, out of the loop's way: lane `l` of `near` is
+    /// lane `first + l` of `lanes`, at sample `ks[l]`; its segment goes to `segments[l]`,
+    /// as the single-sample loop computes it.
+    #[cold]
+    #[inline(never)]
+    fn exact_segments_of(&self, lanes: &Lanes, first: usize, near: u32, ks: &[f32], segments: &mut [i32]) {
+        let packets = self.packets;
+        for (l, (segment, &k)) in segments.iter_mut().zip(ks).enumerate() {
+            if near >> l & 1 == 0 {
+                continue;
+            }
+            let piece = lanes.piece[first + l].expect("a live lane has a piece");
+            let at = packets.interp.locate(self.lines[piece].line.point(k as u64));
+            let v = match packets.grid.voxels {
+                Stored::U8(voxels) => packets.interp.apply(&at, &voxels),
+                Stored::U16(voxels) => packets.interp.apply(&at, &voxels),
+            };
+            *segment = packets.breaks.iter().filter(|&&b| b <= v).count() as i32;
+        }
+    }
+
+    /// The lanes of half `h` (as bits) whose samples, with lower corners `x0`, lie in empty
     /// macrocells, where cells are classified on entry: lane by lane, each lane classifying
     /// a cell when it enters it, as the single-sample loop does.
-    #[inline]
-    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    unsafe fn empty_lanes(&self, skip: &Skipper<'_>, lanes: &mut Lanes, h: usize, x0: [__m512; 3]) -> __mmask16 {
-        let base = x0.map(|x| integers(x));
+    #[inline(always)]
+    fn empty_lanes<S: Simd>(&self, s: S, skip: &Skipper<'_>, lanes: &mut Lanes, h: usize, x0: [S::F; 3]) -> u32 {
+        let base = [integers(s, x0[0]), integers(s, x0[1]), integers(s, x0[2])];
         let mut empty = 0;
-        for l in (0..LANES).filter(|&l| lanes.piece[LANES * h + l].is_some()) {
-            let c = cell_of([base[0][l], base[1][l], base[2][l]]);
-            let lane = LANES * h + l;
+        for (l, ((&x, &y), &z)) in base[0].iter().zip(&base[1]).zip(&base[2]).take(S::LANES).enumerate() {
+            let lane = S::LANES * h + l;
+            if lanes.piece[lane].is_none() {
+                continue;
+            }
+            let c = cell_of([x as u32, y as u32, z as u32]);
             if c != lanes.cell[lane] {
                 lanes.cell[lane] = c;
-                lanes.empty[lane] = skip.is_empty(&self.interp, Level::Fine, c);
+                lanes.empty[lane] = skip.is_empty(&self.packets.interp, Level::Fine, c);
             }
-            empty |= u16::from(lanes.empty[lane]) << l;
+            empty |= u32::from(lanes.empty[lane]) << l;
         }
         empty
     }
 
     /// Moves each lane of `empty`, whose sample is based at `x0` (per half) in an empty
     /// cell, to the next sample that may contribute ([`Jumps::skip`]).
-    #[inline]
-    #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2")]
-    unsafe fn jump(&self, lanes: &mut Lanes, skip: &Skipper<'_>, empty: u32, x0: [[__m512; 3]; HALVES]) {
-        let base = x0.map(|x0| x0.map(|x| integers(x)));
-        for l in (0..W).filter(|l| empty >> l & 1 == 1) {
+    #[inline(always)]
+    fn jump<S: Simd>(&self, s: S, lanes: &mut Lanes, skip: &Skipper<'_>, empty: u32, x0: [[S::F; 3]; HALVES]) {
+        let mut base = [[[0; 16]; 3]; HALVES];
+        for (base, x0) in base.iter_mut().zip(&x0) {
+            *base = [integers(s, x0[0]), integers(s, x0[1]), integers(s, x0[2])];
+        }
+        for l in (0..S::LANES * HALVES).filter(|l| empty >> l & 1 == 1) {
             let jumps = lanes.jumps[l].as_ref().expect("a lane of a skipping cast has jumps");
-            let [x, y, z] = base[l / LANES].map(|axis| axis[l % LANES]);
-            lanes.k[l] = jumps.skip(&self.interp, skip, lanes.k[l] as u64, cell_of([x, y, z])) as f32;
+            let (b, i) = (&base[l / S::LANES], l % S::LANES);
+            let cell = cell_of([b[0][i] as u32, b[1][i] as u32, b[2][i] as u32]);
+            lanes.k[l] = jumps.skip(&self.packets.interp, skip, lanes.k[l] as u64, cell) as f32;
         }
     }
 
     /// Gives lane `l` the piece `lines[next]`, or leaves it idle when none is left;
     /// returns the next piece to hand out.
-    fn refill(&self, packed: &Packed, lanes: &mut Lanes, l: usize, lines: &[Line], next: usize) -> usize {
-        let Some(piece) = lines.get(next) else {
+    fn refill(&self, lanes: &mut Lanes, l: usize, next: usize) -> usize {
+        let Some(piece) = self.lines.get(next) else {
             lanes.piece[l] = None;
             return next;
         };
+        let packed = &self.packets.packed;
         // `LineSamples::point`, vc0 + δ·((k + ½)/n), as origin + step·k: rounded to f32, a
         // few roundings of |vc0| + |δ| off (within `Jumps::for_f32`'s margins).
         let (vc0, delta, inv_n) = piece.line.parts();
@@ -583,7 +705,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         lanes.samples[l] = 0.0;
         lanes.cell[l] = [u32::MAX; 3];
         lanes.empty[l] = false;
-        lanes.jumps[l] = self.skip.as_ref().map(|_| Jumps::for_f32(&self.interp, &piece.line));
+        lanes.jumps[l] = self.skip.map(|_| Jumps::for_f32(&self.packets.interp, &piece.line));
         if let Some(jumps) = &lanes.jumps[l] {
             for (lane, part) in lanes.leap.iter_mut().zip(jumps.parts()) {
                 for a in 0..3 {
@@ -593,4 +715,16 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
         }
         next + 1
     }
+}
+
+/// `opacity` corrected for each lane's step ℓ (`ell[l]`): in f64, as the f64 loops
+/// correct it.
+#[inline(always)]
+fn corrected<S: Simd>(s: S, opacity: S::F, ell: &[f64]) -> S::F {
+    let mut alpha = [0.0; 16];
+    s.store(&mut alpha, opacity);
+    for (alpha, &ell) in alpha.iter_mut().zip(&ell[..S::LANES]) {
+        *alpha = corrected_opacity(f64::from(*alpha), ell) as f32;
+    }
+    s.load(&alpha)
 }

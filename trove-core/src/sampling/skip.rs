@@ -258,7 +258,6 @@ impl Jumps {
 
     /// For samples whose positions, and leaps, are computed in f32 ([`super::packet`]):
     /// the margins cover f32's rounding of their coordinates and of the crossing indices.
-    #[cfg(target_arch = "x86_64")]
     pub(super) fn for_f32<I: Interp>(interp: &I, line: &LineSamples) -> Jumps {
         Jumps::with_rounding(interp, line, f64::from(f32::EPSILON))
     }

@@ -59,15 +59,6 @@ fn has_avx2() -> bool {
     false
 }
 
-fn has_avx512() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    return std::is_x86_feature_detected!("avx512f")
-        && std::is_x86_feature_detected!("avx512dq")
-        && std::is_x86_feature_detected!("avx512vl");
-    #[cfg(not(target_arch = "x86_64"))]
-    false
-}
-
 /// The channel `values` stored as `ty` (bit: non-zero → 1).
 fn channel(ty: VoxelType, endian: Endian, values: &[f32], dims: Dims) -> Channel {
     let bytes: Vec<u8> = match ty {
@@ -160,12 +151,25 @@ fn rays(size: f64, at: DVec3, count: usize) -> Vec<Ray> {
     out
 }
 
-/// Casts every piece of every ray with each binding and requires identical results;
-/// returns (samples with skipping, samples without).
+/// [`casts_agree_on`] on every SIMD path this processor has; returns what the first
+/// (widest) path gave.
 fn casts_agree(object: &Object, volume: &Volume, correction: bool, rays: &[Ray]) -> (u64, u64) {
+    let paths = SimdPath::available();
+    let counts: Vec<(u64, u64)> =
+        paths.iter().map(|&path| casts_agree_on(object, volume, correction, rays, path)).collect();
+    // The f64 loops count the same samples whichever path the packets took.
+    assert!(counts.windows(2).all(|w| w[0] == w[1]), "{paths:?}: {counts:?}");
+    counts[0]
+}
+
+/// Casts every piece of every ray with each binding, its vector loops on `path`, and
+/// requires identical results; then casts them many at a time and requires the same, or
+/// where pieces are cast in f32 lanes, the same to f32's rounding. Returns (samples with
+/// skipping, samples without).
+fn casts_agree_on(object: &Object, volume: &Volume, correction: bool, rays: &[Ray], path: SimdPath) -> (u64, u64) {
     let bind = |specialise, skip_empty_space, classify_upfront| {
         let options = CastOptions { specialise, skip_empty_space, classify_upfront };
-        ObjectCaster::with_options(object, volume, correction, options).unwrap()
+        ObjectCaster::on_path(object, volume, correction, options, path).unwrap()
     };
     let casters = [
         bind(true, true, false),
@@ -207,6 +211,7 @@ fn casts_agree(object: &Object, volume: &Volume, correction: bool, rays: &[Ray])
         caster.cast_many(&requests, &mut many);
         for (r, many) in requests.iter().zip(&many) {
             let one = caster.cast(&r.ray, r.t0, r.t1, r.alpha_in, r.stop_at);
+            assert!(caster.packet_path().is_none_or(|p| p == path), "{:?} on {path}", caster.packet_path());
             if caster.casts_packets() {
                 agree_to_f32(many, &one);
             } else {
@@ -301,11 +306,11 @@ fn every_stored_type_interpolation_and_map_casts_alike_on_every_path() {
     assert_eq!(specialised, (2 * 12 + 3 * 4) * 3 * 2);
     // Trilinear over u8 and u16 le with LUT or ramp colour and opacity runs in AVX2 where the
     // processor has it, so the comparisons above held its lanes against the general loop.
-    assert_eq!(avx2, if has_avx2() { 2 * 4 * 2 } else { 0 });
-    // And where it has AVX-512 they cast many pieces sixteen at a time, held above against
+    let eligible = 2 * 4 * 2;
+    assert_eq!(avx2, if has_avx2() { eligible } else { 0 });
+    // And they cast many pieces at a time in f32 lanes on every path, held above against
     // casting them one by one.
-    let expected = if has_avx512() { avx2 } else { 0 };
-    assert_eq!(packets, expected);
+    assert_eq!(packets, eligible);
 }
 
 #[test]
@@ -329,7 +334,7 @@ fn many_pieces_at_once_skip_alike_in_volumes_of_many_cells() {
     for (ty, correction, colour, opacity) in cases {
         let vol = volume(dims, vec![(ChannelName::Voxel, channel(ty, Endian::Little, &values, dims))]);
         let o = object(colour, opacity, Interpolation::Trilinear, affine(size, at), Extent::FULL, dims);
-        assert_eq!(ObjectCaster::new(&o, &vol, correction).unwrap().casts_packets(), has_avx512());
+        assert!(ObjectCaster::new(&o, &vol, correction).unwrap().casts_packets());
         let (skipped, all) = casts_agree(&o, &vol, correction, &rays);
         assert!(skipped < all / 2, "{ty:?}: most samples lie in empty cells ({skipped} of {all} looked at)");
     }
@@ -673,5 +678,27 @@ fn values_near_a_lut_bound_are_classified_as_the_f64_loop_classifies_them() {
         })
         .collect();
     casts_agree(&o, &vol, false, &rays);
-    assert_eq!(ObjectCaster::new(&o, &vol, false).unwrap().casts_packets(), has_avx512());
+    assert!(ObjectCaster::new(&o, &vol, false).unwrap().casts_packets());
+}
+
+#[test]
+fn binding_on_a_path_the_processor_lacks_is_refused() {
+    let dims = Dims::new([9, 8, 7]).unwrap();
+    let values = sparse(dims, 3, 4);
+    let vol = volume(dims, vec![(ChannelName::Voxel, channel(VoxelType::U8, Endian::Little, &values, dims))]);
+    let (size, at) = (1.0, DVec3::new(-0.5, -0.5, -0.5));
+    let o = object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, affine(size, at), Extent::FULL, dims);
+    for path in SimdPath::ALL {
+        match ObjectCaster::on_path(&o, &vol, false, CastOptions::default(), path) {
+            Ok(caster) => {
+                assert!(path.is_available());
+                assert_eq!(caster.packet_path(), Some(path));
+                assert_eq!(caster.uses_avx2(), matches!(path, SimdPath::Avx2 | SimdPath::Avx512));
+            }
+            Err(BindError::Simd(SimdError::Unavailable { path: refused, .. })) => {
+                assert!(!path.is_available() && refused == path);
+            }
+            Err(e) => panic!("{path}: {e}"),
+        }
+    }
 }

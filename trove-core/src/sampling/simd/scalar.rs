@@ -1,0 +1,252 @@
+//! [`Simd`] in plain arrays of [`LANES`] lanes, for every target: the loop's operations lane
+//! by lane in ordinary Rust, which the compiler may vectorise for the target's baseline
+//! (SSE2 on x86-64) but need not. Multiplies and adds are not fused (a fused one is a
+//! library call where the target has no FMA instruction), and floor and ceiling are
+//! computed from truncation rather than by `f32::floor`, which is a library call without
+//! SSE4.1.
+
+use super::Simd;
+
+/// Lanes per "register": four, the width of an SSE2 or NEON register, so that where the
+/// compiler vectorises an array's lanes they fill one register (eight were 7–15% slower on
+/// the CT head and the synthetic volume, BENCHMARKS.md, issue 19).
+pub(in crate::sampling) const LANES: usize = 4;
+
+/// The token: always available.
+#[derive(Clone, Copy, Debug)]
+pub(in crate::sampling) struct Scalar;
+
+type F = [f32; LANES];
+type I = [i32; LANES];
+type M = [bool; LANES];
+
+#[inline(always)]
+fn each(a: F, f: impl Fn(f32) -> f32) -> F {
+    let mut out = a;
+    for o in &mut out {
+        *o = f(*o);
+    }
+    out
+}
+
+#[inline(always)]
+fn pair(a: F, b: F, f: impl Fn(f32, f32) -> f32) -> F {
+    let mut out = a;
+    for (o, b) in out.iter_mut().zip(b) {
+        *o = f(*o, b);
+    }
+    out
+}
+
+#[inline(always)]
+fn pair_i(a: I, b: I, f: impl Fn(i32, i32) -> i32) -> I {
+    let mut out = a;
+    for (o, b) in out.iter_mut().zip(b) {
+        *o = f(*o, b);
+    }
+    out
+}
+
+#[inline(always)]
+fn test(a: F, b: F, f: impl Fn(f32, f32) -> bool) -> M {
+    let mut out = [false; LANES];
+    for ((o, a), b) in out.iter_mut().zip(a).zip(b) {
+        *o = f(a, b);
+    }
+    out
+}
+
+/// x rounded down (`up` false) or up: exact for every f32, NaN staying NaN. |x| ≥ 2²³ is
+/// an integer already; below, truncation through i32 is exact and off by one on the
+/// other side of zero.
+#[inline(always)]
+fn round(x: f32, up: bool) -> f32 {
+    if x.is_nan() || x.abs() >= 8_388_608.0 {
+        return x;
+    }
+    let t = x as i32 as f32;
+    if up {
+        t + f32::from(u8::from(t < x))
+    } else {
+        t - f32::from(u8::from(t > x))
+    }
+}
+
+impl Simd for Scalar {
+    const LANES: usize = LANES;
+    type F = F;
+    type I = I;
+    type M = M;
+
+    fn detect() -> Option<Scalar> {
+        Some(Scalar)
+    }
+
+    #[inline(always)]
+    fn splat(self, x: f32) -> F {
+        [x; LANES]
+    }
+    #[inline(always)]
+    fn load(self, a: &[f32]) -> F {
+        a[..LANES].try_into().expect("LANES values")
+    }
+    #[inline(always)]
+    fn store(self, a: &mut [f32], v: F) {
+        a[..LANES].copy_from_slice(&v);
+    }
+    #[inline(always)]
+    fn add(self, a: F, b: F) -> F {
+        pair(a, b, |a, b| a + b)
+    }
+    #[inline(always)]
+    fn sub(self, a: F, b: F) -> F {
+        pair(a, b, |a, b| a - b)
+    }
+    #[inline(always)]
+    fn mul(self, a: F, b: F) -> F {
+        pair(a, b, |a, b| a * b)
+    }
+    #[inline(always)]
+    fn mul_add(self, a: F, b: F, c: F) -> F {
+        self.add(self.mul(a, b), c)
+    }
+    #[inline(always)]
+    fn neg_mul_add(self, a: F, b: F, c: F) -> F {
+        self.sub(c, self.mul(a, b))
+    }
+    #[inline(always)]
+    fn min(self, a: F, b: F) -> F {
+        pair(a, b, |a, b| if a < b { a } else { b })
+    }
+    #[inline(always)]
+    fn max(self, a: F, b: F) -> F {
+        pair(a, b, |a, b| if a > b { a } else { b })
+    }
+    #[inline(always)]
+    fn floor(self, a: F) -> F {
+        each(a, |x| round(x, false))
+    }
+    #[inline(always)]
+    fn ceil(self, a: F) -> F {
+        each(a, |x| round(x, true))
+    }
+    #[inline(always)]
+    fn abs(self, a: F) -> F {
+        each(a, f32::abs)
+    }
+    #[inline(always)]
+    fn lt(self, a: F, b: F) -> M {
+        test(a, b, |a, b| a < b)
+    }
+    #[inline(always)]
+    fn le(self, a: F, b: F) -> M {
+        test(a, b, |a, b| a <= b)
+    }
+    #[inline(always)]
+    fn gt(self, a: F, b: F) -> M {
+        test(a, b, |a, b| a > b)
+    }
+    #[inline(always)]
+    fn ge(self, a: F, b: F) -> M {
+        test(a, b, |a, b| a >= b)
+    }
+    #[inline(always)]
+    fn ne(self, a: F, b: F) -> M {
+        test(a, b, |a, b| a != b)
+    }
+    #[inline(always)]
+    fn is_nan(self, a: F) -> M {
+        test(a, a, |a, _| a.is_nan())
+    }
+    #[inline(always)]
+    fn select(self, m: M, a: F, b: F) -> F {
+        let mut out = b;
+        for ((o, m), a) in out.iter_mut().zip(m).zip(a) {
+            if m {
+                *o = a;
+            }
+        }
+        out
+    }
+    #[inline(always)]
+    fn to_i32(self, a: F) -> I {
+        a.map(|x| x as i32)
+    }
+    #[inline(always)]
+    fn to_f32(self, a: I) -> F {
+        a.map(|x| x as f32)
+    }
+    #[inline(always)]
+    fn splat_i(self, x: i32) -> I {
+        [x; LANES]
+    }
+    #[inline(always)]
+    fn load_i(self, a: &[i32]) -> I {
+        a[..LANES].try_into().expect("LANES values")
+    }
+    #[inline(always)]
+    fn store_i(self, a: &mut [i32], v: I) {
+        a[..LANES].copy_from_slice(&v);
+    }
+    #[inline(always)]
+    fn add_i(self, a: I, b: I) -> I {
+        pair_i(a, b, i32::wrapping_add)
+    }
+    #[inline(always)]
+    fn mul_i(self, a: I, b: I) -> I {
+        pair_i(a, b, i32::wrapping_mul)
+    }
+    #[inline(always)]
+    fn and_i(self, a: I, b: I) -> I {
+        pair_i(a, b, |a, b| a & b)
+    }
+    #[inline(always)]
+    fn shr_i(self, a: I, n: u32) -> I {
+        a.map(|x| ((x as u32) >> (n & 31)) as i32)
+    }
+    #[inline(always)]
+    fn shr_each_i(self, a: I, n: I) -> I {
+        pair_i(a, n, |x, n| ((x as u32) >> (n as u32 & 31)) as i32)
+    }
+    #[inline(always)]
+    fn gt_i(self, a: I, b: I) -> M {
+        let mut out = [false; LANES];
+        for ((o, a), b) in out.iter_mut().zip(a).zip(b) {
+            *o = a > b;
+        }
+        out
+    }
+    #[inline(always)]
+    fn count_i(self, a: I, m: M) -> I {
+        let mut out = a;
+        for (o, m) in out.iter_mut().zip(m) {
+            *o += i32::from(m);
+        }
+        out
+    }
+    #[inline(always)]
+    unsafe fn gather<const SCALE: i32>(self, base: *const u8, i: I) -> I {
+        // SAFETY: the caller's promise.
+        i.map(|i| i32::from_le(unsafe { base.offset(SCALE as isize * i as isize).cast::<i32>().read_unaligned() }))
+    }
+    #[inline(always)]
+    fn lookup(self, table: &[f32; 32], _used: usize, i: I) -> F {
+        i.map(|i| table[i as usize & 31])
+    }
+    #[inline(always)]
+    fn bits(self, m: M) -> u32 {
+        m.iter().enumerate().fold(0, |bits, (l, &m)| bits | u32::from(m) << l)
+    }
+    #[inline(always)]
+    fn mask(self, bits: u32) -> M {
+        std::array::from_fn(|l| bits >> l & 1 == 1)
+    }
+    #[inline(always)]
+    fn and_m(self, a: M, b: M) -> M {
+        std::array::from_fn(|l| a[l] & b[l])
+    }
+    #[inline(always)]
+    fn or_m(self, a: M, b: M) -> M {
+        std::array::from_fn(|l| a[l] | b[l])
+    }
+}

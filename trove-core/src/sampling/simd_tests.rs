@@ -1,0 +1,220 @@
+//! Issue 19: every SIMD path this processor has renders the example scenes (and the peers'
+//! benchmark scenes) within 1/255 of the f64 loops (and the paths that fuse multiply-adds
+//! bit for bit alike), a path it lacks is refused, and `TROVE_SIMD` forces a path. The per-piece agreement (1e-5) on every path is in
+//! [`super::tests`].
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use super::*;
+use crate::geometry::{split_into_pieces, PieceScratch, Segment};
+use crate::render::Image;
+use crate::scene::{DataRoot, Scene, SceneError, SceneErrorKind};
+
+/// The repository's example scenes and the peers' scenes, with their data roots.
+fn scenes() -> Vec<(PathBuf, PathBuf)> {
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let data = repo.join("../shared/data");
+    let mut files: Vec<(PathBuf, PathBuf)> = std::fs::read_dir(repo.join("scenes"))
+        .expect("scenes/ exists")
+        .map(|e| e.expect("dir entry").path())
+        .filter(|p| p.extension().is_some_and(|e| e == "toml"))
+        .map(|p| (p, data.clone()))
+        .collect();
+    files.sort();
+    files.push((repo.join("scenes/peers/cthead.toml"), data));
+    files.push((repo.join("scenes/peers/synthetic-u8.toml"), repo.join("scenes/peers/data")));
+    files
+}
+
+/// `scene`, every pixel's pieces cast with each object bound on `path`, many at a time
+/// ([`ObjectCaster::cast_many`]: in f32 lanes where the object's loop has them) or, with
+/// `one_by_one`, piece by piece in f64 ([`ObjectCaster::cast`]), then composited front to
+/// back. Pieces are cast whole (no early termination), so that the two differ only by how
+/// each piece was cast.
+fn render(scene: &Scene, path: SimdPath, one_by_one: bool) -> (Image, usize) {
+    let (w, h) = (scene.image().width, scene.image().height);
+    let volumes: Vec<_> = scene.datasets().iter().map(|d| d.load().expect("load")).collect();
+    let correction = scene.render().opacity_correction;
+    let casters: Vec<ObjectCaster<'_>> = scene
+        .objects()
+        .iter()
+        .map(|o| ObjectCaster::on_path(o, &volumes[o.dataset()], correction, CastOptions::default(), path).unwrap())
+        .collect();
+    let packets = casters.iter().filter(|c| c.casts_packets()).count();
+    // Per object, the pieces it casts; per pixel, its pieces' (object, request) lists.
+    let mut requests: Vec<Vec<PieceRequest>> = vec![Vec::new(); casters.len()];
+    let mut pixels: Vec<Vec<Vec<(usize, usize)>>> = Vec::new();
+    let (mut segments, mut scratch, mut pieces, mut cover) =
+        (Vec::new(), PieceScratch::default(), Vec::new(), Vec::new());
+    for row in 0..h {
+        for col in 0..w {
+            let ray = scene.camera().ray(col, row, w, h);
+            segments.clear();
+            for (i, o) in scene.objects().iter().enumerate() {
+                if let Some((t_near, t_far)) = o.placement().segment(&ray) {
+                    if t_far > t_near {
+                        segments.push(Segment { object: i as u32, t_near, t_far });
+                    }
+                }
+            }
+            split_into_pieces(&segments, &mut scratch, &mut pieces, &mut cover);
+            let mut pixel = Vec::new();
+            for piece in &pieces {
+                let objects = &cover[piece.cover.0 as usize..piece.cover.1 as usize];
+                let mut parts = Vec::new();
+                for &o in objects {
+                    let o = o as usize;
+                    parts.push((o, requests[o].len()));
+                    requests[o].push(PieceRequest {
+                        ray,
+                        t0: piece.t0,
+                        t1: piece.t1,
+                        alpha_in: 0.0,
+                        stop_at: f64::INFINITY,
+                    });
+                }
+                pixel.push(parts);
+            }
+            pixels.push(pixel);
+        }
+    }
+    let results: Vec<Vec<PieceResult>> = casters
+        .iter()
+        .zip(&requests)
+        .map(|(caster, requests)| {
+            let mut out = vec![PieceResult::default(); requests.len()];
+            if one_by_one {
+                for (out, r) in out.iter_mut().zip(requests) {
+                    *out = caster.cast(&r.ray, r.t0, r.t1, r.alpha_in, r.stop_at);
+                }
+            } else {
+                caster.cast_many(requests, &mut out);
+            }
+            out
+        })
+        .collect();
+    let image = pixels
+        .iter()
+        .map(|pixel| {
+            let mut acc = Rgba::CLEAR;
+            for parts in pixel {
+                acc.over(Rgba::colocated(parts.iter().map(|&(o, i)| results[o][i].rgba)));
+            }
+            acc.with_background(scene.image().background)
+        })
+        .collect();
+    (Image::new(w, h, image), packets)
+}
+
+#[test]
+fn every_available_path_renders_every_example_scene_within_a_level_of_the_f64_loops() {
+    let required = std::env::var_os("TROVE_REQUIRE_DATA").is_some();
+    let (mut scenes_checked, mut packet_objects) = (0, 0);
+    for (file, data) in scenes() {
+        let scene = match Scene::load_in(&file, &DataRoot::Given(data.clone())) {
+            Ok(scene) => scene,
+            // The synthetic volume is made by a script (its scene's comment says how).
+            Err(SceneError { kind: SceneErrorKind::DataNotFound { .. }, .. })
+                if !required || !file.ends_with("synthetic-u8.toml") && !data.is_dir() =>
+            {
+                eprintln!("SKIPPED {}: its data is absent under {}", file.display(), data.display());
+                continue;
+            }
+            Err(e) => panic!("{}: {e}", file.display()),
+        };
+        let (width, height) = (scene.image().width, scene.image().height);
+        let scale = 40.0 / width.max(height) as f64;
+        let side = |s: u32| ((s as f64 * scale).round() as u32).max(1);
+        let scene = scene.with_image_size(side(width), side(height)).unwrap();
+        let (reference, _) = render(&scene, SimdPath::Scalar, true);
+        // The paths with fused multiply-adds run the same operations lane by lane, whatever
+        // their width: the same bits (so farm workers on AVX2 and on AVX-512 agree).
+        let mut fused: Option<(SimdPath, Image)> = None;
+        for path in SimdPath::available() {
+            let (image, packets) = render(&scene, path, false);
+            let difference = image.max_abs_difference(&reference);
+            assert!(
+                difference <= 1.0 / 255.0,
+                "{} on {path}: {difference} from the f64 loops ({packets} objects in packets)",
+                file.display()
+            );
+            packet_objects += packets;
+            if path != SimdPath::Scalar {
+                match &fused {
+                    Some((first, first_image)) => assert!(
+                        image.pixels() == first_image.pixels(),
+                        "{}: {path} differs from {first} by {}",
+                        file.display(),
+                        image.max_abs_difference(first_image)
+                    ),
+                    None => fused = Some((path, image)),
+                }
+            }
+        }
+        scenes_checked += 1;
+    }
+    eprintln!("{scenes_checked} scenes, {packet_objects} (object, path) pairs cast in packets");
+    assert!(scenes_checked > 0 && packet_objects > 0, "no scene exercised the packet loop");
+}
+
+#[test]
+fn a_path_the_processor_lacks_is_refused_and_an_unknown_name_too() {
+    let available = SimdPath::available();
+    assert_eq!(available.last(), Some(&SimdPath::Scalar), "scalar runs everywhere, last");
+    assert_eq!(SimdPath::best(), available[0]);
+    for path in SimdPath::ALL {
+        assert_eq!(path.checked().is_ok(), available.contains(&path));
+        assert_eq!(path.name().parse::<SimdPath>(), Ok(path));
+        if !available.contains(&path) {
+            let e = path.checked().unwrap_err();
+            let message = e.to_string();
+            assert!(matches!(e, SimdError::Unavailable { path: p, .. } if p == path), "{e:?}");
+            assert!(message.contains(path.name()) && message.contains(path.needs()), "{message}");
+        }
+    }
+    // Every x86-64 processor lacks NEON and every AArch64 one AVX2: some path is refused here.
+    assert!(available.len() < SimdPath::ALL.len());
+    assert!(matches!("sse9".parse::<SimdPath>(), Err(SimdError::Unknown { .. })));
+    assert_eq!(" AVX2 ".parse::<SimdPath>(), Ok(SimdPath::Avx2));
+}
+
+/// Where the child process of [`trove_simd_forces_a_path_and_refuses_one_the_processor_lacks`]
+/// finds what `SimdPath::configured` must answer.
+const EXPECTS: &str = "TROVE_SIMD_TEST_EXPECTS";
+
+#[test]
+fn trove_simd_forces_a_path_and_refuses_one_the_processor_lacks() {
+    // `TROVE_SIMD` is read once per process, so each value is tried in a child process
+    // running this test alone, which checks the answer.
+    if let Ok(expected) = std::env::var(EXPECTS) {
+        let got = match SimdPath::configured() {
+            Ok(path) => path.name().to_string(),
+            Err(e) => format!("error: {e}"),
+        };
+        assert!(got.starts_with(&expected), "TROVE_SIMD={:?}: {got}, expected {expected}", std::env::var("TROVE_SIMD"));
+        return;
+    }
+    let best = SimdPath::best().name();
+    let lacking = SimdPath::ALL.into_iter().find(|p| !p.is_available()).expect("some path is lacking");
+    let refused = format!("error: SIMD path `{lacking}` is refused: this processor lacks {}", lacking.needs());
+    let cases = [
+        ("scalar", "scalar".to_string()),
+        (best, best.to_string()),
+        ("", best.to_string()),
+        (lacking.name(), refused),
+        ("sse9", "error: `sse9` is not a SIMD path".to_string()),
+    ];
+    let me = std::env::current_exe().expect("the test binary");
+    for (value, expects) in cases {
+        let out = Command::new(&me)
+            .args(["--exact", "sampling::simd_tests::trove_simd_forces_a_path_and_refuses_one_the_processor_lacks"])
+            .env("TROVE_SIMD", value)
+            .env(EXPECTS, &expects)
+            .output()
+            .expect("run the test binary");
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "TROVE_SIMD={value:?}: {stdout}{}", String::from_utf8_lossy(&out.stderr));
+        assert!(stdout.contains("1 passed"), "TROVE_SIMD={value:?}: the child ran no test: {stdout}");
+    }
+}
