@@ -66,8 +66,9 @@ pub(super) struct Grid<'a> {
     pub safe: i32,
 }
 
-/// What the packet loop ([`super::packet`]) reads of an object's map and grid, in f32: sixteen lanes to a register
-/// halve the instructions per sample. Positions, voxels and classification then differ
+/// What the packet loop ([`super::packet`]) reads of an object's map and grid, in f32: a
+/// register holds twice as many f32 lanes as f64 ones, halving the instructions per sample.
+/// Positions, voxels and classification then differ
 /// from the f64 loops by rounding only (about 1e-7 relatively); the one place where that
 /// could matter more is a break point where the map jumps (a LUT bound): a value within
 /// rounding of one takes its segment from the f64 value instead ([`Packed::jumps`]).
@@ -82,8 +83,8 @@ pub(super) struct Packed {
     /// Per joint segment ([`Packed::REFERENCE`] and the others): a value in it, and the
     /// opacity and each colour channel there and their slopes, so that one subtraction
     /// serves all four (each is linear over a joint segment). Padded to 32 segments (at
-    /// most [`crate::mapping::SMALL_MAP`] + 1 are used): the two registers of a
-    /// two-register permute.
+    /// most [`crate::mapping::SMALL_MAP`] + 1 are used): on AVX-512 the two registers of
+    /// one two-register permute, on AVX2 a permute per eight segments used.
     pub tables: Box<[[f32; 32]; 9]>,
     /// The break points at which the map jumps (LUT bounds): a value whose f32 and f64
     /// forms could lie on either side of one must be classified from the f64 form.

@@ -204,8 +204,8 @@ fn casts_agree_on(object: &Object, volume: &Volume, correction: bool, rays: &[Ra
             }
         }
     }
-    // Many pieces at once give each piece's result: the same, or where sixteen are cast at
-    // a time in f32 lanes, the same up to f32's rounding ([`agree_to_f32`]).
+    // Many pieces at once give each piece's result: the same, or where they are cast many at
+    // a time in f32 lanes (on `path`), the same up to f32's rounding ([`agree_to_f32`]).
     for caster in &casters {
         let mut many = vec![PieceResult::default(); requests.len()];
         caster.cast_many(&requests, &mut many);
