@@ -33,6 +33,11 @@ pub const MAX_RAY_OBJECT_TESTS: u64 = 1 << 36;
 /// wave entry and share of the piece index in the scheduler (1 + 16 + 4 + 8).
 pub const BYTES_PER_BAND_TASK: u64 = 24 + 24 + 1 + 16 + 4 + 8;
 
+/// Bytes one ray of a band takes at its peak, whatever its tasks: its entry in the
+/// intersection's ray index (8) and the piece count it is built from (4), and its known
+/// front in the scheduler (a piece count and an RGBA of f64, 40).
+pub const BYTES_PER_BAND_RAY: u64 = 8 + 4 + 40;
+
 /// Tasks a band may always hold, however small the band memory: one row of any everyday
 /// scene (about 80 MiB of bookkeeping), so that a tiny band memory means one-row bands
 /// rather than refusals.
@@ -137,6 +142,8 @@ pub struct Work {
     pub tasks: u64,
     /// Pieces over the image.
     pub pieces: u64,
+    /// The image's width: each row's rays.
+    width: u32,
     tasks_per_row: Vec<u64>,
 }
 
@@ -173,7 +180,7 @@ impl Work {
             return Err(LimitError::TasksPerRender { counted: tasks, max });
         }
         let pieces = rows.iter().map(|r| r.0).sum();
-        Ok(Work { tasks, pieces, tasks_per_row: rows.into_iter().map(|r| r.1).collect() })
+        Ok(Work { tasks, pieces, width, tasks_per_row: rows.into_iter().map(|r| r.1).collect() })
     }
 
     /// [`Work::count`] by intersecting the image in bands of `band_rows` rows, keeping each
@@ -198,13 +205,15 @@ impl Work {
             let rows = start..(start + band_rows).min(height);
             // What the rest of `keep` holds, at the bytes a kept task takes at most (its
             // piece and its ray each own a slot only once, so this over-counts).
+            // Its rays' index is held whatever its tasks.
+            held += (rows.len() as u64 * width as u64 + 2) * 8;
             let room = keep.saturating_sub(held) / KEPT_BYTES_PER_TASK;
-            match intersect_within(scene, rows.clone(), room, keep) {
-                Ok(inter) => {
-                    held += inter.heap_bytes();
+            match intersect_within(scene, rows.clone(), room, keep).ok().filter(|_| held <= keep) {
+                Some(inter) => {
+                    held += inter.heap_bytes() - (inter.ray_start.len() as u64 * 8);
                     kept.push(inter);
                 }
-                Err(_) => return Work::count(scene).map(|work| (work, Vec::new())),
+                None => return Work::count(scene).map(|work| (work, Vec::new())),
             }
         }
         let mut tasks_per_row = Vec::with_capacity(height as usize);
@@ -218,7 +227,7 @@ impl Work {
             pieces += inter.pieces() as u64;
         }
         let tasks = tasks_per_row.iter().sum();
-        Ok((Work { tasks, pieces, tasks_per_row }, kept))
+        Ok((Work { tasks, pieces, width, tasks_per_row }, kept))
     }
 
     /// Tasks of image rows `rows`.
@@ -244,7 +253,7 @@ impl Work {
     }
 
     /// The rows per band that keep every band of the image within `band_memory` bytes of
-    /// tasks by this exact count: the whole image when it fits, else the tallest halving of
+    /// tasks and rays ([`BYTES_PER_BAND_TASK`], [`BYTES_PER_BAND_RAY`]) by this exact count: the whole image when it fits, else the tallest halving of
     /// it that does, and at least the rows its densest row guarantees (one row at the
     /// least). Refused only when one row is over [`max_band_tasks`]. Both drivers size
     /// their bands with it, so no band is estimated from samples.
@@ -253,12 +262,16 @@ impl Work {
         let height = (self.tasks_per_row.len() as u32).max(1);
         // Sizing aims at the memory itself; the floor of `max_band_tasks` only keeps a
         // small band memory from refusing scenes.
-        let target = (band_memory / BYTES_PER_BAND_TASK).max(1);
-        let fits = |r: u32| {
-            (0..height).step_by(r as usize).all(|start| self.tasks_in(start..(start + r).min(height)) <= target)
+        // A band's bytes are its tasks' and its rays' (a sparse view of one small object has
+        // few tasks but as many rays as pixels).
+        let row_rays = self.width as u64 * BYTES_PER_BAND_RAY;
+        let bytes = |rows: std::ops::Range<u32>| {
+            self.tasks_in(rows.clone()) * BYTES_PER_BAND_TASK + (rows.end - rows.start) as u64 * row_rays
         };
-        let densest = self.tasks_per_row.iter().copied().max().unwrap_or(0).max(1);
-        let guaranteed = (target / densest).clamp(1, height as u64) as u32;
+        let fits =
+            |r: u32| (0..height).step_by(r as usize).all(|start| bytes(start..(start + r).min(height)) <= band_memory);
+        let densest = self.tasks_per_row.iter().copied().max().unwrap_or(0) * BYTES_PER_BAND_TASK + row_rays;
+        let guaranteed = (band_memory / densest.max(1)).clamp(1, height as u64) as u32;
         let halving = std::iter::successors(Some(height), |&r| (r > 1).then_some(r.div_ceil(2)))
             .take_while(|&r| r > guaranteed)
             .find(|&r| fits(r));
@@ -272,6 +285,11 @@ mod tests {
 
     /// `n` nested cubes over one 2³ dataset, the outermost filling the view, at `step`.
     fn nested_boxes(n: usize, size: u32, step: &str) -> Scene {
+        Scene::parse(&nested_text(n, size, step), "nested.toml").unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    /// The text of [`nested_boxes`].
+    fn nested_text(n: usize, size: u32, step: &str) -> String {
         let mut text = format!(
             "[image]\nwidth = {size}\nheight = {size}\nbackground = [0, 0, 0]\n\
              [camera]\neye = [0, 0, 4]\ntarget = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 30.0\n\
@@ -288,7 +306,7 @@ mod tests {
                  opacity = {{ type = \"ramp\", points = [[0, 0.01], [1, 0.01]] }}\n"
             );
         }
-        Scene::parse(&text, "nested.toml").unwrap_or_else(|e| panic!("{e}"))
+        text
     }
 
     #[test]
@@ -322,6 +340,26 @@ mod tests {
         // A hostile scene is refused as counting refuses it.
         let err = Work::count_keeping(&nested_boxes(300, 512, "1e9"), 32, 1 << 26).unwrap_err();
         assert!(matches!(err, LimitError::TasksPerRender { .. }), "{err}");
+    }
+
+    #[test]
+    fn a_sparse_view_is_banded_by_its_rays_too() {
+        // One small cube in a wide view: a few tasks, many rays.
+        let text = nested_text(1, 512, "0.5").replace(
+            "[[2, 0, 0, -1], [0, 2, 0, -1], [0, 0, 2, -1]",
+            "[[0.1, 0, 0, -0.05], [0, 0.1, 0, -0.05], [0, 0, 0.1, -0.05]",
+        );
+        let scene = Scene::parse(&text, "sparse.toml").unwrap();
+        let work = Work::count(&scene).unwrap();
+        assert!(work.tasks > 0 && work.tasks < 512 * 64, "{} tasks", work.tasks);
+        let all = 512 * 512 * BYTES_PER_BAND_RAY + work.tasks * BYTES_PER_BAND_TASK;
+        // Half the bytes of one band of the whole image: two bands at least.
+        let rows = work.rows_within(all / 2).unwrap();
+        assert!(rows <= 256, "{rows} rows");
+        assert_eq!(work.rows_within(all).unwrap(), 512);
+        // Keeping the bands holds their ray index too: none kept within a small bound.
+        let (_, kept) = Work::count_keeping(&scene, 16, 512 * 8 * 8).unwrap();
+        assert!(kept.is_empty(), "{} bands kept", kept.len());
     }
 
     #[test]
