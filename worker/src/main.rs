@@ -99,6 +99,10 @@ fn main() -> ExitCode {
 #[tokio::main]
 async fn run() -> Result<()> {
     let args = Args::parse();
+    // A SIMD path the processor lacks (or a misspelt one) is refused here, at start, rather
+    // than as a failed batch of every job later.
+    let simd = trove_core::SimdPath::configured()?;
+    tracing::info!(%simd, "sampler's SIMD path");
     let security = security(&args)?;
     let worker_id = match args.worker_id {
         Some(id) => Some(id),

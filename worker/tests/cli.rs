@@ -36,3 +36,17 @@ fn a_budget_without_a_unit_it_knows_is_refused() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("KiB, MiB or GiB"));
 }
+
+#[test]
+fn a_simd_path_it_does_not_know_is_refused_at_start() {
+    let out = Command::new(env!("CARGO_BIN_EXE_trove-worker"))
+        .args(["--coordinator", "http://127.0.0.1:9", "--listen", "127.0.0.1:0", "--data-root", "."])
+        .env("TROVE_SIMD", "avx9000")
+        .output()
+        .expect("run trove-worker");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(stderr.contains("`avx9000` is not a SIMD path (TROVE_SIMD)"), "{stderr}");
+    // Refused before it listens: no address printed.
+    assert!(out.stdout.is_empty(), "{}", String::from_utf8_lossy(&out.stdout));
+}
