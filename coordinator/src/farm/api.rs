@@ -71,7 +71,9 @@ fn plan(farm: &Farm, request: pb::SubmitJobRequest) -> Result<JobPlan, Status> {
         f.file = name.clone();
         convert::limit_status(f)
     };
+    let counting = std::time::Instant::now();
     let (_, band_rows, kept) = farm.driver.check_work(&scene, &options).map_err(limited)?;
+    let counting_seconds = counting.elapsed().as_secs_f64();
     let dataset_keys: Vec<Vec<String>> = scene.datasets().iter().map(|d| d.file_keys()).collect();
     for d in scene.used_datasets() {
         if farm.registry.holders(&dataset_keys[d]).is_empty() {
@@ -103,6 +105,7 @@ fn plan(farm: &Farm, request: pb::SubmitJobRequest) -> Result<JobPlan, Status> {
         dataset_keys,
         band_rows,
         kept: kept.into_iter().map(Some).collect(),
+        counting_seconds,
     })
 }
 

@@ -221,6 +221,9 @@ pub struct JobPlan {
     /// per running job, on top of the bands in flight); none for a job that waited in the
     /// queue (they are dropped so that waiting jobs hold no pieces).
     pub kept: Vec<Option<Intersections>>,
+    /// Seconds the submission's count took ([`DriverConfig::check_work`]): the kept bands'
+    /// intersection, charged to the job's intersection stage when it runs.
+    pub counting_seconds: f64,
 }
 
 /// A `Cast` stream: (worker id, dataset).
@@ -298,6 +301,8 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     let (w, h) = (plan.scene.image().width, plan.scene.image().height);
     let max_bands = config.max_bands.max(1);
     let band_rows = plan.band_rows;
+    // Bands the count kept were intersected then, not here.
+    let counting_seconds = if plan.kept.iter().any(Option::is_some) { plan.counting_seconds } else { 0.0 };
     let batch_tasks = match plan.options.batch_tasks {
         0 => DEFAULT_BATCH_TASKS,
         n => (n as usize).min(trove_proto::MAX_BATCH_TASKS),
@@ -318,7 +323,12 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         opening: Vec::new(),
         next_serial: 0,
         ready: BTreeSet::new(),
-        tally: Tally::new(metrics),
+        tally: {
+            let mut tally = Tally::new(metrics);
+            tally.coordinator.intersection += counting_seconds;
+            tally.stats.seconds.intersection += counting_seconds;
+            tally
+        },
     };
     job.update(|s| {
         s.state = pb::JobState::Running as i32;
