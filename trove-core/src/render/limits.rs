@@ -135,6 +135,18 @@ pub fn check_pfm(width: u32, height: u32, max_pixels: u64) -> Result<(), LimitEr
     Ok(())
 }
 
+/// Refuses a scene of more ray–object pairs than [`MAX_RAY_OBJECT_TESTS`], before any is
+/// tested.
+fn check_ray_object_tests(scene: &Scene) -> Result<(), LimitError> {
+    let (width, height) = (scene.image().width, scene.image().height);
+    let objects = scene.objects().len();
+    let tests = width as u64 * height as u64 * objects as u64;
+    if tests > MAX_RAY_OBJECT_TESTS {
+        return Err(LimitError::RayObjectTests { width, height, objects, tests, max: MAX_RAY_OBJECT_TESTS });
+    }
+    Ok(())
+}
+
 /// A scene's intersection work, counted row by row without storing a task.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Work {
@@ -154,11 +166,7 @@ impl Work {
     /// that counting a hostile scene stays short too.
     pub fn count(scene: &Scene) -> Result<Work, LimitError> {
         let (width, height) = (scene.image().width, scene.image().height);
-        let objects = scene.objects().len();
-        let tests = width as u64 * height as u64 * objects as u64;
-        if tests > MAX_RAY_OBJECT_TESTS {
-            return Err(LimitError::RayObjectTests { width, height, objects, tests, max: MAX_RAY_OBJECT_TESTS });
-        }
+        check_ray_object_tests(scene)?;
         let max = MAX_TASKS_PER_RENDER;
         let (total, over) = (AtomicU64::new(0), AtomicBool::new(false));
         let counter = RowCounter::new(scene);
@@ -193,11 +201,7 @@ impl Work {
     /// is the same either way.
     pub fn count_keeping(scene: &Scene, band_rows: u32, keep: u64) -> Result<(Work, Vec<Intersections>), LimitError> {
         let (width, height) = (scene.image().width, scene.image().height);
-        let objects = scene.objects().len();
-        let tests = width as u64 * height as u64 * objects as u64;
-        if tests > MAX_RAY_OBJECT_TESTS {
-            return Err(LimitError::RayObjectTests { width, height, objects, tests, max: MAX_RAY_OBJECT_TESTS });
-        }
+        check_ray_object_tests(scene)?;
         let band_rows = band_rows.clamp(1, height.max(1));
         let mut kept: Vec<Intersections> = Vec::new();
         let mut held = 0u64;
