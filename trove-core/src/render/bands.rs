@@ -5,36 +5,59 @@
 //! both hold only the pieces of the bands in flight, so their memory is bounded by
 //! configuration rather than by the image's area. Each driver keeps its own raster (local
 //! mode the f64 pixels of its `Image`, the farm its PNG bytes and PFM floats).
+//!
+//! What a casting band holds is the driver's ([`Casting`]): the local renderer keeps the
+//! band's [`Scheduler`] here, while the farm's coordinator gives each band a thread of its
+//! own that owns the scheduler, and keeps here only what that thread last reported.
 
 use std::collections::BTreeMap;
 use std::ops::Range;
 
 use super::dispatch::{band_order, Admission};
-use super::schedule::Scheduler;
+use super::schedule::{Progress, Scheduler};
+
+/// What [`Bands`] needs to know of a casting band: its bytes, for admission, and its
+/// progress, to know when it is complete.
+pub trait Casting {
+    /// Bytes of bookkeeping the band holds ([`Scheduler::heap_bytes`]).
+    fn heap_bytes(&self) -> u64;
+    /// Its tasks: in all, cast and culled.
+    fn progress(&self) -> Progress;
+}
+
+impl Casting for Box<Scheduler> {
+    fn heap_bytes(&self) -> u64 {
+        Scheduler::heap_bytes(self)
+    }
+
+    fn progress(&self) -> Progress {
+        Scheduler::progress(self)
+    }
+}
 
 /// Where a band stands.
-pub enum Stage {
+pub enum Stage<S> {
     /// Its rays are being intersected.
     Intersecting,
     /// Its scheduler hands out batches.
-    Casting(Box<Scheduler>),
+    Casting(S),
     /// Every task is cast or culled; its pixels are being composited.
     Compositing,
 }
 
-struct Band {
+struct Band<S> {
     seq: usize,
     rows: Range<u32>,
-    stage: Stage,
+    stage: Stage<S>,
     bytes: u64,
 }
 
 /// An image's bands; see the module documentation.
-pub struct Bands {
+pub struct Bands<S = Box<Scheduler>> {
     rows: Vec<Range<u32>>,
     order: Vec<usize>,
     started: usize,
-    live: BTreeMap<usize, Band>,
+    live: BTreeMap<usize, Band<S>>,
     admission: Admission,
     held: u64,
     largest: u64,
@@ -42,9 +65,9 @@ pub struct Bands {
     tasks_composited: u64,
 }
 
-impl Bands {
+impl<S: Casting> Bands<S> {
     /// `height` rows in bands of `band_rows` rows, admitted under `admission`.
-    pub fn new(height: u32, band_rows: u32, admission: Admission) -> Bands {
+    pub fn new(height: u32, band_rows: u32, admission: Admission) -> Self {
         let band_rows = band_rows.clamp(1, height.max(1));
         let rows: Vec<Range<u32>> =
             (0..height.div_ceil(band_rows)).map(|b| b * band_rows..((b + 1) * band_rows).min(height)).collect();
@@ -96,7 +119,7 @@ impl Bands {
     }
 
     /// Band `band`'s scheduler is ready: it casts from now on.
-    pub fn intersected(&mut self, band: usize, scheduler: Box<Scheduler>) {
+    pub fn intersected(&mut self, band: usize, scheduler: S) {
         let bytes = scheduler.heap_bytes();
         self.held += bytes;
         self.largest = self.largest.max(bytes);
@@ -107,7 +130,7 @@ impl Bands {
     }
 
     /// The band's start order (earlier bands go first) and scheduler, while it casts.
-    pub fn casting(&mut self, band: usize) -> Option<(usize, &mut Scheduler)> {
+    pub fn casting(&mut self, band: usize) -> Option<(usize, &mut S)> {
         match self.live.get_mut(&band) {
             Some(Band { seq, stage: Stage::Casting(s), .. }) => Some((*seq, s)),
             _ => None,
@@ -115,18 +138,18 @@ impl Bands {
     }
 
     /// Every band casting, in band order.
-    pub fn casting_bands(&self) -> impl Iterator<Item = (usize, &Scheduler)> {
+    pub fn casting_bands(&self) -> impl Iterator<Item = (usize, &S)> {
         self.live.iter().filter_map(|(&b, band)| match &band.stage {
-            Stage::Casting(s) => Some((b, &**s)),
+            Stage::Casting(s) => Some((b, s)),
             _ => None,
         })
     }
 
     /// Takes the scheduler of a band whose every task is cast or culled, with its rows, to
     /// composite it; its memory counts until [`Bands::composited`].
-    pub fn take_complete(&mut self, band: usize) -> Option<(Range<u32>, Box<Scheduler>)> {
+    pub fn take_complete(&mut self, band: usize) -> Option<(Range<u32>, S)> {
         let b = self.live.get_mut(&band)?;
-        if !matches!(&b.stage, Stage::Casting(s) if s.is_complete()) {
+        if !matches!(&b.stage, Stage::Casting(s) if s.progress().is_complete()) {
             return None;
         }
         let Stage::Casting(scheduler) = std::mem::replace(&mut b.stage, Stage::Compositing) else { unreachable!() };
@@ -161,7 +184,7 @@ mod tests {
 
     #[test]
     fn bands_cover_the_image_once_and_start_spread_out() {
-        let mut bands = Bands::new(103, 10, Admission { max_bands: 64, memory_bound: u64::MAX });
+        let mut bands = <Bands>::new(103, 10, Admission { max_bands: 64, memory_bound: u64::MAX });
         let mut seen = Vec::new();
         while let Some((b, rows)) = bands.start_next() {
             seen.push((b, rows));
@@ -176,7 +199,7 @@ mod tests {
 
     #[test]
     fn admission_caps_the_bands_in_flight() {
-        let mut bands = Bands::new(40, 1, Admission { max_bands: 3, memory_bound: u64::MAX });
+        let mut bands = <Bands>::new(40, 1, Admission { max_bands: 3, memory_bound: u64::MAX });
         assert!(bands.start_next().is_some() && bands.start_next().is_some() && bands.start_next().is_some());
         assert_eq!(bands.start_next(), None);
         assert!(!bands.is_done());

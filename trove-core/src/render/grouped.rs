@@ -47,7 +47,7 @@ pub(super) fn render<C: Canvas>(
 ) -> Result<Rendered<C>, RenderError> {
     let h = scene.image().height;
     let mut stats = RenderStats::default();
-    let mut bands = Bands::new(h, band_rows, Admission { max_bands: 1, memory_bound: band_memory });
+    let mut bands = <Bands>::new(h, band_rows, Admission { max_bands: 1, memory_bound: band_memory });
     let mut loading = Duration::ZERO;
     let mut casting = Duration::ZERO;
     while let Some((band, rows)) = bands.start_next() {

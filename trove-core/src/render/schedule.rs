@@ -122,6 +122,13 @@ pub struct Progress {
     pub culled: u64,
 }
 
+impl Progress {
+    /// Whether every task is recorded or culled.
+    pub fn is_complete(&self) -> bool {
+        self.cast + self.culled == self.total
+    }
+}
+
 /// The volume-rendering phase of one region of the image (the whole image, or a tile of
 /// rows): see the module documentation.
 pub struct Scheduler {
@@ -211,7 +218,7 @@ impl Scheduler {
 
     /// Whether every task is recorded or culled.
     pub fn is_complete(&self) -> bool {
-        self.progress.cast + self.progress.culled == self.progress.total
+        self.progress.is_complete()
     }
 
     /// Whether dataset `d` has nothing left to hand out or wait for.

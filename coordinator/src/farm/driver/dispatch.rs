@@ -14,7 +14,7 @@ use std::collections::{HashMap, HashSet};
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
-use trove_core::render::dispatch::{least_loaded, Load};
+use trove_core::render::dispatch::{capacity, least_loaded, Load};
 
 use super::super::registry::{Registry, WorkerHandle};
 use super::StreamKey;
@@ -110,6 +110,17 @@ impl Dispatch {
         let holders: Vec<&WorkerHandle> = self.holders[d].iter().filter(|w| usable(w)).collect();
         let loads = holders.iter().map(|w| Load { in_flight: w.in_flight.load(Ordering::Relaxed), threads: w.threads });
         least_loaded(loads).map(|i| holders[i])
+    }
+
+    /// The batches dataset `d`'s holders have room for now, over every job they serve, and
+    /// how many holders it has.
+    pub fn room(&self, d: usize) -> (usize, usize) {
+        let holders = &self.holders[d];
+        let room = holders
+            .iter()
+            .map(|w| capacity(w.threads).saturating_sub(w.in_flight.load(Ordering::Relaxed)) as usize)
+            .sum();
+        (room, holders.len())
     }
 
     /// A fresh wire id for a batch.

@@ -12,12 +12,16 @@
 //! the results as they come back in any order, and composites the band into the image with
 //! the same code as local mode. Datasets stay resident on their workers from band to band.
 //!
-//! Everything that happens to a job arrives on one channel of [`Event`]s — a band
-//! intersected or composited (on blocking threads), an answer or the end of a stream — and
-//! is handled by this one task, so the job's state needs no locks. The work per piece
-//! (intersection, planning, composition) runs on the blocking threads; the task itself only
-//! moves batches, and finds the ones ready without scanning: a (band, dataset) pair is
-//! looked at again only when something happened to it.
+//! Each band in flight has a thread of its own ([`band`]) that owns the band's scheduler
+//! and does every per-task step: intersection and planning, the fronts and culls of each
+//! batch it hands out and their encoding, decoding and recording answers, composition. The
+//! job's one task — its event loop — does only per-batch work: everything that happens to
+//! the job arrives on one channel of [`Event`]s (news from a band, an answer, a stream opened
+//! or ended), the loop keeps per dataset the batches bands handed out ([`Stock`]), sends them
+//! to workers with room, asks bands for more where there is room, and hands each answer to
+//! its band. So a job's per-task work runs on as many cores as it has bands in flight, and
+//! its state still needs no locks: the loop owns what is per job, each band's thread what
+//! is per band. A dataset is looked at again only when something happened to it.
 //!
 //! A batch is identified by its wire id (unique in the job) and its attempt (how many times
 //! its tasks were given up before); an answer is taken only on the stream the batch went
@@ -33,12 +37,13 @@
 //! makes more tasks than the memory bound holds (`intersect_within`), or when a step on a
 //! blocking thread panics: each fails this job only.
 
+mod band;
 mod dispatch;
 mod error;
 mod raster;
 mod tally;
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -47,12 +52,12 @@ use prost::Message;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::Status;
-use trove_core::render::bands::Bands;
+use trove_core::render::bands::{Bands, Casting};
 use trove_core::render::dispatch::Admission;
-use trove_core::render::intersection::{intersect_within, Intersections};
-use trove_core::render::limits::{check_pfm, max_band_tasks, LimitError, Work, MAX_PFM_PIXELS};
-use trove_core::render::wire::{decode_results, encode_tasks};
-use trove_core::render::{Algorithm, Batch, Raster, Scheduler};
+use trove_core::render::intersection::Intersections;
+use trove_core::render::limits::{check_pfm, LimitError, Work, MAX_PFM_PIXELS};
+use trove_core::render::schedule::Progress;
+use trove_core::render::{Algorithm, Raster};
 use trove_core::scene::Scene;
 use trove_proto::convert::{self, JOB_HEADER};
 use trove_proto::v1 as pb;
@@ -61,9 +66,9 @@ use trove_proto::v1::worker_client::WorkerClient;
 use super::jobs::{Job, JobOutput};
 use super::metrics::FarmMetrics;
 use super::registry::{Registry, WorkerHandle};
+use band::{News, Ready, ToBand};
 use dispatch::{Dispatch, InFlight, Rest};
 pub use error::JobError;
-use raster::Composited;
 use tally::Tally;
 
 /// Tasks per batch when the job does not say.
@@ -231,16 +236,10 @@ type StreamKey = (String, usize);
 
 /// What happens to a job.
 enum Event {
-    Intersected {
+    /// News from a band's thread.
+    Band {
         band: usize,
-        scheduler: Box<Scheduler>,
-        seconds: f64,
-        /// Of `seconds`, what `Scheduler::new` took.
-        planning: f64,
-    },
-    Composited {
-        band: usize,
-        part: Box<Composited>,
+        news: News,
     },
     /// The worker accepted stream `serial`: batches may go on it.
     Opened {
@@ -270,25 +269,64 @@ struct Stream {
     serial: u64,
 }
 
+/// What the job's loop keeps of a band in flight: the band's thread owns its scheduler.
+struct BandState {
+    bytes: u64,
+    progress: Progress,
+}
+
+impl Casting for BandState {
+    fn heap_bytes(&self) -> u64 {
+        self.bytes
+    }
+
+    fn progress(&self) -> Progress {
+        self.progress
+    }
+}
+
 struct Driver {
     plan: JobPlan,
     job: Arc<Job>,
     registry: Arc<Registry>,
     config: DriverConfig,
     events: mpsc::Sender<Event>,
-    bands: Bands,
+    bands: Bands<BandState>,
+    /// Each band's thread, from its start until it is composited.
+    band_tx: HashMap<usize, mpsc::UnboundedSender<ToBand>>,
     raster: Raster,
     batch_tasks: usize,
     dispatch: Dispatch,
-    streams: std::collections::HashMap<StreamKey, Stream>,
+    streams: HashMap<StreamKey, Stream>,
     /// Streams opened and not accepted yet, since when (few: only while streams open).
     opening: Vec<(StreamKey, Instant)>,
     next_serial: u64,
-    /// (band start order, band, dataset) pairs that may have a batch to hand out: a pair
-    /// leaves when its dataset has nothing ready and comes back when an answer or a lost
-    /// batch could change that.
-    ready: BTreeSet<(usize, usize, usize)>,
+    /// Per dataset: the batches bands handed out that wait for a worker with room, and how
+    /// many more are asked for and not yet produced.
+    stock: Vec<Stock>,
+    /// Datasets with batches in stock or a band that may produce one: the only ones the
+    /// dispatch looks at.
+    active: BTreeSet<usize>,
     tally: Tally,
+}
+
+/// One dataset's side of the job's loop.
+#[derive(Default)]
+struct Stock {
+    ready: VecDeque<Ready>,
+    /// Bands (by start order) that may have a batch of the dataset to hand out: a band leaves
+    /// when it has nothing ready and comes back when an answer or a lost batch could change
+    /// that.
+    bands: BTreeSet<(usize, usize)>,
+    /// Batches asked of each band (by band) and not produced yet. Per band, because a band
+    /// that completes (its last tasks culled or answered) never answers what it was asked.
+    asked: BTreeMap<usize, usize>,
+}
+
+impl Stock {
+    fn asked(&self) -> usize {
+        self.asked.values().sum()
+    }
 }
 
 /// Runs `plan` as `job` until it succeeds, fails or is cancelled, leaving the outcome in the
@@ -309,8 +347,10 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     };
     let admission = Admission { max_bands, memory_bound: config.memory_bound };
     let metrics = config.metrics.clone();
+    let datasets = plan.scene.datasets().len();
     let mut driver = Driver {
-        bands: Bands::new(h, band_rows, admission),
+        bands: Bands::<BandState>::new(h, band_rows, admission),
+        band_tx: HashMap::new(),
         raster: Raster::new(w, h, plan.options.want_pfm),
         dispatch: Dispatch::new(plan.dataset_keys.clone()),
         plan,
@@ -322,7 +362,8 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         streams: Default::default(),
         opening: Vec::new(),
         next_serial: 0,
-        ready: BTreeSet::new(),
+        stock: (0..datasets).map(|_| Stock::default()).collect(),
+        active: BTreeSet::new(),
         tally: {
             let mut tally = Tally::new(metrics);
             tally.coordinator.intersection += counting_seconds;
@@ -357,7 +398,13 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
             event = inbox.recv() => {
                 let Some(event) = event else { break Err(JobError::Internal("the job's event channel closed".into())) };
                 let step = Instant::now();
-                let handled = driver.handle(event);
+                let mut handled = driver.handle(event);
+                // Take whatever else has arrived before dispatching again: one dispatch
+                // pass serves many answers when they come quickly.
+                while handled.is_ok() {
+                    let Ok(event) = inbox.try_recv() else { break };
+                    handled = driver.handle(event);
+                }
                 driver.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
                 if let Err(e) = handled {
                     break Err(e);
@@ -380,6 +427,8 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     for stream in &open {
         driver.lose_stream(stream, Rest::Job);
     }
+    // Dropping the bands' senders ends their threads.
+    driver.band_tx.clear();
     let outcome = match outcome {
         Ok(()) => {
             let job_deadline = driver.config.job_deadline;
@@ -406,65 +455,34 @@ impl Driver {
         &self.plan.scene
     }
 
-    /// Starts intersecting new bands while admission allows, then hands out every batch
-    /// some worker has room for.
+    /// Starts new bands while admission allows, then hands out every batch some worker has
+    /// room for.
     fn advance(&mut self) -> Result<(), JobError> {
         while let Some((band, rows)) = self.bands.start_next() {
-            let (scene, events, batch_tasks) = (self.scene().clone(), self.events.clone(), self.batch_tasks);
-            let kept = self.plan.kept.get_mut(band).and_then(Option::take);
-            let config = self.config.clone();
-            tokio::task::spawn_blocking(move || {
-                let started = Instant::now();
-                let intersected = unwinding("intersection", || {
-                    config.inject("intersection");
-                    // The band's share of the bound: a band denser than its sizing expected is
-                    // refused as it is intersected, before its tasks are stored.
-                    let bound = config.memory_bound;
-                    let inter = match kept {
-                        Some(inter) => inter,
-                        None => intersect_within(&scene, rows.clone(), max_band_tasks(bound), bound)?,
-                    };
-                    let planned = Instant::now();
-                    Scheduler::new(&scene, inter, batch_tasks)
-                        .map(|s| (s, planned))
-                        .map_err(|source| JobError::Band { rows, source })
-                });
-                let event = match intersected.and_then(|r| r) {
-                    Ok((scheduler, planned)) => {
-                        let seconds = started.elapsed().as_secs_f64();
-                        let planning = planned.elapsed().as_secs_f64();
-                        Event::Intersected { band, scheduler: Box::new(scheduler), seconds, planning }
-                    }
-                    Err(e) => Event::Failed(e),
-                };
-                let _ = events.blocking_send(event);
-            });
+            let start = band::Start {
+                band,
+                rows,
+                scene: self.scene().clone(),
+                kept: self.plan.kept.get_mut(band).and_then(Option::take),
+                batch_tasks: self.batch_tasks,
+                want_pfm: self.plan.options.want_pfm,
+                config: self.config.clone(),
+            };
+            self.band_tx.insert(band, band::spawn(start, self.events.clone()));
         }
         self.dispatch_ready()
     }
 
-    /// Hands out ready batches, earliest started band first, each to the least loaded
-    /// holder of its dataset that has room; then composites every band that asking for
-    /// batches completed (its last tasks can be culled rather than cast, so no answer would
-    /// complete it).
+    /// Hands out ready batches to the least loaded holder of their dataset that has room,
+    /// and asks bands for more where holders have room the stock does not fill.
     fn dispatch_ready(&mut self) -> Result<(), JobError> {
         self.dispatch.refresh(&self.registry, false);
-        let pairs: Vec<(usize, usize, usize)> = self.ready.iter().copied().collect();
-        let mut touched = Vec::new();
-        for pair @ (_, band, d) in pairs {
+        let active: Vec<usize> = self.active.iter().copied().collect();
+        for d in active {
+            if self.dispatch.is_orphaned(d) {
+                return Err(JobError::NoHolder { dataset: self.scene().datasets()[d].name().to_string() });
+            }
             loop {
-                let Some((_, scheduler)) = self.bands.casting(band) else {
-                    self.ready.remove(&pair);
-                    break;
-                };
-                if scheduler.is_dataset_done(d) {
-                    self.ready.remove(&pair);
-                    touched.push(band);
-                    break;
-                }
-                if self.dispatch.is_orphaned(d) {
-                    return Err(JobError::NoHolder { dataset: self.scene().datasets()[d].name().to_string() });
-                }
                 let opening = &self.opening;
                 let accepted = |w: &WorkerHandle| !opening.iter().any(|((id, od), _)| *od == d && *id == w.id);
                 let Some(worker) = self.dispatch.pick(d, accepted).cloned() else { break };
@@ -473,71 +491,78 @@ impl Driver {
                     self.open(&worker, d);
                     continue;
                 }
-                let Some((_, scheduler)) = self.bands.casting(band) else { break };
-                let asked = Instant::now();
-                let next = scheduler.next_batch(d);
-                self.tally.coordinator.dispatch += asked.elapsed().as_secs_f64();
-                let Some(batch) = next else {
-                    self.ready.remove(&pair);
-                    touched.push(band);
-                    break;
-                };
-                if batch.attempt >= self.config.max_attempts {
+                let Some(ready) = self.stock[d].ready.pop_front() else { break };
+                if ready.attempt >= self.config.max_attempts {
                     let dataset = self.scene().datasets()[d].name().to_string();
-                    return Err(JobError::TooManyAttempts { dataset, attempts: batch.attempt });
+                    return Err(JobError::TooManyAttempts { dataset, attempts: ready.attempt });
                 }
-                self.send(band, worker, batch);
+                self.send(d, worker, ready);
             }
-        }
-        touched.sort_unstable();
-        touched.dedup();
-        for band in touched {
-            self.composite_if_complete(band);
+            self.ask(d);
+            let stock = &self.stock[d];
+            if stock.ready.is_empty() && stock.bands.is_empty() {
+                self.active.remove(&d);
+            }
         }
         Ok(())
     }
 
-    /// Marks every dataset of `band` as possibly ready.
-    fn wake_band(&mut self, band: usize) {
-        if let Some((seq, scheduler)) = self.bands.casting(band) {
-            let datasets = scheduler.datasets().to_vec();
-            self.ready.extend(datasets.into_iter().map(|d| (seq, band, d)));
+    /// Asks the bands that may have batches of dataset `d` for as many as its holders have
+    /// room for (and one per holder more, so that an answer finds the next batch waiting),
+    /// less what is in stock or already asked for; earliest started band first, a share
+    /// each, so that several bands' threads make them at once.
+    fn ask(&mut self, d: usize) {
+        let (room, holders) = self.dispatch.room(d);
+        let stock = &mut self.stock[d];
+        let mut want = (room + holders).saturating_sub(stock.ready.len() + stock.asked());
+        if want == 0 || stock.bands.is_empty() {
+            return;
+        }
+        let share = want.div_ceil(stock.bands.len()).max(1);
+        while want > 0 {
+            let Some((seq, band)) = stock.bands.pop_first() else { break };
+            let n = share.min(want);
+            let Some(tx) = self.band_tx.get(&band) else { continue };
+            if tx.send(ToBand::Produce { dataset: d, n }).is_ok() {
+                *stock.asked.entry(band).or_default() += n;
+                want -= n;
+            } else {
+                tracing::trace!(band, seq, "band ended before it was asked");
+            }
         }
     }
 
-    /// Sends `batch` of band `band` to `worker`'s stream for its dataset, which is open.
-    fn send(&mut self, band: usize, worker: WorkerHandle, batch: Batch) {
-        let key = (worker.id.clone(), batch.dataset);
+    /// Marks dataset `d` of band `band` as possibly ready.
+    fn wake(&mut self, band: usize, d: usize) {
+        if let Some((seq, _)) = self.bands.casting(band) {
+            self.stock[d].bands.insert((seq, band));
+            self.active.insert(d);
+        }
+    }
+
+    /// Sends batch `ready` of dataset `d` to `worker`'s stream for it, which is open.
+    fn send(&mut self, d: usize, worker: WorkerHandle, ready: Ready) {
+        let key = (worker.id.clone(), d);
         let wire = self.dispatch.next_wire();
-        let _span = tracing::debug_span!("batch", wire, dataset = batch.dataset, attempt = batch.attempt, worker = %worker.id, tasks = batch.tasks.len()).entered();
-        let encoding = Instant::now();
+        let Ready { band, id, attempt, tasks, encoded } = ready;
+        let _span = tracing::debug_span!("batch", wire, dataset = d, attempt, worker = %worker.id, tasks).entered();
         let request = pb::CastRequest {
-            kind: Some(pb::cast_request::Kind::Batch(pb::CastBatch {
-                batch_id: wire,
-                attempt: batch.attempt,
-                tasks: encode_tasks(&batch.tasks),
-            })),
+            kind: Some(pb::cast_request::Kind::Batch(pb::CastBatch { batch_id: wire, attempt, tasks: encoded })),
         };
         self.tally.wire_to += request.encoded_len() as u64;
-        self.tally.coordinator.encoding += encoding.elapsed().as_secs_f64();
-        if self.streams.get(&key).is_none_or(|stream| stream.tx.try_send(request).is_err()) {
-            // The stream's reader is gone or its queue is full: give the batch back.
-            if let Some((seq, scheduler)) = self.bands.casting(band) {
-                let _ = scheduler.abandon(batch.id);
-                self.ready.insert((seq, band, batch.dataset));
-            }
+        if let Err(refused) = self.streams.get(&key).map_or(Err(None), |s| s.tx.try_send(request).map_err(Some)) {
+            // The stream's reader is gone or its queue is full: the batch goes back to the
+            // front of the stock, unchanged, and the stream is lost.
+            let encoded = match refused.map(|e| e.into_inner().kind) {
+                Some(Some(pb::cast_request::Kind::Batch(b))) => b.tasks,
+                _ => unreachable!("a batch request comes back as it went"),
+            };
+            self.stock[d].ready.push_front(Ready { band, id, attempt, tasks, encoded });
+            self.active.insert(d);
             self.lose_stream(&key, self.rest_lost());
             return;
         }
-        let in_flight = InFlight {
-            band,
-            id: batch.id,
-            dataset: batch.dataset,
-            attempt: batch.attempt,
-            stream: key,
-            tasks: batch.tasks.len() as u64,
-            sent: Instant::now(),
-        };
+        let in_flight = InFlight { band, id, dataset: d, attempt, stream: key, tasks, sent: Instant::now() };
         self.dispatch.sent(wire, &worker, in_flight);
         if self.tally.cast_started.is_none() {
             self.tally.cast_started = Some(Instant::now());
@@ -615,38 +640,15 @@ impl Driver {
     fn handle(&mut self, event: Event) -> Result<(), JobError> {
         match event {
             Event::Failed(e) => Err(e),
-            Event::Intersected { band, scheduler, seconds, planning } => {
-                let inter = scheduler.intersections();
-                self.tally.stats.segments += inter.segments;
-                self.tally.stats.pieces += inter.pieces() as u64;
-                self.tally.stats.seconds.intersection += seconds;
-                self.tally.coordinator.intersection += seconds - planning;
-                self.tally.coordinator.planning += planning;
-                let total = scheduler.progress().total;
-                self.job.update(|s| s.pieces_total += total);
-                self.bands.intersected(band, scheduler);
-                self.wake_band(band);
-                self.composite_if_complete(band);
-                Ok(())
-            }
-            Event::Composited { band, part } => {
-                self.raster.place(part.rows.start, &part.raster);
-                self.bands.composited(band);
-                self.tally.stats.samples_skipped += part.samples_skipped;
-                self.tally.stats.seconds.composition += part.seconds;
-                self.tally.coordinator.composition += part.seconds;
-                let rows_done = self.bands.rows_done();
-                self.job.update(|s| s.rows_done = rows_done);
-                self.tally.publish(&self.job, self.bands.tasks_done());
+            Event::Band { band, news } => {
+                self.heard(band, news);
                 Ok(())
             }
             Event::Opened { stream, serial } => {
                 if self.is_current(&stream, serial) {
                     self.opening.retain(|(k, _)| *k != stream);
-                    let casting: Vec<usize> = self.bands.casting_bands().map(|(b, _)| b).collect();
-                    for band in casting {
-                        self.wake_band(band);
-                    }
+                    // Batches of its dataset may go on it now.
+                    self.active.insert(stream.1);
                 }
                 Ok(())
             }
@@ -658,7 +660,7 @@ impl Driver {
                 }
                 match response.kind {
                     Some(pb::cast_response::Kind::Result(result)) => {
-                        self.record(&stream, result);
+                        self.answered(&stream, result);
                         Ok(())
                     }
                     Some(pb::cast_response::Kind::Failure(failure)) => self.failed(&stream, failure),
@@ -689,10 +691,88 @@ impl Driver {
         }
     }
 
-    /// A batch's results: recorded in its band's scheduler; the band is composited once
-    /// complete. An answer to a batch given up, on another stream or for another attempt,
-    /// is dropped; one that does not decode or record loses the stream its batch came on.
-    fn record(&mut self, stream: &StreamKey, result: pb::BatchResult) {
+    /// What band `band`'s thread reports.
+    fn heard(&mut self, band: usize, news: News) {
+        match news {
+            News::Intersected { datasets, bytes, progress, segments, pieces, seconds, planning } => {
+                self.tally.stats.segments += segments;
+                self.tally.stats.pieces += pieces;
+                self.tally.stats.seconds.intersection += seconds;
+                self.tally.coordinator.intersection += seconds - planning;
+                self.tally.coordinator.planning += planning;
+                self.job.update(|s| s.pieces_total += progress.total);
+                self.bands.intersected(band, BandState { bytes, progress });
+                for d in datasets {
+                    self.wake(band, d);
+                }
+            }
+            News::Produced { dataset, asked, batches, more, progress, seconds } => {
+                self.progressed(band, progress, seconds);
+                let stock = &mut self.stock[dataset];
+                if let Some(left) = stock.asked.get_mut(&band) {
+                    *left = left.saturating_sub(asked);
+                    if *left == 0 {
+                        stock.asked.remove(&band);
+                    }
+                }
+                stock.ready.extend(batches);
+                self.active.insert(dataset);
+                if more {
+                    self.wake(band, dataset);
+                }
+            }
+            News::Recorded { dataset, progress, seconds } => {
+                self.progressed(band, progress, seconds);
+                self.wake(band, dataset);
+            }
+            News::Refused { id, dataset, stream, why } => {
+                // A worker that answers nonsense is not trusted with more of this job. The
+                // band gave the batch back; the loop forgot it when it took the answer.
+                tracing::warn!(band, id, worker = %stream.0, error = %why, "refused an answer");
+                self.wake(band, dataset);
+                self.lose_stream(&stream, Rest::Job);
+            }
+            News::Composited { part, progress } => {
+                if let Some((_, state)) = self.bands.casting(band) {
+                    state.progress = progress;
+                }
+                self.band_tx.remove(&band);
+                for stock in &mut self.stock {
+                    stock.asked.remove(&band);
+                }
+                if self.bands.take_complete(band).is_none() {
+                    tracing::error!(band, "a band composited before its every task was cast or culled");
+                }
+                self.raster.place(part.rows.start, &part.raster);
+                self.bands.composited(band);
+                self.tally.stats.samples_skipped += part.samples_skipped;
+                self.tally.stats.seconds.composition += part.seconds;
+                self.tally.coordinator.composition += part.seconds;
+                let rows_done = self.bands.rows_done();
+                self.job.update(|s| {
+                    s.phase = pb::Phase::Composition as i32;
+                    s.rows_done = rows_done;
+                });
+                self.tally.publish(&self.job, self.bands.tasks_done());
+            }
+        }
+    }
+
+    /// A band's progress and the time its thread took for it.
+    fn progressed(&mut self, band: usize, progress: Progress, seconds: band::Seconds) {
+        if let Some((_, state)) = self.bands.casting(band) {
+            state.progress = progress;
+        }
+        let c = &mut self.tally.coordinator;
+        c.dispatch += seconds.dispatch;
+        c.encoding += seconds.encoding;
+        c.decoding += seconds.decoding;
+        c.recording += seconds.recording;
+    }
+
+    /// A batch's results: handed to its band's thread to decode and record. An answer to a
+    /// batch given up, on another stream or for another attempt, is dropped.
+    fn answered(&mut self, stream: &StreamKey, result: pb::BatchResult) {
         let worker = self.streams.get(stream).map(|s| s.worker.clone());
         let batch = match self.dispatch.answered(result.batch_id, result.attempt, stream, worker.as_ref()) {
             Ok(batch) => batch,
@@ -702,28 +782,12 @@ impl Driver {
             }
         };
         self.registry.room_freed();
-        let _span = tracing::debug_span!("batch", wire = result.batch_id, worker = %stream.0).entered();
-        let Some((seq, scheduler)) = self.bands.casting(batch.band) else { return };
-        let decoding = Instant::now();
-        let decoded = decode_results(&result.results);
-        let recording = Instant::now();
-        self.tally.coordinator.decoding += (recording - decoding).as_secs_f64();
-        let recorded = match decoded {
-            Ok(results) => scheduler.record(batch.id, &results).map_err(|e| e.to_string()),
-            Err(e) => Err(format!("undecodable results: {e}")),
-        };
-        self.tally.coordinator.recording += recording.elapsed().as_secs_f64();
-        if let Err(e) = recorded {
-            // A worker that answers nonsense is not trusted with more of this job.
-            tracing::warn!(worker = %stream.0, error = %e, "refused an answer");
-            let _ = scheduler.abandon(batch.id);
-            self.ready.insert((seq, batch.band, batch.dataset));
-            self.lose_stream(stream, Rest::Job);
-            return;
-        }
-        self.ready.insert((seq, batch.band, batch.dataset));
+        self.active.insert(batch.dataset);
         self.tally.answered(&stream.0, batch.tasks, batch.sent.elapsed(), &result);
-        self.composite_if_complete(batch.band);
+        if let Some(tx) = self.band_tx.get(&batch.band) {
+            let (id, dataset, stream, results) = (batch.id, batch.dataset, stream.clone(), result.results);
+            let _ = tx.send(ToBand::Answer { id, dataset, stream, results });
+        }
     }
 
     /// A worker's failure report: a batch it cannot cast, or the stream as a whole.
@@ -736,8 +800,8 @@ impl Driver {
         Ok(())
     }
 
-    /// Stops using `stream` for this job, for `rest`: its batches go back to their
-    /// schedulers, to be handed to another holder.
+    /// Stops using `stream` for this job, for `rest`: its batches go back to their bands,
+    /// to be handed to another holder.
     fn lose_stream(&mut self, stream: &StreamKey, rest: Rest) {
         let worker = self.streams.remove(stream).map(|s| s.worker);
         self.opening.retain(|(k, _)| k != stream);
@@ -745,11 +809,17 @@ impl Driver {
         if !lost.is_empty() {
             self.registry.room_freed();
         }
-        for batch in lost {
-            if let Some((seq, scheduler)) = self.bands.casting(batch.band) {
-                let _ = scheduler.abandon(batch.id);
-                self.ready.insert((seq, batch.band, batch.dataset));
+        let mut by_band: BTreeMap<usize, Vec<u64>> = BTreeMap::new();
+        for batch in &lost {
+            by_band.entry(batch.band).or_default().push(batch.id);
+        }
+        for (band, ids) in by_band {
+            if let Some(tx) = self.band_tx.get(&band) {
+                let _ = tx.send(ToBand::Abandon { ids });
             }
+        }
+        for batch in lost {
+            self.wake(batch.band, batch.dataset);
         }
     }
 
@@ -769,31 +839,12 @@ impl Driver {
         self.dispatch.refresh(&self.registry, true);
         // A worker that joined, or one that freed room for another job, may take batches
         // that no holder had room for.
-        let casting: Vec<usize> = self.bands.casting_bands().map(|(b, _)| b).collect();
-        for band in casting {
-            self.wake_band(band);
+        for d in 0..self.stock.len() {
+            if !self.stock[d].ready.is_empty() || !self.stock[d].bands.is_empty() {
+                self.active.insert(d);
+            }
         }
         self.tally.publish(&self.job, self.bands.tasks_done());
-    }
-
-    /// Composites band `band` on a blocking thread if its every task is cast or culled.
-    fn composite_if_complete(&mut self, band: usize) {
-        let Some((rows, scheduler)) = self.bands.take_complete(band) else { return };
-        self.job.update(|s| s.phase = pb::Phase::Composition as i32);
-        let (scene, events, want_pfm) = (self.scene().clone(), self.events.clone(), self.plan.options.want_pfm);
-        let config = self.config.clone();
-        tokio::task::spawn_blocking(move || {
-            let composited = unwinding("composition", || {
-                config.inject("composition");
-                Composited::of(&scene, rows, &scheduler, want_pfm)
-            });
-            drop(scheduler);
-            let event = match composited {
-                Ok(part) => Event::Composited { band, part: Box::new(part) },
-                Err(e) => Event::Failed(e),
-            };
-            let _ = events.blocking_send(event);
-        });
     }
 
     /// Encodes the image and statistics and marks the job succeeded.

@@ -1,0 +1,214 @@
+//! One band of a farm job, on a thread of its own: the band's intersection and plan, its
+//! [`Scheduler`], every per-task step of casting it — deciding fronts and culls and encoding
+//! the batches it hands out, decoding and recording the answers — and its composition.
+//!
+//! The job's event loop ([`super`]) does only per-batch work: it asks a band for batches of
+//! a dataset when workers have room for them ([`ToBand::Produce`]), sends them, and hands
+//! each accepted answer to its band ([`ToBand::Answer`]). So a job's per-task work runs on
+//! as many threads as it has bands in flight, not on one, and a coordinator's throughput
+//! grows with its cores. The band tells the loop what changed as [`News`], on the job's one
+//! event channel.
+//!
+//! A band's thread is a blocking thread of the runtime. It ends when the band is
+//! composited, when a step fails (the job then fails: [`News`] never carries a panic out,
+//! [`super::unwinding`] turns it into the job's error), or when the job's loop drops its
+//! sender (the job ended).
+
+use std::ops::Range;
+use std::sync::Arc;
+use std::time::Instant;
+
+use tokio::sync::mpsc;
+use trove_core::render::intersection::{intersect_within, Intersections};
+use trove_core::render::limits::max_band_tasks;
+use trove_core::render::schedule::Progress;
+use trove_core::render::wire::{decode_results, encode_tasks};
+use trove_core::render::Scheduler;
+use trove_core::scene::Scene;
+
+use super::raster::Composited;
+use super::{unwinding, DriverConfig, Event, JobError, StreamKey};
+
+/// What the job's loop asks of a band.
+pub(super) enum ToBand {
+    /// Hand out up to `n` batches of dataset `dataset`, encoded for the wire.
+    Produce { dataset: usize, n: usize },
+    /// The answer to batch `id` (the scheduler's id), taken on the stream and for the attempt
+    /// it went out as: its results in `render::wire` form.
+    Answer { id: u64, dataset: usize, stream: StreamKey, results: Vec<u8> },
+    /// Batches given up (their worker was lost): handed out again later, with new ids.
+    Abandon { ids: Vec<u64> },
+}
+
+/// A batch a band handed out, ready to go on a stream.
+pub(super) struct Ready {
+    pub band: usize,
+    /// The scheduler's id.
+    pub id: u64,
+    pub attempt: u32,
+    pub tasks: u64,
+    /// The tasks in `render::wire` form.
+    pub encoded: Vec<u8>,
+}
+
+/// What a band tells the job's loop.
+pub(super) enum News {
+    /// Intersected and planned: it casts from now on.
+    Intersected {
+        /// Datasets with tasks in the band, front to back.
+        datasets: Vec<usize>,
+        bytes: u64,
+        progress: Progress,
+        segments: u64,
+        pieces: u64,
+        seconds: f64,
+        /// Of `seconds`, what `Scheduler::new` took.
+        planning: f64,
+    },
+    /// Batches of `dataset` asked for with [`ToBand::Produce`]: as many as were ready, up to
+    /// the number asked; `more` when that many were, so that another may be.
+    Produced { dataset: usize, asked: usize, batches: Vec<Ready>, more: bool, progress: Progress, seconds: Seconds },
+    /// An answer recorded: `dataset` may have batches ready again.
+    Recorded { dataset: usize, progress: Progress, seconds: Seconds },
+    /// An answer that did not decode or record (the batch was given back): the worker that
+    /// sent it is not trusted with more of the job.
+    Refused { id: u64, dataset: usize, stream: StreamKey, why: String },
+    /// Every task is cast or culled, and the band's pixels are composited.
+    Composited { part: Box<Composited>, progress: Progress },
+}
+
+/// A band's own time by step, in seconds, for the job's statistics.
+#[derive(Clone, Copy, Debug, Default)]
+pub(super) struct Seconds {
+    /// Handing batches out (`next_batch`: fronts and culls).
+    pub dispatch: f64,
+    pub encoding: f64,
+    pub decoding: f64,
+    pub recording: f64,
+}
+
+/// What a band needs to run.
+pub(super) struct Start {
+    pub band: usize,
+    pub rows: Range<u32>,
+    pub scene: Arc<Scene>,
+    /// The band as the submission's count intersected it, if it kept it.
+    pub kept: Option<Intersections>,
+    pub batch_tasks: usize,
+    pub want_pfm: bool,
+    pub config: DriverConfig,
+}
+
+/// Starts band `start.band` on a blocking thread; returns the sender its loop listens on.
+pub(super) fn spawn(start: Start, events: mpsc::Sender<Event>) -> mpsc::UnboundedSender<ToBand> {
+    let (tx, inbox) = mpsc::unbounded_channel();
+    tokio::task::spawn_blocking(move || {
+        let band = start.band;
+        if let Err(e) = run(start, inbox, &events) {
+            let _ = events.blocking_send(Event::Failed(e));
+        }
+        tracing::trace!(band, "band thread ended");
+    });
+    tx
+}
+
+/// The band's life; `Ok` also when the job ended first (its loop dropped the sender).
+fn run(start: Start, mut inbox: mpsc::UnboundedReceiver<ToBand>, events: &mpsc::Sender<Event>) -> Result<(), JobError> {
+    let Start { band, rows, scene, kept, batch_tasks, want_pfm, config } = start;
+    let tell = |news: News| events.blocking_send(Event::Band { band, news }).is_ok();
+    let started = Instant::now();
+    let (mut scheduler, planned) = unwinding("intersection", || {
+        config.inject("intersection");
+        // The band's share of the bound: a band denser than its sizing expected is refused
+        // as it is intersected, before its tasks are stored.
+        let bound = config.memory_bound;
+        let inter = match kept {
+            Some(inter) => inter,
+            None => intersect_within(&scene, rows.clone(), max_band_tasks(bound), bound)?,
+        };
+        let planned = Instant::now();
+        Scheduler::new(&scene, inter, batch_tasks)
+            .map(|s| (s, planned))
+            .map_err(|source| JobError::Band { rows: rows.clone(), source })
+    })??;
+    let inter = scheduler.intersections();
+    let intersected = News::Intersected {
+        datasets: scheduler.datasets().to_vec(),
+        bytes: scheduler.heap_bytes(),
+        progress: scheduler.progress(),
+        segments: inter.segments,
+        pieces: inter.pieces() as u64,
+        seconds: started.elapsed().as_secs_f64(),
+        planning: planned.elapsed().as_secs_f64(),
+    };
+    if !tell(intersected) {
+        return Ok(());
+    }
+    while !scheduler.is_complete() {
+        let Some(message) = inbox.blocking_recv() else { return Ok(()) };
+        let news = unwinding("casting", || step(&mut scheduler, band, message))?;
+        if let Some(news) = news {
+            if !tell(news) {
+                return Ok(());
+            }
+        }
+    }
+    let part = unwinding("composition", || {
+        config.inject("composition");
+        Composited::of(&scene, rows, &scheduler, want_pfm)
+    })?;
+    let progress = scheduler.progress();
+    drop(scheduler);
+    tell(News::Composited { part: Box::new(part), progress });
+    Ok(())
+}
+
+/// Handles one message of the job's loop; returns what to tell it.
+fn step(scheduler: &mut Scheduler, band: usize, message: ToBand) -> Option<News> {
+    match message {
+        ToBand::Produce { dataset, n } => {
+            let mut seconds = Seconds::default();
+            let mut batches = Vec::with_capacity(n);
+            while batches.len() < n {
+                let asked = Instant::now();
+                let next = scheduler.next_batch(dataset);
+                let encoding = Instant::now();
+                seconds.dispatch += (encoding - asked).as_secs_f64();
+                let Some(batch) = next else { break };
+                let encoded = encode_tasks(&batch.tasks);
+                seconds.encoding += encoding.elapsed().as_secs_f64();
+                let tasks = batch.tasks.len() as u64;
+                batches.push(Ready { band, id: batch.id, attempt: batch.attempt, tasks, encoded });
+            }
+            let more = batches.len() == n;
+            Some(News::Produced { dataset, asked: n, batches, more, progress: scheduler.progress(), seconds })
+        }
+        ToBand::Answer { id, dataset, stream, results } => {
+            let decoding = Instant::now();
+            let decoded = decode_results(&results);
+            let recording = Instant::now();
+            let recorded = match decoded {
+                Ok(results) => scheduler.record(id, &results).map_err(|e| e.to_string()),
+                Err(e) => Err(format!("undecodable results: {e}")),
+            };
+            let seconds = Seconds {
+                decoding: (recording - decoding).as_secs_f64(),
+                recording: recording.elapsed().as_secs_f64(),
+                ..Seconds::default()
+            };
+            Some(match recorded {
+                Ok(()) => News::Recorded { dataset, progress: scheduler.progress(), seconds },
+                Err(why) => {
+                    let _ = scheduler.abandon(id);
+                    News::Refused { id, dataset, stream, why }
+                }
+            })
+        }
+        ToBand::Abandon { ids } => {
+            for id in ids {
+                let _ = scheduler.abandon(id);
+            }
+            None
+        }
+    }
+}
