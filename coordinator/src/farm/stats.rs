@@ -55,29 +55,29 @@ pub struct FarmStats {
     pub coordinator_seconds: CoordinatorSeconds,
 }
 
-/// The coordinator's time by stage (seconds, summed over the job). Blocking steps are timed
-/// by wall clock on the thread that runs them (intersection runs rayon threads within, so its
-/// CPU can exceed its wall time); the event-loop steps by wall clock on the job's one task,
-/// where wall time is CPU time unless the thread is preempted. `event_loop` holds every step
-/// the job's task took (dispatch, encoding, decoding and recording included); what gRPC,
-/// HTTP/2 and protobuf cost outside it is not here.
+/// The coordinator's time by stage (seconds, summed over the job). Every per-task step runs
+/// on the thread of the band it belongs to (`farm/driver/band.rs`) and is timed by wall clock
+/// there (intersection and composition run rayon threads within, so their CPU can exceed
+/// their wall time; the others are close to CPU time unless the thread waits for a core);
+/// `event_loop` holds the job's own task: per-batch dispatch, taking answers, the tick. What
+/// gRPC, HTTP/2 and protobuf cost outside these is not here.
 #[derive(Clone, Debug, Default, Serialize, PartialEq)]
 pub struct CoordinatorSeconds {
-    /// `intersect`: rays to piece tasks (blocking thread, rayon within).
+    /// `intersect`: rays to piece tasks (the band's thread, rayon within).
     pub intersection: f64,
-    /// `Scheduler::new`: waves and fronts (blocking thread).
+    /// `Scheduler::new`: waves and fronts (the band's thread).
     pub planning: f64,
-    /// `Scheduler::next_batch` on the event loop.
+    /// `Scheduler::next_batch`: fronts and culls (the band's thread).
     pub dispatch: f64,
-    /// `encode_tasks` and the batch's message, on the event loop.
+    /// `encode_tasks` (the band's thread).
     pub encoding: f64,
-    /// `decode_results` on the event loop.
+    /// `decode_results` (the band's thread).
     pub decoding: f64,
-    /// `Scheduler::record` on the event loop.
+    /// `Scheduler::record` (the band's thread).
     pub recording: f64,
-    /// Every step of the job's task: advancing, handling events, the tick.
+    /// Every step of the job's task: per-batch dispatch, handling events, the tick.
     pub event_loop: f64,
-    /// Compositing bands (blocking thread, rayon within).
+    /// Compositing bands (the band's thread, rayon within).
     pub composition: f64,
     /// Encoding the PNG (and PFM) at the end (blocking thread).
     pub image_encoding: f64,

@@ -38,158 +38,38 @@
 //! blocking thread panics: each fails this job only.
 
 mod band;
+mod config;
 mod dispatch;
 mod error;
 mod raster;
+mod streams;
 mod tally;
 
 use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use prost::Message;
 use tokio::sync::mpsc;
-use tokio_stream::wrappers::ReceiverStream;
 use tonic::Status;
 use trove_core::render::bands::{Bands, Casting};
 use trove_core::render::dispatch::Admission;
-use trove_core::render::intersection::Intersections;
-use trove_core::render::limits::{check_pfm, LimitError, Work, MAX_PFM_PIXELS};
 use trove_core::render::schedule::Progress;
 use trove_core::render::{Algorithm, Raster};
 use trove_core::scene::Scene;
-use trove_proto::convert::{self, JOB_HEADER};
+use trove_proto::convert;
 use trove_proto::v1 as pb;
-use trove_proto::v1::worker_client::WorkerClient;
 
 use super::jobs::{Job, JobOutput};
-use super::metrics::FarmMetrics;
 use super::registry::{Registry, WorkerHandle};
 use band::{News, Ready, ToBand};
+#[cfg(debug_assertions)]
+pub use config::Fault;
+pub use config::{DriverConfig, JobPlan, DEFAULT_BATCH_TASKS};
 use dispatch::{Dispatch, InFlight, Rest};
 pub use error::JobError;
 use tally::Tally;
-
-/// Tasks per batch when the job does not say.
-pub const DEFAULT_BATCH_TASKS: usize = 4096;
-
-/// How the driver treats workers and how much of an image it holds.
-#[derive(Clone, Debug)]
-pub struct DriverConfig {
-    /// A batch not answered within this is given up and handed to another holder.
-    pub batch_deadline: Duration,
-    /// Bands whose pieces a job holds at once, at most.
-    pub max_bands: usize,
-    /// Bytes of band bookkeeping (tasks, results, fronts) a job holds at once, at most; one
-    /// band is always admitted, and bands are made small enough that this holds
-    /// [`DriverConfig::max_bands`] of them. The image itself is not counted.
-    pub memory_bound: u64,
-    /// Dispatches of one batch before the job fails.
-    pub max_attempts: u32,
-    /// Longest a job may run (from leaving the queue to its files); past it the job fails
-    /// with `DEADLINE_EXCEEDED`, so no job stays RUNNING forever.
-    pub job_deadline: Duration,
-    /// Most pixels of a job that asks for a PFM (the coordinator holds its floats and the
-    /// file's bytes): a larger one is refused at submission.
-    pub max_pfm_pixels: u64,
-    /// How often the driver looks for silent workers and overdue batches, looks holders up
-    /// again and publishes progress. Nothing else waits for it: batches are handed out as
-    /// answers, new workers and room freed by other jobs arrive.
-    pub tick: Duration,
-    /// Where every job of the coordinator records its counters (`--metrics-listen`).
-    pub metrics: Arc<FarmMetrics>,
-    /// Debug builds only, for tests: a blocking step that panics in every job, to show that
-    /// a panic fails its job only.
-    #[cfg(debug_assertions)]
-    pub fault: Option<Fault>,
-}
-
-/// A step made to panic (debug builds only): [`DriverConfig::fault`].
-#[cfg(debug_assertions)]
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Fault {
-    /// Intersecting a band.
-    Intersection,
-    /// Compositing a band.
-    Composition,
-    /// Encoding the image.
-    Encoding,
-}
-
-impl Default for DriverConfig {
-    fn default() -> Self {
-        DriverConfig {
-            batch_deadline: Duration::from_secs(120),
-            max_bands: 8,
-            memory_bound: 256 << 20,
-            max_attempts: 5,
-            job_deadline: Duration::from_secs(3600),
-            max_pfm_pixels: MAX_PFM_PIXELS,
-            tick: Duration::from_millis(250),
-            metrics: Arc::new(FarmMetrics::new()),
-            #[cfg(debug_assertions)]
-            fault: None,
-        }
-    }
-}
-
-impl DriverConfig {
-    /// Rows per band of a job of `scene` with `options`, whose work is `work`: as the job
-    /// asks, else sized from the exact count so that [`DriverConfig::max_bands`] bands fit
-    /// the memory bound. The submission check sizes bands here once and hands the result
-    /// to the driver in its [`JobPlan`], so a scene refused for a band over its limit is
-    /// refused before it runs.
-    pub fn band_rows(&self, scene: &Scene, work: &Work, options: &pb::JobOptions) -> Result<u32, LimitError> {
-        let (w, h) = (scene.image().width, scene.image().height);
-        let within = work.rows_within(self.memory_bound / self.max_bands.max(1) as u64)?;
-        Ok(raster::rows_per_band(options.band_rows, w, h, within))
-    }
-
-    /// The work a job of `scene` with `options` would take, checked before it is queued:
-    /// its PFM capped, its tasks counted without storing one, its bands sized
-    /// ([`DriverConfig::band_rows`]) and each checked against the memory bound. Returns the
-    /// count and the rows per band; `SubmitJob` calls it, and so does the job-request fuzz
-    /// target, so that what is fuzzed is what a submission runs.
-    ///
-    /// The count intersects the image in the bands the driver will most likely use and
-    /// keeps them when they fit a quarter of the memory bound ([`Work::count_keeping`]), so
-    /// that the driver does not intersect the image a second time; the third value is those
-    /// bands, one per band of the returned rows, or none.
-    pub fn check_work(
-        &self,
-        scene: &Scene,
-        options: &pb::JobOptions,
-    ) -> Result<(Work, u32, Vec<Intersections>), LimitError> {
-        let (w, h) = (scene.image().width, scene.image().height);
-        if options.want_pfm {
-            check_pfm(w, h, self.max_pfm_pixels)?;
-        }
-        // The rows a band has unless the memory bound narrows it (it rarely does).
-        let likely = raster::rows_per_band(options.band_rows, w, h, h);
-        let (work, kept) = Work::count_keeping(scene, likely, self.memory_bound / 4)?;
-        let band_rows = self.band_rows(scene, &work, options)?;
-        work.check_bands(band_rows, self.memory_bound)?;
-        let kept = if band_rows == likely { kept } else { Vec::new() };
-        Ok((work, band_rows, kept))
-    }
-
-    /// Panics if this step is the configured fault (debug builds only).
-    #[cfg_attr(not(debug_assertions), allow(unused_variables))]
-    fn inject(&self, step: &'static str) {
-        #[cfg(debug_assertions)]
-        {
-            let fault = match step {
-                "intersection" => Fault::Intersection,
-                "composition" => Fault::Composition,
-                _ => Fault::Encoding,
-            };
-            if self.fault == Some(fault) {
-                panic!("injected fault in {step}");
-            }
-        }
-    }
-}
 
 /// Runs `f` on a blocking thread's stack, turning a panic into the job's error.
 fn unwinding<T>(step: &'static str, f: impl FnOnce() -> T) -> Result<T, JobError> {
@@ -203,32 +83,6 @@ pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
         (_, Some(s)) => s.clone(),
         _ => "a panic without a message".to_string(),
     }
-}
-
-/// A validated job, ready to run.
-pub struct JobPlan {
-    /// The scene, validated against the workers' headers.
-    pub scene: Arc<Scene>,
-    /// Its text and name, sent to each worker once per stream.
-    pub scene_toml: String,
-    /// The scene file's name, for messages.
-    pub scene_name: String,
-    /// The client's options.
-    pub options: pb::JobOptions,
-    /// The registrations of every file the scene names.
-    pub headers: Vec<pb::DatasetFile>,
-    /// Per dataset: the keys of its files (empty for generated datasets).
-    pub dataset_keys: Vec<Vec<String>>,
-    /// Rows per band ([`DriverConfig::band_rows`]), checked against the band limit.
-    pub band_rows: u32,
-    /// Bands the submission's count intersected and kept ([`DriverConfig::check_work`]),
-    /// each taken by the driver when the band starts (at most a quarter of the memory bound
-    /// per running job, on top of the bands in flight); none for a job that waited in the
-    /// queue (they are dropped so that waiting jobs hold no pieces).
-    pub kept: Vec<Option<Intersections>>,
-    /// Seconds the submission's count took ([`DriverConfig::check_work`]): the kept bands'
-    /// intersection, charged to the job's intersection stage when it runs.
-    pub counting_seconds: f64,
 }
 
 /// A `Cast` stream: (worker id, dataset).
@@ -568,61 +422,6 @@ impl Driver {
             self.tally.cast_started = Some(Instant::now());
             self.job.update(|s| s.phase = pb::Phase::VolumeRendering as i32);
         }
-    }
-
-    /// Opens the `Cast` stream to `worker` for dataset `d`: the scene first, then batches.
-    fn open(&mut self, worker: &WorkerHandle, d: usize) {
-        let (tx, rx) = mpsc::channel(256);
-        let open = pb::CastRequest {
-            kind: Some(pb::cast_request::Kind::Open(pb::CastOpen {
-                job_id: self.job.id.clone(),
-                scene_toml: self.plan.scene_toml.clone(),
-                scene_name: self.plan.scene_name.clone(),
-                dataset: d as u32,
-                headers: self.plan.headers.clone(),
-            })),
-        };
-        self.tally.wire_to += open.encoded_len() as u64;
-        let _ = tx.try_send(open);
-        let key = (worker.id.clone(), d);
-        let mut client = WorkerClient::new(worker.channel.clone())
-            .max_decoding_message_size(trove_proto::MAX_MESSAGE_BYTES)
-            .max_encoding_message_size(trove_proto::MAX_MESSAGE_BYTES);
-        let mut request = tonic::Request::new(ReceiverStream::new(rx));
-        if let Ok(value) = self.job.id.parse() {
-            request.metadata_mut().insert(JOB_HEADER, value);
-        }
-        let events = self.events.clone();
-        let stream_key = key.clone();
-        self.next_serial += 1;
-        let serial = self.next_serial;
-        tokio::spawn(async move {
-            let status = match client.cast(request).await {
-                Ok(response) => {
-                    let mut inbound = response.into_inner();
-                    if events.send(Event::Opened { stream: stream_key.clone(), serial }).await.is_err() {
-                        return;
-                    }
-                    loop {
-                        match inbound.message().await {
-                            Ok(Some(response)) => {
-                                let bytes = response.encoded_len() as u64;
-                                let stream = stream_key.clone();
-                                if events.send(Event::Answer { stream, serial, response, bytes }).await.is_err() {
-                                    return;
-                                }
-                            }
-                            Ok(None) => break None,
-                            Err(status) => break Some(status),
-                        }
-                    }
-                }
-                Err(status) => Some(status),
-            };
-            let _ = events.send(Event::StreamEnded { stream: stream_key, serial, status }).await;
-        });
-        self.opening.push((key.clone(), Instant::now()));
-        self.streams.insert(key, Stream { tx, worker: worker.clone(), serial });
     }
 
     /// Whether `serial` is the stream now open for `stream` (events of a lost one are not).
