@@ -212,3 +212,111 @@ fn step(scheduler: &mut Scheduler, band: usize, message: ToBand) -> Option<News>
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use trove_core::render::intersection::intersect;
+    use trove_core::render::wire::{decode_tasks, encode_results};
+    use trove_core::render::{BatchCaster, PieceRgba, VolumeStore};
+
+    use super::*;
+
+    /// A generated ball's scheduler over its whole 24² image, in batches of 10 tasks, and
+    /// the scene.
+    fn ball() -> (Arc<Scene>, Scheduler) {
+        let scene = Arc::new(Scene::parse(&trove_tests::scenes::ball(24, ""), "ball.toml").unwrap());
+        let inter = intersect(&scene, 0..24);
+        let scheduler = Scheduler::new(&scene, inter, 10).unwrap();
+        (scene, scheduler)
+    }
+
+    fn stream() -> StreamKey {
+        ("w".to_string(), 0)
+    }
+
+    /// Casts a produced batch as a worker would, from its wire form; returns its answer.
+    fn cast(scene: &Scene, ready: &Ready) -> Vec<u8> {
+        let tasks = decode_tasks(&ready.encoded).unwrap();
+        let store = VolumeStore::new(None);
+        let volume = store.get(&scene.datasets()[0]).unwrap();
+        let caster = BatchCaster::new(scene, 0, &volume).unwrap();
+        let mut out = vec![PieceRgba::default(); tasks.len()];
+        caster.cast(&tasks, &mut out).unwrap();
+        encode_results(&out)
+    }
+
+    #[test]
+    fn a_band_hands_out_at_most_what_it_is_asked_and_says_when_it_may_have_more() {
+        let (_, mut scheduler) = ball();
+        let total = scheduler.progress().total;
+        assert!(total > 30, "the test needs several batches: {total} tasks");
+        let Some(News::Produced { batches, more, asked, .. }) =
+            step(&mut scheduler, 3, ToBand::Produce { dataset: 0, n: 2 })
+        else {
+            panic!("a produce request is answered with batches")
+        };
+        assert_eq!((batches.len(), asked, more), (2, 2, true));
+        assert!(batches.iter().all(|b| b.band == 3 && b.attempt == 0 && b.tasks == 10));
+        assert_eq!(decode_tasks(&batches[0].encoded).unwrap().len(), 10, "the tasks go encoded for the wire");
+        // Asked for more than the wave holds: all of it, and no more to come until answers.
+        let Some(News::Produced { batches: rest, more, .. }) =
+            step(&mut scheduler, 3, ToBand::Produce { dataset: 0, n: 1000 })
+        else {
+            panic!()
+        };
+        assert!(!more, "a band that could not fill the request says it has nothing more now");
+        let handed: u64 = batches.iter().chain(&rest).map(|b| b.tasks).sum();
+        assert!(handed <= total);
+    }
+
+    #[test]
+    fn answers_are_recorded_until_the_band_is_complete_and_nonsense_is_refused_and_given_back() {
+        let (scene, mut scheduler) = ball();
+        let mut rounds = 0;
+        while !scheduler.is_complete() {
+            rounds += 1;
+            assert!(rounds < 100, "the band never completes");
+            let Some(News::Produced { batches, .. }) = step(&mut scheduler, 0, ToBand::Produce { dataset: 0, n: 1000 })
+            else {
+                panic!()
+            };
+            for (i, ready) in batches.iter().enumerate() {
+                if i == 0 && rounds == 1 {
+                    // A worker answering with bytes that do not decode: the band gives the
+                    // batch back and names the stream, and it is handed out again.
+                    let refused = step(
+                        &mut scheduler,
+                        0,
+                        ToBand::Answer { id: ready.id, dataset: 0, stream: stream(), results: vec![7] },
+                    );
+                    assert!(
+                        matches!(refused, Some(News::Refused { id, stream: s, .. }) if id == ready.id && s == stream())
+                    );
+                    continue;
+                }
+                let results = cast(&scene, ready);
+                let news =
+                    step(&mut scheduler, 0, ToBand::Answer { id: ready.id, dataset: 0, stream: stream(), results });
+                assert!(matches!(news, Some(News::Recorded { dataset: 0, .. })));
+            }
+        }
+        assert!(rounds >= 2, "the refused batch was handed out again");
+        let p = scheduler.progress();
+        assert_eq!(p.cast + p.culled, p.total);
+    }
+
+    #[test]
+    fn abandoned_batches_are_handed_out_again_as_a_later_attempt() {
+        let (_, mut scheduler) = ball();
+        let Some(News::Produced { batches, .. }) = step(&mut scheduler, 0, ToBand::Produce { dataset: 0, n: 2 }) else {
+            panic!()
+        };
+        let ids: Vec<u64> = batches.iter().map(|b| b.id).collect();
+        assert!(step(&mut scheduler, 0, ToBand::Abandon { ids: ids.clone() }).is_none());
+        let Some(News::Produced { batches: again, .. }) = step(&mut scheduler, 0, ToBand::Produce { dataset: 0, n: 2 })
+        else {
+            panic!()
+        };
+        assert!(again.iter().all(|b| b.attempt == 1 && !ids.contains(&b.id)), "new ids, one attempt more");
+    }
+}
