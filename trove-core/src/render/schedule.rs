@@ -169,6 +169,9 @@ struct KnownFront {
     alpha: f64,
 }
 
+/// [`super::limits::BYTES_PER_BAND_RAY`] counts a known front as 16 bytes.
+const _: () = assert!(std::mem::size_of::<KnownFront>() == 16);
+
 impl Scheduler {
     /// A scheduler for the tasks of `inter` (a region of `scene`'s image), handing out
     /// batches of at most `batch_tasks` tasks.
@@ -290,7 +293,11 @@ impl Scheduler {
                     }
                     Decision::Cast(front) => {
                         let mut task = self.inter.tasks[t as usize];
-                        task.set_front_alpha(front);
+                        // A task is intersected with a clear front (or as whole), which is
+                        // what setting 0 would write: most tasks skip the rounding.
+                        if front > 0.0 {
+                            task.set_front_alpha(front);
+                        }
                         tasks.push(task);
                         cast.push(t);
                     }
