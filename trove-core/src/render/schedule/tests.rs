@@ -279,9 +279,9 @@ fn plan_by_definition(inter: &Intersections, dataset_of: &[u32], datasets: usize
     (greedy_order(&used, &votes, &mean), waves)
 }
 
-/// A scene of random boxes of random datasets, some overlapping along the rays, and its
-/// intersections.
-fn random_scene(seed: u64, width: u32, height: u32) -> (Scene, Intersections) {
+/// A scene of random boxes of random datasets, some overlapping along the rays, rendered to
+/// opacity `termination`, and its intersections.
+fn random_scene(seed: u64, width: u32, height: u32, termination: f64) -> (Scene, Intersections) {
     let mut state = seed | 1;
     let mut next = |n: u64| {
         state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
@@ -290,7 +290,8 @@ fn random_scene(seed: u64, width: u32, height: u32) -> (Scene, Intersections) {
     let datasets = 1 + next(5);
     let mut text = format!(
         "[image]\nwidth = {width}\nheight = {height}\nbackground = [0, 0, 0]\n\
-         [camera]\neye = [0.3, 0.2, 6.0]\ntarget = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 30.0\n"
+         [camera]\neye = [0.3, 0.2, 6.0]\ntarget = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 30.0\n\
+         [render]\ntermination = {termination}\n"
     );
     for d in 0..datasets {
         text += &format!(
@@ -321,7 +322,7 @@ fn the_plan_lists_the_waves_and_the_order_of_its_definition() {
     for seed in 0..60 {
         // Wide enough for several survey chunks in some scenes.
         let (w, h) = if seed % 10 == 0 { (200, 90) } else { (23, 17) };
-        let (scene, inter) = random_scene(seed, w, h);
+        let (scene, inter) = random_scene(seed, w, h, 0.999);
         let dataset_of: Vec<u32> = scene.objects().iter().map(|o| o.dataset() as u32).collect();
         let datasets = scene.datasets().len();
         let (order, waves) = plan_by_definition(&inter, &dataset_of, datasets);
@@ -351,4 +352,69 @@ fn a_band_of_rows_carries_whole_image_pixel_indices() {
     assert_eq!(band.local_ray(band.tasks[0].ray), 0);
     let whole = intersect(&s, 0..4);
     assert_eq!(&whole.tasks[4..12], &band.tasks[..]);
+}
+
+/// Every front a batch carries is the definition's — the composite, with colours, of the
+/// same-dataset pieces in front (`front_to_back` over `piece_rgba`), clear in a first wave
+/// or for a shared piece — and every culled task has, by the end, a full-colour bound on the
+/// opacity in front of at least the cull threshold: the opacity-only `decide` agrees with
+/// the compositing it stands for.
+#[test]
+fn fronts_and_culls_are_those_of_full_compositing() {
+    let mut culled_any = 0;
+    let mut fronted = 0;
+    for seed in 0..40 {
+        let (scene, inter) = random_scene(seed, 23, 17, [0.6, 0.95, 0.999][seed as usize % 3]);
+        let index: HashMap<(u32, u16, u64), usize> =
+            inter.tasks.iter().enumerate().map(|(i, t)| ((t.ray, t.object, t.t0.to_bits()), i)).collect();
+        let mut s = Scheduler::new(&scene, inter, 7).unwrap();
+        let mut step = 0u64;
+        while !s.is_complete() {
+            let order = s.datasets().to_vec();
+            let mut batches = Vec::new();
+            for &d in &order {
+                while let Some(b) = s.next_batch(d) {
+                    batches.push(b);
+                }
+            }
+            // Handing out may cull every task left.
+            assert!(!batches.is_empty() || s.is_complete(), "seed {seed}: stuck at {:?}", s.progress());
+            for b in batches {
+                let first_wave = s.lanes[b.dataset].wave == 0;
+                let mut results = Vec::new();
+                for task in &b.tasks {
+                    let t = index[&(task.ray, task.object, task.t0.to_bits())];
+                    let own = s.inter.piece_of(t);
+                    let r = s.inter.local_ray(task.ray);
+                    let d = s.dataset_of_object[task.object as usize];
+                    let front = if task.is_whole() || first_wave {
+                        0.0
+                    } else {
+                        let in_front = s.inter.pieces_of(r).start..own;
+                        s.front_to_back(Rgba::CLEAR, in_front, s.termination, |p| {
+                            Some(if s.piece_is_of(p, d) { s.piece_rgba(p)? } else { Rgba::CLEAR })
+                        })
+                        .0
+                        .alpha
+                    };
+                    let mut expected = s.inter.tasks[t];
+                    expected.set_front_alpha(front);
+                    assert_eq!(task.front, expected.front, "seed {seed}, task {t}");
+                    fronted += usize::from(front > 0.0);
+                    step += 1;
+                    results.push(rgba([0.1, 0.45, 0.8, 0.3][(step % 4) as usize]));
+                }
+                s.record(b.id, &results).unwrap();
+            }
+        }
+        let cull_at = s.termination + CULL_MARGIN;
+        for (t, _) in s.status.iter().enumerate().filter(|(_, st)| **st == Status::Culled) {
+            let r = s.inter.local_ray(s.inter.tasks[t].ray);
+            let in_front = s.inter.pieces_of(r).start..s.inter.piece_of(t);
+            let (bound, stopped) = s.front_to_back(Rgba::CLEAR, in_front, cull_at, |p| s.piece_rgba(p));
+            assert!(stopped || bound.alpha >= cull_at, "seed {seed}: task {t} culled with {} in front", bound.alpha);
+            culled_any += 1;
+        }
+    }
+    assert!(culled_any > 50 && fronted > 50, "the scenes cull ({culled_any}) and set fronts ({fronted})");
 }
