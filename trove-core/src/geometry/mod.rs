@@ -7,6 +7,7 @@ pub mod hexahedron;
 mod pieces;
 mod placement;
 
+pub(crate) use camera::PixelRays;
 pub(crate) use camera::PixelRect;
 pub use camera::{Camera, CameraError, CameraField, Ray};
 pub use pieces::{count_pieces, split_into_pieces, Piece, PieceScratch, Segment};

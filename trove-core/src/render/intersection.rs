@@ -18,8 +18,11 @@ use rayon::prelude::*;
 
 use super::limits::LimitError;
 use super::workunit::PieceTask;
-use crate::geometry::{count_pieces, split_into_pieces, BoxOrigin, Piece, PieceScratch, PixelRect, Ray, Segment};
+use crate::geometry::{
+    count_pieces, split_into_pieces, BoxOrigin, Piece, PieceScratch, PixelRays, PixelRect, Ray, Segment,
+};
 use crate::scene::Scene;
+use glam::DVec3;
 
 /// Rows per parallel work item.
 const BAND_ROWS: usize = 4;
@@ -91,7 +94,8 @@ struct Band {
 /// rectangle of its box's corners, [`crate::geometry::Camera::pixels_reaching`]): a ray
 /// outside is not tested against the object. An object's box lies in the convex hull of its
 /// corners (trilinear points are convex combinations of them), so this never drops a hit.
-pub(crate) struct Reach(Vec<PixelRect>, Vec<Option<BoxOrigin>>);
+/// It also keeps the image's pixel rays' shared parts ([`PixelRays`]).
+pub(crate) struct Reach(Vec<PixelRect>, Vec<Option<BoxOrigin>>, PixelRays);
 
 impl Reach {
     pub(crate) fn new(scene: &Scene) -> Reach {
@@ -102,6 +106,7 @@ impl Reach {
             scene.objects().iter().map(|o| camera.pixels_reaching(&o.placement().corners(), w, h)).collect(),
             // Every ray starts at the eye: its part of each slab test is worked out once.
             scene.objects().iter().map(|o| o.placement().box_origin(eye)).collect(),
+            camera.pixel_rays(w.max(1), h.max(1)),
         )
     }
 }
@@ -168,8 +173,10 @@ struct RayScratch {
     split: PieceScratch,
     pieces: Vec<Piece>,
     cover: Vec<u32>,
-    /// The candidate objects of row `row_objects_of` ([`Reach::on_row`]).
+    /// The candidate objects of row `row_objects_of` ([`Reach::on_row`]), and the row's
+    /// part of its rays' directions ([`PixelRays::row`]).
     row_objects: Vec<u32>,
+    row_part: DVec3,
     row_objects_of: Option<u32>,
 }
 
@@ -178,14 +185,14 @@ impl RayScratch {
     fn segments(&mut self, scene: &Scene, reach: &Reach, (col, row): (u32, u32)) {
         if self.row_objects_of != Some(row) {
             reach.on_row(row, &mut self.row_objects);
+            self.row_part = reach.2.row(row);
             self.row_objects_of = Some(row);
         }
         self.segments.clear();
         if self.row_objects.is_empty() {
             return;
         }
-        let (w, h) = (scene.image().width, scene.image().height);
-        let ray = scene.camera().ray(col, row, w, h);
+        let ray = reach.2.ray(col, self.row_part);
         segments_among(scene, reach, &self.row_objects, col, &ray, &mut self.segments);
     }
 
@@ -363,7 +370,11 @@ mod tests {
         let scene = Scene::parse(&text, "reach.toml").unwrap();
         let (w, h) = (scene.image().width, scene.image().height);
         let reach = Reach::new(&scene);
-        let everywhere = Reach(vec![PixelRect::whole(w, h); objects.len()], vec![None; objects.len()]);
+        let everywhere = Reach(
+            vec![PixelRect::whole(w, h); objects.len()],
+            vec![None; objects.len()],
+            scene.camera().pixel_rays(w, h),
+        );
         let (mut culled, mut hits) = (0, 0);
         let (mut a, mut b) = (Vec::new(), Vec::new());
         let mut scratch = RayScratch::default();

@@ -89,20 +89,32 @@ enum Decision {
     Cull,
 }
 
-/// One dataset's progress through its waves.
+/// One dataset's progress through its waves, which lie in the scheduler's `queue`.
 #[derive(Debug, Default)]
 struct Lane {
-    /// Task indices, wave by wave.
-    waves: Vec<Vec<u32>>,
+    /// Where each wave starts in the queue, then where the last one ends (empty for a
+    /// dataset without tasks).
+    waves: Vec<u32>,
     /// The wave being handed out.
     wave: usize,
-    /// How much of that wave has been handed out.
+    /// The queue position of that wave's next task to hand out.
     cursor: usize,
     /// Task lists of abandoned batches of that wave, with the attempt they were, to hand
     /// out again first.
     retry: Vec<(Vec<u32>, u32)>,
     /// Batches of the current wave handed out and not yet recorded.
     outstanding: usize,
+}
+
+impl Lane {
+    fn wave_count(&self) -> usize {
+        self.waves.len().saturating_sub(1)
+    }
+
+    /// Where wave `k` ends in the queue.
+    fn end_of(&self, k: usize) -> usize {
+        self.waves[k + 1] as usize
+    }
 }
 
 struct InFlight {
@@ -141,6 +153,8 @@ pub struct Scheduler {
     /// which the allocator hands out as fresh zeroed pages instead of writing them here.
     results: Vec<[f32; 4]>,
     order: Vec<usize>,
+    /// Every task index once, dataset by dataset and wave by wave ([`Plan::queue`]).
+    queue: Vec<u32>,
     lanes: Vec<Lane>,
     in_flight: HashMap<u64, InFlight>,
     next_id: u64,
@@ -152,12 +166,18 @@ pub struct Scheduler {
     known: Vec<KnownFront>,
 }
 
-/// A ray's leading pieces that are wholly cast: how many, and their composite.
+/// A ray's leading pieces that are wholly cast: how many, and their composite's opacity.
+/// Opacity is all that culling and in-piece fronts read, and compositing computes it
+/// without the colour (`Rgba::over`, `Rgba::colocated`: the same operations on the
+/// opacities alone), so the colour is not kept: 16 bytes a ray instead of 40.
 #[derive(Clone, Copy, Debug, Default)]
 struct KnownFront {
     pieces: u32,
-    acc: Rgba,
+    alpha: f64,
 }
+
+/// [`super::limits::BYTES_PER_BAND_RAY`] counts a known front as 16 bytes.
+const _: () = assert!(std::mem::size_of::<KnownFront>() == 16);
 
 impl Scheduler {
     /// A scheduler for the tasks of `inter` (a region of `scene`'s image), handing out
@@ -168,11 +188,11 @@ impl Scheduler {
             return Err(ScheduleError::TooManyTasks { tasks: n as u64 });
         }
         let dataset_of_object: Vec<u32> = scene.objects().iter().map(|o| o.dataset() as u32).collect();
-        let (order, waves) = plan(&inter, &dataset_of_object, scene.datasets().len());
-        let mut lanes: Vec<Lane> = (0..scene.datasets().len()).map(|_| Lane::default()).collect();
-        for (&d, w) in order.iter().zip(waves) {
-            lanes[d].waves = w;
-        }
+        let Plan { order, queue, waves } = plan(&inter, &dataset_of_object, scene.datasets().len());
+        let lanes: Vec<Lane> = waves
+            .into_iter()
+            .map(|waves| Lane { cursor: waves.first().map_or(0, |&s| s as usize), waves, ..Lane::default() })
+            .collect();
         Ok(Scheduler {
             known: vec![KnownFront::default(); inter.rays()],
             status: vec![Status::Pending; n],
@@ -183,6 +203,7 @@ impl Scheduler {
             termination: scene.render().termination,
             batch_tasks: batch_tasks.max(1),
             order,
+            queue,
             lanes,
             in_flight: HashMap::new(),
             next_id: 0,
@@ -212,7 +233,8 @@ impl Scheduler {
         let inter = self.inter.tasks.capacity() * size_of::<PieceTask>()
             + (self.inter.piece_start.capacity() + self.inter.ray_start.capacity()) * size_of::<usize>();
         let per_task = self.status.capacity() * size_of::<Status>() + self.results.capacity() * size_of::<[f32; 4]>();
-        let waves: usize = self.lanes.iter().flat_map(|l| &l.waves).map(|w| w.capacity() * size_of::<u32>()).sum();
+        let waves: usize =
+            (self.queue.capacity() + self.lanes.iter().map(|l| l.waves.capacity()).sum::<usize>()) * size_of::<u32>();
         (inter + per_task + waves + self.known.capacity() * size_of::<KnownFront>()) as u64
     }
 
@@ -224,9 +246,9 @@ impl Scheduler {
     /// Whether dataset `d` has nothing left to hand out or wait for.
     pub fn is_dataset_done(&self, d: usize) -> bool {
         self.lanes.get(d).is_none_or(|l| {
-            l.wave >= l.waves.len()
-                || (l.wave + 1 == l.waves.len()
-                    && l.cursor >= l.waves[l.wave].len()
+            l.wave >= l.wave_count()
+                || (l.wave + 1 == l.wave_count()
+                    && l.cursor >= l.end_of(l.wave)
                     && l.outstanding == 0
                     && l.retry.is_empty())
         })
@@ -239,28 +261,38 @@ impl Scheduler {
     pub fn next_batch(&mut self, d: usize) -> Option<Batch> {
         loop {
             let lane = self.lanes.get_mut(d)?;
-            if lane.wave >= lane.waves.len() {
+            if lane.wave >= lane.wave_count() {
                 return None;
             }
-            let (candidates, attempt): (Vec<u32>, u32) = if let Some((retry, attempt)) = lane.retry.pop() {
-                (retry, attempt + 1)
-            } else if lane.cursor < lane.waves[lane.wave].len() {
-                let wave = &lane.waves[lane.wave];
-                let end = (lane.cursor + self.batch_tasks).min(wave.len());
-                let chunk = wave[lane.cursor..end].to_vec();
-                lane.cursor = end;
-                (chunk, 0)
+            let first_wave = lane.wave == 0;
+            let end = lane.end_of(lane.wave);
+            let (retry, attempt) = if let Some((retry, attempt)) = lane.retry.pop() {
+                (Some(retry), attempt + 1)
+            } else if lane.cursor < end {
+                (None, 0)
             } else if lane.outstanding > 0 {
                 return None;
             } else {
                 lane.wave += 1;
-                lane.cursor = 0;
+                if lane.wave < lane.wave_count() {
+                    lane.cursor = lane.waves[lane.wave] as usize;
+                }
                 continue;
             };
-            let first_wave = self.lanes[d].wave == 0;
+            // The candidates are read in place from the queue (or the retried list), which
+            // is moved out for the loop so that deciding may update the scheduler.
+            let queue = std::mem::take(&mut self.queue);
+            let candidates: &[u32] = match &retry {
+                Some(list) => list,
+                None => {
+                    let chunk = lane.cursor..(lane.cursor + self.batch_tasks).min(end);
+                    lane.cursor = chunk.end;
+                    &queue[chunk]
+                }
+            };
             let mut cast = Vec::with_capacity(candidates.len());
             let mut tasks = Vec::with_capacity(candidates.len());
-            for t in candidates {
+            for &t in candidates {
                 match self.decide(t as usize, first_wave) {
                     Decision::Cull => {
                         self.status[t as usize] = Status::Culled;
@@ -268,12 +300,17 @@ impl Scheduler {
                     }
                     Decision::Cast(front) => {
                         let mut task = self.inter.tasks[t as usize];
-                        task.set_front_alpha(front);
+                        // A task is intersected with a clear front (or as whole), which is
+                        // what setting 0 would write: most tasks skip the rounding.
+                        if front > 0.0 {
+                            task.set_front_alpha(front);
+                        }
                         tasks.push(task);
                         cast.push(t);
                     }
                 }
             }
+            self.queue = queue;
             if cast.is_empty() {
                 continue;
             }
@@ -400,46 +437,97 @@ impl Scheduler {
         self.inter.tasks_of(p).all(|t| self.dataset_of_object[self.inter.tasks[t].object as usize] == d)
     }
 
+    /// [`Scheduler::piece_rgba`]'s opacity alone, computed as `Rgba::colocated` computes it
+    /// (the colour never enters it), so the same bits.
+    fn piece_alpha(&self, p: usize) -> Option<f64> {
+        let tasks = self.inter.tasks_of(p);
+        if tasks.len() == 1 {
+            return match self.status[tasks.start] {
+                Status::Done => Some(f64::from(self.results[tasks.start][3])),
+                Status::Pending => Some(0.0),
+                Status::Culled => None,
+            };
+        }
+        let mut transmittance = 1.0;
+        for t in tasks {
+            match self.status[t] {
+                Status::Done => transmittance *= 1.0 - f64::from(self.results[t][3]),
+                Status::Pending => {}
+                Status::Culled => return None,
+            }
+        }
+        Some(1.0 - transmittance)
+    }
+
+    /// Whether every task of piece `p` is cast.
+    fn piece_is_cast(&self, p: usize) -> bool {
+        self.inter.tasks_of(p).all(|t| self.status[t] == Status::Done)
+    }
+
     /// Cull task `t`, or cast it with the deterministic front (module documentation).
     /// `first_wave`: `t` is in its dataset's first wave, so no piece in front is the
     /// dataset's and that front is clear without looking.
+    ///
+    /// Both use opacities only, laid over each other as `Rgba::over` lays them
+    /// ([`over_alpha`]), so they are the bits the full composite would give.
     fn decide(&mut self, t: usize, first_wave: bool) -> Decision {
         let task = &self.inter.tasks[t];
-        let d = self.dataset_of_object[task.object as usize];
         let r = self.inter.local_ray(task.ray);
-        let own = self.inter.piece_of(t);
-        let in_front = self.inter.pieces_of(r).start..own;
+        let ray_start = self.inter.ray_start[r];
         let cull_at = self.termination + CULL_MARGIN;
         // The wholly cast pieces in front, from where the last decision on this ray left
-        // them; then the rest of the bound as `front_to_back` would go on.
-        let KnownFront { pieces, mut acc } = self.known[r];
-        let mut p = in_front.start + pieces as usize;
-        debug_assert!(p <= own, "a pending task's piece lies behind the ray's wholly cast pieces");
-        while p < own && acc.alpha < cull_at && self.inter.tasks_of(p).all(|t| self.status[t] == Status::Done) {
-            acc.over(self.piece_rgba(p).expect("a cast piece has a colour"));
+        // them (no piece of the known prefix holds a pending task, so `t` lies behind it);
+        // then the rest of the bound as `front_to_back` would go on. A piece lies in front
+        // of `t` when its tasks end at or before `t`.
+        let KnownFront { pieces, mut alpha } = self.known[r];
+        let mut p = ray_start + pieces as usize;
+        let in_front = |p: usize| self.inter.piece_start[p + 1] <= t;
+        debug_assert!(self.inter.piece_start[p] <= t, "a pending task's piece lies behind the known pieces");
+        while alpha < cull_at && in_front(p) && self.piece_is_cast(p) {
+            alpha = over_alpha(alpha, self.piece_alpha(p).expect("a cast piece has an opacity"));
             p += 1;
         }
-        if p > in_front.start + pieces as usize {
-            self.known[r] = KnownFront { pieces: (p - in_front.start) as u32, acc };
+        if p > ray_start + pieces as usize {
+            self.known[r] = KnownFront { pieces: (p - ray_start) as u32, alpha };
         }
-        let (bound, stopped) = if acc.alpha >= cull_at {
-            (acc, p < own)
-        } else {
-            self.front_to_back(acc, p..own, cull_at, |p| self.piece_rgba(p))
-        };
-        if stopped || bound.alpha >= cull_at {
+        while in_front(p) {
+            if alpha >= cull_at {
+                return Decision::Cull;
+            }
+            match self.piece_alpha(p) {
+                Some(a) => alpha = over_alpha(alpha, a),
+                None => return Decision::Cull,
+            }
+            p += 1;
+        }
+        if alpha >= cull_at {
             return Decision::Cull;
         }
+        let task = &self.inter.tasks[t];
         if task.is_whole() || first_wave {
             return Decision::Cast(0.0);
         }
         // Pieces wholly of this dataset are in its earlier waves: all recorded, none culled
         // (a culled one would have stopped the bound above).
-        let (front, _) = self.front_to_back(Rgba::CLEAR, in_front, self.termination, |p| {
-            Some(if self.piece_is_of(p, d) { self.piece_rgba(p)? } else { Rgba::CLEAR })
-        });
-        Decision::Cast(front.alpha)
+        let d = self.dataset_of_object[task.object as usize];
+        let mut front = 0.0;
+        for q in ray_start..p {
+            if front >= self.termination {
+                break;
+            }
+            if self.piece_is_of(q, d) {
+                front = over_alpha(front, self.piece_alpha(q).expect("no piece in front is culled"));
+            }
+        }
+        Decision::Cast(front)
     }
+}
+
+/// The opacity of `behind` laid behind an accumulation of opacity `front`: `Rgba::over`'s
+/// opacity, the same operations.
+#[inline]
+fn over_alpha(front: f64, behind: f64) -> f64 {
+    front + behind * (1.0 - front)
 }
 
 /// A result a cast can produce: finite, opacity in [0, 1], colour premultiplied by it (each
@@ -449,22 +537,48 @@ fn plausible(r: &PieceRgba) -> bool {
     (0.0..=1.0).contains(&a) && r.colour.iter().all(|&c| (0.0..=a * (1.0 + 1e-5) + 1e-7).contains(&c))
 }
 
+/// Every task of a region once, dataset by dataset and wave by wave, and the datasets' order:
+/// what [`plan`] works out for [`Scheduler::new`].
+struct Plan {
+    /// The datasets that have tasks, front to back as far as the scene allows.
+    order: Vec<usize>,
+    /// Every task index once: the datasets in `order`, each one's waves in turn, each wave in
+    /// task (so ray) order. One flat list instead of a list per wave, so that planning makes
+    /// three allocations whatever the number of waves, and needs no merge.
+    queue: Vec<u32>,
+    /// Per dataset (scene index): where each of its waves starts in `queue`, then where the
+    /// last one ends; empty for a dataset without tasks.
+    waves: Vec<Vec<u32>>,
+}
+
 /// Orders datasets front to back as far as the scene allows, and splits each dataset's
-/// tasks into waves by their rank along their ray. Returns the order (datasets with tasks
-/// only) and, per dataset in that order, its waves.
+/// tasks into waves by their rank along their ray.
 ///
-/// Rays are independent, so chunks of them are surveyed in parallel ([`Survey`]) and the
-/// surveys merged in ray order: the waves list tasks in the same order, and the votes and
-/// depths are the same numbers, as one pass over the rays would give.
-fn plan(inter: &Intersections, dataset_of_object: &[u32], datasets: usize) -> (Vec<usize>, Vec<Vec<Vec<u32>>>) {
+/// Rays are independent, so chunks of them are surveyed in parallel ([`Survey`]): each
+/// writes every task's (dataset, rank) key and counts them. The counts give every wave's
+/// place in one flat list, which one pass over the keys then fills in task order (a
+/// counting sort, stable): the same waves in the same order as sorting the tasks by
+/// (dataset, rank, index), and the votes and depths are the same numbers, summed in the same
+/// order, as one pass over the rays would give.
+fn plan(inter: &Intersections, dataset_of_object: &[u32], datasets: usize) -> Plan {
     use rayon::prelude::*;
     const RAYS_PER_SURVEY: usize = 8192;
     let rays = inter.rays();
-    let surveys: Vec<Survey> = (0..rays.div_ceil(RAYS_PER_SURVEY))
+    let n = inter.tasks.len();
+    // Each chunk's rays, and its tasks' keys: chunks of rays own disjoint runs of tasks.
+    let mut keys = vec![0u32; n];
+    let mut chunks = Vec::with_capacity(rays.div_ceil(RAYS_PER_SURVEY));
+    let mut rest = keys.as_mut_slice();
+    for first in (0..rays).step_by(RAYS_PER_SURVEY) {
+        let chunk = first..(first + RAYS_PER_SURVEY).min(rays);
+        let tasks = inter.piece_start[inter.ray_start[chunk.end]] - inter.piece_start[inter.ray_start[chunk.start]];
+        let (head, tail) = std::mem::take(&mut rest).split_at_mut(tasks);
+        chunks.push((chunk, head));
+        rest = tail;
+    }
+    let surveys: Vec<Survey> = chunks
         .into_par_iter()
-        .map(|c| {
-            Survey::of(inter, dataset_of_object, datasets, c * RAYS_PER_SURVEY..((c + 1) * RAYS_PER_SURVEY).min(rays))
-        })
+        .map(|(chunk, keys)| Survey::of(inter, dataset_of_object, datasets, chunk, keys))
         .collect();
     let mut all = Survey::empty(datasets);
     for survey in surveys {
@@ -474,19 +588,48 @@ fn plan(inter: &Intersections, dataset_of_object: &[u32], datasets: usize) -> (V
     let mean_depth: Vec<f64> =
         (0..datasets).map(|d| if all.count[d] > 0 { all.depth_sum[d] / all.count[d] as f64 } else { 0.0 }).collect();
     let order = greedy_order(&used, &all.votes, &mean_depth);
-    let mut waves = all.waves;
-    let ordered = order.iter().map(|&d| std::mem::take(&mut waves[d])).collect();
-    (order, ordered)
+    // Every wave's start in the queue, datasets in `order`; `next` is the same, flat, as the
+    // cursor each wave is filled from, found at `slot[d] + rank`.
+    let mut waves: Vec<Vec<u32>> = vec![Vec::new(); datasets];
+    let mut slot = vec![0u32; datasets];
+    let mut next: Vec<u32> = Vec::new();
+    let mut at = 0u32;
+    for &d in &order {
+        slot[d] = next.len() as u32;
+        let starts = &mut waves[d];
+        for &size in &all.waves[d] {
+            starts.push(at);
+            next.push(at);
+            at += size;
+        }
+        starts.push(at);
+    }
+    debug_assert_eq!(at as usize, n, "every task is in one wave");
+    let mut queue = vec![0u32; n];
+    for (t, &key) in keys.iter().enumerate() {
+        let cursor = &mut next[(slot[(key >> RANK_BITS) as usize] + (key & RANK_MASK)) as usize];
+        queue[*cursor as usize] = t as u32;
+        *cursor += 1;
+    }
+    Plan { order, queue, waves }
 }
 
-/// What a chunk of rays tells [`plan`], per dataset: its tasks by rank along their ray
-/// (wave by wave), how many there are and the sum of their depths; and the votes for the
-/// dataset order: each ray votes "A before B" for each pair of datasets it meets one right
-/// after the other (first appearances along the ray), which [`greedy_order`] orders (when
-/// that graph has no cycle every ray meets datasets in their turn order; ties go to the
-/// smaller mean depth).
+/// A task's key in [`plan`]'s counting sort: its dataset above [`RANK_BITS`] bits of its
+/// rank. A scene holds at most [`crate::scene::MAX_OBJECTS`] (4096) objects, so datasets fit
+/// the upper 16 bits, and a ray crosses at most 4096 segments, which make at most 8191
+/// pieces: a rank fits 16 bits.
+const RANK_BITS: u32 = 16;
+const RANK_MASK: u32 = (1 << RANK_BITS) - 1;
+const _: () = assert!(2 * crate::scene::MAX_OBJECTS < 1 << RANK_BITS);
+
+/// What a chunk of rays tells [`plan`], per dataset: how many of its tasks each wave holds
+/// (wave k: the tasks of the k-th piece of a ray that the dataset covers), how many tasks
+/// there are and the sum of their depths; and the votes for the dataset order: each ray
+/// votes "A before B" for each pair of datasets it meets one right after the other (first
+/// appearances along the ray), which [`greedy_order`] orders (when that graph has no cycle
+/// every ray meets datasets in their turn order; ties go to the smaller mean depth).
 struct Survey {
-    waves: Vec<Vec<Vec<u32>>>,
+    waves: Vec<Vec<u32>>,
     count: Vec<u64>,
     depth_sum: Vec<f64>,
     votes: HashMap<(usize, usize), u64>,
@@ -502,17 +645,30 @@ impl Survey {
         }
     }
 
-    fn of(inter: &Intersections, dataset_of_object: &[u32], datasets: usize, rays: std::ops::Range<usize>) -> Survey {
+    /// Surveys rays `rays`, writing each of their tasks' key ([`RANK_BITS`]) into `keys`,
+    /// which holds exactly their tasks.
+    fn of(
+        inter: &Intersections,
+        dataset_of_object: &[u32],
+        datasets: usize,
+        rays: std::ops::Range<usize>,
+        keys: &mut [u32],
+    ) -> Survey {
         let mut survey = Survey::empty(datasets);
+        let first_task = inter.piece_start[inter.ray_start[rays.start]];
         // Per ray: (dataset, pieces of it so far, last piece) — a handful of datasets per ray,
         // in the order the ray first meets them.
         let mut seen: Vec<(usize, usize, usize)> = Vec::new();
+        // Neighbouring rays mostly meet the same datasets in the same order: their votes are
+        // counted once per run of such rays rather than hashed ray by ray.
+        let (mut run, mut run_len): (Vec<usize>, u64) = (Vec::new(), 0);
         for r in rays {
             seen.clear();
             for p in inter.pieces_of(r) {
                 for t in inter.tasks_of(p) {
-                    let d = dataset_of_object[inter.tasks[t].object as usize] as usize;
-                    survey.depth_sum[d] += inter.tasks[t].t0;
+                    let task = &inter.tasks[t];
+                    let d = dataset_of_object[task.object as usize] as usize;
+                    survey.depth_sum[d] += task.t0;
                     survey.count[d] += 1;
                     let rank = match seen.iter_mut().find(|s| s.0 == d) {
                         Some(s) if s.2 == p => s.1 - 1,
@@ -526,32 +682,42 @@ impl Survey {
                             0
                         }
                     };
+                    keys[t - first_task] = (d as u32) << RANK_BITS | rank as u32;
                     let lane = &mut survey.waves[d];
                     if lane.len() <= rank {
-                        lane.resize_with(rank + 1, Vec::new);
+                        lane.resize(rank + 1, 0);
                     }
-                    lane[rank].push(t as u32);
+                    lane[rank] += 1;
                 }
             }
-            for pair in seen.windows(2) {
-                *survey.votes.entry((pair[0].0, pair[1].0)).or_insert(0) += 1;
+            if run.len() == seen.len() && run.iter().zip(&seen).all(|(&a, b)| a == b.0) {
+                run_len += 1;
+            } else {
+                survey.vote(&run, run_len);
+                run.clear();
+                run.extend(seen.iter().map(|s| s.0));
+                run_len = 1;
             }
         }
+        survey.vote(&run, run_len);
         survey
     }
 
-    /// Appends `later`, a survey of the rays after these.
+    /// `rays` votes of rays that met datasets `met`, in that order.
+    fn vote(&mut self, met: &[usize], rays: u64) {
+        for pair in met.windows(2) {
+            *self.votes.entry((pair[0], pair[1])).or_insert(0) += rays;
+        }
+    }
+
+    /// Adds `later`, a survey of the rays after these.
     fn merge(&mut self, later: Survey) {
         for (waves, later) in self.waves.iter_mut().zip(later.waves) {
             if waves.len() < later.len() {
-                waves.resize_with(later.len(), Vec::new);
+                waves.resize(later.len(), 0);
             }
             for (wave, later) in waves.iter_mut().zip(later) {
-                if wave.is_empty() {
-                    *wave = later;
-                } else {
-                    wave.extend(later);
-                }
+                *wave += later;
             }
         }
         for d in 0..self.count.len() {

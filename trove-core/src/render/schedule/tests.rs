@@ -216,13 +216,14 @@ fn datasets_go_front_to_back_and_waves_follow_each_ray() {
     let inter = intersect(&s, 0..4);
     assert_eq!(inter.rays(), 16);
     let dataset_of: Vec<u32> = s.objects().iter().map(|o| o.dataset() as u32).collect();
-    let (order, waves) = plan(&inter, &dataset_of, 2);
+    let Plan { order, queue, waves } = plan(&inter, &dataset_of, 2);
     assert_eq!(order, vec![1, 0], "the dataset met first goes first");
     // Dataset 1 has one piece per ray: one wave. Dataset 0 has two: two waves, the
     // nearer piece of every ray in the first.
-    assert_eq!(waves[0].len(), 1);
-    assert_eq!(waves[1].len(), 2);
-    for (k, wave) in waves[1].iter().enumerate() {
+    assert_eq!(waves[1], vec![0, 16]);
+    assert_eq!(waves[0], vec![16, 32, 48]);
+    for k in 0..2 {
+        let wave = &queue[waves[0][k] as usize..waves[0][k + 1] as usize];
         assert_eq!(wave.len(), 16);
         for &t in wave {
             let task = inter.tasks[t as usize];
@@ -230,6 +231,116 @@ fn datasets_go_front_to_back_and_waves_follow_each_ray() {
             assert_eq!(inter.piece_of(t as usize), inter.ray_start[task.ray as usize] + k + 1);
         }
     }
+}
+
+/// The plan by its definition, one ray at a time: each dataset's wave k lists, in task
+/// order, the tasks of the k-th piece of each ray that the dataset covers; every ray votes
+/// once for each pair of datasets it meets one right after the other; depths are summed
+/// per chunk of 8192 rays, then chunk by chunk (the order [`plan`] sums them in).
+fn plan_by_definition(inter: &Intersections, dataset_of: &[u32], datasets: usize) -> (Vec<usize>, Vec<Vec<Vec<u32>>>) {
+    let mut waves: Vec<Vec<Vec<u32>>> = vec![Vec::new(); datasets];
+    let mut votes: HashMap<(usize, usize), u64> = HashMap::new();
+    let (mut count, mut depth) = (vec![0u64; datasets], vec![0.0f64; datasets]);
+    for chunk in (0..inter.rays()).step_by(8192) {
+        let mut chunk_depth = vec![0.0f64; datasets];
+        for r in chunk..(chunk + 8192).min(inter.rays()) {
+            let mut met: Vec<usize> = Vec::new();
+            let mut pieces_of_dataset = vec![0usize; datasets];
+            for p in inter.pieces_of(r) {
+                let mut seen_here = Vec::new();
+                for t in inter.tasks_of(p) {
+                    let d = dataset_of[inter.tasks[t].object as usize] as usize;
+                    count[d] += 1;
+                    chunk_depth[d] += inter.tasks[t].t0;
+                    if !seen_here.contains(&d) {
+                        seen_here.push(d);
+                        pieces_of_dataset[d] += 1;
+                    }
+                    let rank = pieces_of_dataset[d] - 1;
+                    if waves[d].len() <= rank {
+                        waves[d].resize(rank + 1, Vec::new());
+                    }
+                    waves[d][rank].push(t as u32);
+                    if !met.contains(&d) {
+                        met.push(d);
+                    }
+                }
+            }
+            for pair in met.windows(2) {
+                *votes.entry((pair[0], pair[1])).or_insert(0) += 1;
+            }
+        }
+        for d in 0..datasets {
+            depth[d] += chunk_depth[d];
+        }
+    }
+    let used: Vec<usize> = (0..datasets).filter(|&d| count[d] > 0).collect();
+    let mean: Vec<f64> = (0..datasets).map(|d| if count[d] > 0 { depth[d] / count[d] as f64 } else { 0.0 }).collect();
+    (greedy_order(&used, &votes, &mean), waves)
+}
+
+/// A scene of random boxes of random datasets, some overlapping along the rays, rendered to
+/// opacity `termination`, and its intersections.
+fn random_scene(seed: u64, width: u32, height: u32, termination: f64) -> (Scene, Intersections) {
+    let mut state = seed | 1;
+    let mut next = |n: u64| {
+        state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+        (state >> 33) % n
+    };
+    let datasets = 1 + next(5);
+    let mut text = format!(
+        "[image]\nwidth = {width}\nheight = {height}\nbackground = [0, 0, 0]\n\
+         [camera]\neye = [0.3, 0.2, 6.0]\ntarget = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 30.0\n\
+         [render]\ntermination = {termination}\n"
+    );
+    for d in 0..datasets {
+        text += &format!(
+            "[[datasets]]\nname = \"d{d}\"\ndims = [2, 2, 2]\n[datasets.channels.voxel]\n\
+             generator = {{ kind = \"constant\", value = 1.0 }}\n"
+        );
+    }
+    for i in 0..1 + next(9) {
+        let at = |next: &mut dyn FnMut(u64) -> u64| next(20) as f64 * 0.1 - 1.0;
+        let (x, y, z) = (at(&mut next), at(&mut next), at(&mut next) * 2.0);
+        let size = 0.3 + next(10) as f64 * 0.1;
+        text += &format!(
+            "[[objects]]\nname = \"o{i}\"\ndataset = \"d{}\"\n\
+             colour = {{ type = \"constant\", red = [1], green = [1], blue = [1] }}\n\
+             opacity = {{ type = \"constant\", coefficients = [0.5] }}\n\
+             transform = {{ matrix = [[{size}, 0, 0, {x}], [0, {size}, 0, {y}], [0, 0, {size}, {z}], [0, 0, 0, 1]] }}\n",
+            next(datasets)
+        );
+    }
+    let scene = Scene::parse(&text, "random.toml").unwrap();
+    let inter = intersect(&scene, 0..height);
+    (scene, inter)
+}
+
+#[test]
+fn the_plan_lists_the_waves_and_the_order_of_its_definition() {
+    let mut shared_pieces = 0;
+    for seed in 0..60 {
+        // Wide enough for several survey chunks in some scenes.
+        let (w, h) = if seed % 10 == 0 { (200, 90) } else { (23, 17) };
+        let (scene, inter) = random_scene(seed, w, h, 0.999);
+        let dataset_of: Vec<u32> = scene.objects().iter().map(|o| o.dataset() as u32).collect();
+        let datasets = scene.datasets().len();
+        let (order, waves) = plan_by_definition(&inter, &dataset_of, datasets);
+        let got = plan(&inter, &dataset_of, datasets);
+        assert_eq!(got.order, order, "seed {seed}");
+        let mut expected_queue = Vec::new();
+        for &d in &order {
+            let starts: Vec<u32> = got.waves[d].clone();
+            assert_eq!(starts.len(), waves[d].len() + 1, "seed {seed}, dataset {d}");
+            for (k, wave) in waves[d].iter().enumerate() {
+                assert_eq!(starts[k] as usize, expected_queue.len(), "seed {seed}, dataset {d}, wave {k}");
+                expected_queue.extend_from_slice(wave);
+            }
+        }
+        assert_eq!(got.queue, expected_queue, "seed {seed}");
+        shared_pieces += inter.tasks.len() - inter.pieces();
+    }
+    assert!(shared_pieces > 100, "the scenes overlap: {shared_pieces}");
 }
 
 #[test]
@@ -241,4 +352,69 @@ fn a_band_of_rows_carries_whole_image_pixel_indices() {
     assert_eq!(band.local_ray(band.tasks[0].ray), 0);
     let whole = intersect(&s, 0..4);
     assert_eq!(&whole.tasks[4..12], &band.tasks[..]);
+}
+
+/// Every front a batch carries is the definition's — the composite, with colours, of the
+/// same-dataset pieces in front (`front_to_back` over `piece_rgba`), clear in a first wave
+/// or for a shared piece — and every culled task has, by the end, a full-colour bound on the
+/// opacity in front of at least the cull threshold: the opacity-only `decide` agrees with
+/// the compositing it stands for.
+#[test]
+fn fronts_and_culls_are_those_of_full_compositing() {
+    let mut culled_any = 0;
+    let mut fronted = 0;
+    for seed in 0..40 {
+        let (scene, inter) = random_scene(seed, 23, 17, [0.6, 0.95, 0.999][seed as usize % 3]);
+        let index: HashMap<(u32, u16, u64), usize> =
+            inter.tasks.iter().enumerate().map(|(i, t)| ((t.ray, t.object, t.t0.to_bits()), i)).collect();
+        let mut s = Scheduler::new(&scene, inter, 7).unwrap();
+        let mut step = 0u64;
+        while !s.is_complete() {
+            let order = s.datasets().to_vec();
+            let mut batches = Vec::new();
+            for &d in &order {
+                while let Some(b) = s.next_batch(d) {
+                    batches.push(b);
+                }
+            }
+            // Handing out may cull every task left.
+            assert!(!batches.is_empty() || s.is_complete(), "seed {seed}: stuck at {:?}", s.progress());
+            for b in batches {
+                let first_wave = s.lanes[b.dataset].wave == 0;
+                let mut results = Vec::new();
+                for task in &b.tasks {
+                    let t = index[&(task.ray, task.object, task.t0.to_bits())];
+                    let own = s.inter.piece_of(t);
+                    let r = s.inter.local_ray(task.ray);
+                    let d = s.dataset_of_object[task.object as usize];
+                    let front = if task.is_whole() || first_wave {
+                        0.0
+                    } else {
+                        let in_front = s.inter.pieces_of(r).start..own;
+                        s.front_to_back(Rgba::CLEAR, in_front, s.termination, |p| {
+                            Some(if s.piece_is_of(p, d) { s.piece_rgba(p)? } else { Rgba::CLEAR })
+                        })
+                        .0
+                        .alpha
+                    };
+                    let mut expected = s.inter.tasks[t];
+                    expected.set_front_alpha(front);
+                    assert_eq!(task.front, expected.front, "seed {seed}, task {t}");
+                    fronted += usize::from(front > 0.0);
+                    step += 1;
+                    results.push(rgba([0.1, 0.45, 0.8, 0.3][(step % 4) as usize]));
+                }
+                s.record(b.id, &results).unwrap();
+            }
+        }
+        let cull_at = s.termination + CULL_MARGIN;
+        for (t, _) in s.status.iter().enumerate().filter(|(_, st)| **st == Status::Culled) {
+            let r = s.inter.local_ray(s.inter.tasks[t].ray);
+            let in_front = s.inter.pieces_of(r).start..s.inter.piece_of(t);
+            let (bound, stopped) = s.front_to_back(Rgba::CLEAR, in_front, cull_at, |p| s.piece_rgba(p));
+            assert!(stopped || bound.alpha >= cull_at, "seed {seed}: task {t} culled with {} in front", bound.alpha);
+            culled_any += 1;
+        }
+    }
+    assert!(culled_any > 50 && fronted > 50, "the scenes cull ({culled_any}) and set fronts ({fronted})");
 }
