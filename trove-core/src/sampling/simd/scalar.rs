@@ -205,6 +205,18 @@ impl Simd for Scalar {
         a.map(|x| ((x as u32) >> (n & 31)) as i32)
     }
     #[inline(always)]
+    fn shl_i(self, a: I, n: u32) -> I {
+        a.map(|x| ((x as u32) << (n & 31)) as i32)
+    }
+    #[inline(always)]
+    fn to_bits(self, a: F) -> I {
+        a.map(|x| x.to_bits() as i32)
+    }
+    #[inline(always)]
+    fn bits_to_f32(self, a: I) -> F {
+        a.map(|x| f32::from_bits(x as u32))
+    }
+    #[inline(always)]
     fn shr_each_i(self, a: I, n: I) -> I {
         pair_i(a, n, |x, n| ((x as u32) >> (n as u32 & 31)) as i32)
     }
