@@ -521,3 +521,32 @@ fn vtk_scene(n: u32) -> String {
     }
     format!("{{\"volumes\": [\n  {}\n]}}\n", volumes.join(",\n  "))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The VTK scene is JSON that `vtk_raycast.py --scene` reads: the floor and the 14 heads,
+    /// each a raw file of the 15 datasets with the right dims, and each head's box where the
+    /// TROVE scene puts it (unturned): its side over the voxels, its base at the row's height.
+    #[test]
+    fn vtk_scene_has_the_fifteen_volumes_where_trove_puts_them() {
+        let scene: serde_json::Value = serde_json::from_str(&vtk_scene(96)).expect("valid JSON");
+        let volumes = scene["volumes"].as_array().expect("a list of volumes");
+        assert_eq!(volumes.len(), 15);
+        let files: std::collections::BTreeSet<_> = volumes.iter().map(|v| v["raw"].as_str().unwrap()).collect();
+        assert_eq!(files.len(), 15, "each dataset once");
+        for v in volumes {
+            assert_eq!(v["dims"], serde_json::json!([96, 96, 96]));
+            assert_eq!(v["voxel_model"], "cell");
+        }
+        // Head 0: the first row's first x, its base at the row's y.
+        let head = &volumes[1];
+        assert_eq!(head["raw"], "head00.raw");
+        let origin: Vec<f64> = head["origin"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
+        let (z, y, xs) = HEAD_ROWS[0];
+        let expected = [xs[0] - HEAD_SIDE / 2.0, y, z - HEAD_SIDE / 2.0];
+        assert!(origin.iter().zip(expected).all(|(a, b)| (a - b).abs() < 1e-12), "{origin:?}");
+        assert_eq!(head["spacing"][0].as_f64().unwrap(), HEAD_SIDE / 96.0);
+    }
+}
