@@ -46,8 +46,9 @@ pub struct Args {
     #[arg(long, value_enum, default_value_t = Storage::Gzip)]
     storage: Storage,
     /// Where to write the generated datasets, and the scenes as `table1-15.toml`,
-    /// `table1-1.toml` and `fig10.toml` for `trove render` (default: a fresh folder under
-    /// the system temporary folder, removed afterwards).
+    /// `table1-1.toml` and `fig10.toml` for `trove render`, and with `--storage raw` the
+    /// 15-dataset scene for VTK as `table1-15-vtk.json` (`vtk_raycast.py --scene`; default:
+    /// a fresh folder under the system temporary folder, removed afterwards).
     #[arg(long)]
     data_dir: Option<PathBuf>,
     /// Run only the 15/1 configuration (every object on one shared dataset, which fits the
@@ -135,6 +136,9 @@ fn run_in(args: &Args, dir: &Path) -> Result<()> {
     if args.data_dir.is_some() {
         for (name, text) in ["table1-15.toml", "table1-1.toml", "fig10.toml"].iter().zip(&texts) {
             std::fs::write(dir.join(name), text).with_context(|| format!("writing {name}"))?;
+        }
+        if storage == Storage::Raw {
+            std::fs::write(dir.join("table1-15-vtk.json"), vtk_scene(n)).context("writing table1-15-vtk.json")?;
         }
     }
     let shared = load_scene(dir, &texts[1])?;
@@ -436,21 +440,26 @@ pub fn table1_scene(size: u32, n: u32, storage: Storage, shared: bool) -> String
          transform = {{ matrix = [[7.5, 0, 0, -3.75], [0, 0.08, 0, -1.28], [0, 0, 6.5, -4.5], [0, 0, 0, 1]] }}\n\n",
         ds(14)
     );
-    let rows: [(f64, f64, &[f64]); 3] = [
-        (1.0, -1.2, &[-2.4, -1.2, 0.0, 1.2, 2.4]),
-        (-0.4, -0.75, &[-1.8, -0.6, 0.6, 1.8]),
-        (-1.9, -0.3, &[-2.4, -1.2, 0.0, 1.2, 2.4]),
-    ];
     let mut i = 0;
-    for (z, y, xs) in rows {
+    for (z, y, xs) in HEAD_ROWS {
         for &x in xs {
-            let look = [1, 3, 0, 1, 2, 3, 1][i as usize % 7];
-            text += &object_toml(&format!("head{i}"), ds(i), look, 1.15, [x, y, z], 15.0 * (i as f64 - 7.0));
+            let look = HEAD_LOOKS[i as usize % 7];
+            text += &object_toml(&format!("head{i}"), ds(i), look, HEAD_SIDE, [x, y, z], 15.0 * (i as f64 - 7.0));
             i += 1;
         }
     }
     text
 }
+
+/// The Fig. 1-like scene's heads: three rows (z, base y, the x of each head).
+const HEAD_ROWS: [(f64, f64, &[f64]); 3] = [
+    (1.0, -1.2, &[-2.4, -1.2, 0.0, 1.2, 2.4]),
+    (-0.4, -0.75, &[-1.8, -0.6, 0.6, 1.8]),
+    (-1.9, -0.3, &[-2.4, -1.2, 0.0, 1.2, 2.4]),
+];
+/// Head i's look ([`LOOKS`]) is `HEAD_LOOKS[i % 7]`; every head's box has side `HEAD_SIDE`.
+const HEAD_LOOKS: [usize; 7] = [1, 3, 0, 1, 2, 3, 1];
+const HEAD_SIDE: f64 = 1.15;
 
 /// The Fig. 10-like scene: objects of varying colour and translucency in front of each
 /// other, from 3 datasets.
@@ -473,4 +482,71 @@ pub fn fig10_scene(size: u32, n: u32, storage: Storage) -> String {
         text += &object_toml(&format!("o{i}"), d, look, s, c, angle);
     }
     text
+}
+
+/// The 15-dataset scene (raw storage) for `../shared/peers/vtk_raycast.py --scene`: the same
+/// files, maps, boxes and termination-free settings as far as VTK can take them. VTK places
+/// volumes by origin and spacing only, so each head's box is the same box unturned (the
+/// heads are near-symmetric ellipsoids, so a ray meets about as many of their voxels), with
+/// `voxel_model = cell` (SPEC §2's cell-centred box) and an opacity unit distance of one
+/// voxel of its own dataset (TROVE's opacity correction for a step of ℓ voxels).
+fn vtk_scene(n: u32) -> String {
+    let tf = |colour: &str, opacity: &str, unit: f64| {
+        format!("{{\"color\": {colour}, \"opacity\": {opacity}, \"scalar_opacity_unit_distance\": {unit:?}}}")
+    };
+    let volume = |v: u32, origin: [f64; 3], spacing: [f64; 3], tf: String| {
+        format!(
+            "{{\"raw\": \"{}\", \"dims\": [{n}, {n}, {n}], \"dtype\": \"uint16\", \"endian\": \"little\", \
+             \"origin\": {origin:?}, \"spacing\": {spacing:?}, \"voxel_model\": \"cell\", \"tf\": {tf}}}",
+            Storage::Raw.file_name(v)
+        )
+    };
+    let nf = f64::from(n);
+    // The floor: a constant opacity of 1.
+    let floor = [7.5, 0.08, 6.5];
+    let mut volumes = vec![volume(
+        14,
+        [-3.75, -1.28, -4.5],
+        floor.map(|s| s / nf),
+        tf("[[0, 0.25, 0.25, 0.3], [3000, 0.6, 0.6, 0.7]]", "[[0, 1.0], [4095, 1.0]]", floor[1] / nf),
+    )];
+    let mut i = 0;
+    for (z, y, xs) in HEAD_ROWS {
+        for &x in xs {
+            let (colour, opacity) = LOOKS[HEAD_LOOKS[i as usize % 7]];
+            let s = HEAD_SIDE;
+            volumes.push(volume(i, [x - s / 2.0, y, z - s / 2.0], [s / nf; 3], tf(colour, opacity, s / nf)));
+            i += 1;
+        }
+    }
+    format!("{{\"volumes\": [\n  {}\n]}}\n", volumes.join(",\n  "))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The VTK scene is JSON that `vtk_raycast.py --scene` reads: the floor and the 14 heads,
+    /// each a raw file of the 15 datasets with the right dims, and each head's box where the
+    /// TROVE scene puts it (unturned): its side over the voxels, its base at the row's height.
+    #[test]
+    fn vtk_scene_has_the_fifteen_volumes_where_trove_puts_them() {
+        let scene: serde_json::Value = serde_json::from_str(&vtk_scene(96)).expect("valid JSON");
+        let volumes = scene["volumes"].as_array().expect("a list of volumes");
+        assert_eq!(volumes.len(), 15);
+        let files: std::collections::BTreeSet<_> = volumes.iter().map(|v| v["raw"].as_str().unwrap()).collect();
+        assert_eq!(files.len(), 15, "each dataset once");
+        for v in volumes {
+            assert_eq!(v["dims"], serde_json::json!([96, 96, 96]));
+            assert_eq!(v["voxel_model"], "cell");
+        }
+        // Head 0: the first row's first x, its base at the row's y.
+        let head = &volumes[1];
+        assert_eq!(head["raw"], "head00.raw");
+        let origin: Vec<f64> = head["origin"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
+        let (z, y, xs) = HEAD_ROWS[0];
+        let expected = [xs[0] - HEAD_SIDE / 2.0, y, z - HEAD_SIDE / 2.0];
+        assert!(origin.iter().zip(expected).all(|(a, b)| (a - b).abs() < 1e-12), "{origin:?}");
+        assert_eq!(head["spacing"][0].as_f64().unwrap(), HEAD_SIDE / 96.0);
+    }
 }

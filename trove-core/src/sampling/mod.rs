@@ -24,7 +24,8 @@
 //!   f32 lane, two registers side by side, pipelined one sample ahead
 //!   ([`ObjectCaster::cast_many`], what `BatchCaster` calls): across rays there is no
 //!   compositing chain to wait on. `packed.rs` holds the f32 forms of the object's grid and
-//!   map and the steps over them (cells, index, trilinear value, segment, classification).
+//!   map and the steps over them (cells, index, trilinear value, segment, classification,
+//!   opacity correction).
 //!   In f32 a piece's result agrees with the f64 loops to rounding (tests hold it to 1e-5
 //!   per piece, and images to 1/255, on every path), a value within rounding of a LUT bound
 //!   takes its segment from its f64 value so that no sample changes class, and jumps over

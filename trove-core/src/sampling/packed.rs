@@ -1,7 +1,8 @@
 //! The f32 forms of an object's grid and map that the packet loop ([`super::packet`])
 //! casts with ([`Packed`], [`Grid`]), and its steps over them written once over a SIMD
 //! width ([`super::simd::Simd`]): locating samples in cells, indexing, the trilinear value,
-//! the segment of the joint map and its classification.
+//! the segment of the joint map and its classification, and opacity correction
+//! ([`corrected`]).
 //!
 //! They keep a different promise from the f64 loops ([`super::kernel`], [`super::lanes`]):
 //! those do the generic loop's operations in its order and agree with it bit for bit; these
@@ -338,5 +339,151 @@ impl Grid<'_> {
             (*v0, *v1) = (a as f32, b as f32);
         }
         (v0, v1)
+    }
+}
+
+/// α = 1 − (1 − O)^ℓ per lane (SPEC §4.3), as [`super::corrected_opacity`] computes it,
+/// −expm1(ℓ·log1p(−O)), but in f32 lanes: 0 where O ≤ 0, 1 where O ≥ 1. Computed lane by
+/// lane in f64 it cost two library calls per lane and sample, which on a scene with opacity
+/// correction (the SPEC's default) was most of the loop's time; here it is a few dozen
+/// lane operations. Relative to the f64 value it is off by a few f32 roundings (within
+/// 2·10⁻⁶ relatively or 10⁻¹² absolutely, over (0, 1) × ℓ ∈ [2⁻⁴, 2⁴], tested on every
+/// path): both functions keep their relative precision for small arguments, which a plain
+/// `1 − exp(ℓ·ln(1 − O))` would lose to the rounding of 1 − O.
+#[inline(always)]
+pub(super) fn corrected<S: Simd>(s: S, opacity: S::F, ell: S::F) -> S::F {
+    let (zero, one) = (s.splat(0.0), s.splat(1.0));
+    let some = s.gt(ell, zero);
+    // Lanes outside (0, 1) are computed on ½ and replaced at the end.
+    let inside = s.and_m(s.gt(opacity, zero), s.lt(opacity, one));
+    let o = s.select(inside, opacity, s.splat(0.5));
+    // ℓ·log1p(−O), at least −30 (where eʸ is below f32's rounding of 1 anyway).
+    let y = s.max(s.mul(ell, log1p_negative(s, o)), s.splat(-30.0));
+    let outside = s.select(s.ge(opacity, one), one, zero);
+    s.select(some, s.select(inside, neg_expm1(s, y), outside), zero)
+}
+
+/// log1p(−o) for o in (0, 1): ln u of u = 1 − o rounded, corrected by the rounding,
+/// (−o − (u − 1))/u, with 1/u taken as 2 − u: exact where u is near 1, where the rounding
+/// matters; where u is far from 1 the correction is below f32's rounding of ln u.
+#[inline(always)]
+fn log1p_negative<S: Simd>(s: S, o: S::F) -> S::F {
+    let one = s.splat(1.0);
+    let u = s.sub(one, o);
+    let rounding = s.sub(s.sub(one, u), o);
+    s.mul_add(rounding, s.sub(s.splat(2.0), u), ln(s, u))
+}
+
+/// ln u for normal u > 0 (Cephes' `logf`: u = m·2ᵉ with m in [√½, √2), then a polynomial
+/// in m − 1, which is exact, so the result keeps its relative precision near u = 1).
+#[inline(always)]
+fn ln<S: Simd>(s: S, u: S::F) -> S::F {
+    let one = s.splat(1.0);
+    let bits = s.to_bits(u);
+    // u = m·2ᵉ with m in [½, 1).
+    let e = s.to_f32(s.add_i(s.shr_i(bits, 23), s.splat_i(-126)));
+    let m = s.bits_to_f32(s.add_i(s.and_i(bits, s.splat_i(0x007f_ffff)), s.splat_i(0x3f00_0000)));
+    let low = s.lt(m, s.splat(std::f32::consts::FRAC_1_SQRT_2));
+    // m < √½: 2m − 1 and e − 1; else m − 1 (both exact).
+    let x = s.sub(s.add(m, s.select(low, m, s.splat(0.0))), one);
+    let e = s.sub(e, s.select(low, one, s.splat(0.0)));
+    let z = s.mul(x, x);
+    let mut p = s.splat(7.037_683_6e-2);
+    for c in [-1.151_461e-1, 1.167_699_9e-1, -1.242_014_1e-1, 1.424_932_3e-1, -1.666_805_7e-1, 2.000_071_4e-1] {
+        p = s.mul_add(p, x, s.splat(c));
+    }
+    p = s.mul_add(p, x, s.splat(-2.499_999_4e-1));
+    p = s.mul_add(p, x, s.splat(3.333_333e-1));
+    let mut y = s.mul(s.mul(p, x), z);
+    y = s.mul_add(e, s.splat(LN2_LOW), y);
+    y = s.neg_mul_add(s.splat(0.5), z, y);
+    s.mul_add(e, s.splat(LN2_HIGH), s.add(x, y))
+}
+
+/// ln 2 as a sum whose first part (0.693359375) has few bits (so that k·`LN2_HIGH` is exact for the
+/// small integers k here), Cephes' split.
+const LN2_HIGH: f32 = 0.693_359_4;
+const LN2_LOW: f32 = -2.121_944_4e-4;
+
+/// −expm1(y) = 1 − eʸ for y in [−30, 0]: y = k·ln 2 + r with |r| ≤ ½ ln 2, expm1(r) as
+/// r + r²·P(r) (Cephes' `expf` polynomial, without its 1 +, so that it keeps its relative
+/// precision for small r), then 1 − 2ᵏ·(1 + expm1(r)) as (1 − 2ᵏ) − 2ᵏ·expm1(r), both
+/// parts exact but the last rounding.
+#[inline(always)]
+fn neg_expm1<S: Simd>(s: S, y: S::F) -> S::F {
+    let k = s.floor(s.mul_add(y, s.splat(std::f32::consts::LOG2_E), s.splat(0.5)));
+    let r = s.neg_mul_add(k, s.splat(LN2_LOW), s.neg_mul_add(k, s.splat(LN2_HIGH), y));
+    let mut p = s.splat(1.987_569_1e-4);
+    for c in [1.398_199_9e-3, 8.333_452e-3, 4.166_579_6e-2, 1.666_666_6e-1, 0.5] {
+        p = s.mul_add(p, r, s.splat(c));
+    }
+    let em1 = s.mul_add(s.mul(r, r), p, r);
+    // 2ᵏ, k ≥ −44: its exponent field.
+    let two_k = s.bits_to_f32(s.shl_i(s.add_i(s.to_i32(k), s.splat_i(127)), 23));
+    s.neg_mul_add(two_k, em1, s.sub(s.splat(1.0), two_k))
+}
+
+#[cfg(test)]
+mod tests {
+    #[cfg(target_arch = "x86_64")]
+    use super::super::simd::avx2::Avx2;
+    #[cfg(target_arch = "x86_64")]
+    use super::super::simd::avx512::Avx512;
+    #[cfg(target_arch = "aarch64")]
+    use super::super::simd::neon::Neon;
+    use super::super::simd::scalar::Scalar;
+    use super::super::simd::SimdPath;
+    use super::*;
+
+    /// [`corrected`] of each (opacity, ℓ), a register at a time.
+    fn corrected_all<S: Simd>(s: S, pairs: &[(f32, f32)]) -> Vec<f32> {
+        let mut out = Vec::new();
+        for chunk in pairs.chunks(S::LANES) {
+            let (mut o, mut ell, mut alpha) = ([0.0f32; 16], [0.0f32; 16], [0.0f32; 16]);
+            for (l, &(a, b)) in chunk.iter().enumerate() {
+                (o[l], ell[l]) = (a, b);
+            }
+            s.store(&mut alpha, corrected(s, s.load(&o), s.load(&ell)));
+            out.extend_from_slice(&alpha[..chunk.len()]);
+        }
+        out
+    }
+
+    /// The f32 lanes' opacity correction agrees with the f64 one ([`super::super::corrected_opacity`])
+    /// to a few f32 roundings relatively, on every path this processor has, from the smallest
+    /// opacities (where 1 − O rounds) to the largest below 1, over steps of 1/16 to 16 voxels,
+    /// and keeps its edges: 0 for O ≤ 0 or ℓ ≤ 0, 1 for O ≥ 1.
+    #[test]
+    fn corrected_opacity_in_f32_lanes_agrees_with_f64() {
+        let mut opacities: Vec<f32> = vec![1e-9, 3e-8, 1e-7, 1e-6, 1e-5];
+        opacities.extend((1..1000).map(|i| i as f32 / 1000.0));
+        opacities.extend((1..24).map(|e| 1.0 - 2f32.powi(-e)));
+        opacities.extend([0.004, 0.3, 0.6, 0.9922, 1.0 - f32::EPSILON / 2.0]);
+        let ells = [0.0625, 0.3, 0.5, 0.99, 1.0, 1.0001, 1.37, 2.0, 4.5, 16.0];
+        let mut pairs: Vec<(f32, f32)> = opacities.iter().flat_map(|&o| ells.iter().map(move |&l| (o, l))).collect();
+        let edges = [(0.0, 1.0), (-0.5, 1.0), (1.0, 1.0), (1.5, 0.7), (0.5, 0.0), (1.0, 0.0), (0.5, -1.0)];
+        pairs.extend(edges);
+        for path in SimdPath::available() {
+            let got = match path {
+                #[cfg(target_arch = "x86_64")]
+                SimdPath::Avx512 => corrected_all(Avx512::detect().unwrap(), &pairs),
+                #[cfg(target_arch = "x86_64")]
+                SimdPath::Avx2 => corrected_all(Avx2::detect().unwrap(), &pairs),
+                #[cfg(target_arch = "aarch64")]
+                SimdPath::Neon => corrected_all(Neon::detect().unwrap(), &pairs),
+                SimdPath::Scalar => corrected_all(Scalar, &pairs),
+                #[allow(unreachable_patterns)]
+                other => unreachable!("{other} is not available on this architecture"),
+            };
+            for (&(o, ell), &alpha) in pairs.iter().zip(&got) {
+                let want = super::super::corrected_opacity(f64::from(o), f64::from(ell));
+                let error = (f64::from(alpha) - want).abs();
+                assert!(
+                    error <= 2e-6 * want || error <= 1e-12,
+                    "{path}: O = {o:e}, ℓ = {ell}: {alpha:e} against {want:e} (relative {:e})",
+                    error / want
+                );
+            }
+        }
     }
 }

@@ -24,14 +24,14 @@
 //! empty by the cell of its f32 base, which is where its f32 value reads: skipping changes
 //! no result.
 
-use super::packed::{Grid, Packed, Stored};
+use super::packed::{corrected, Grid, Packed, Stored};
 use super::simd::avx2::Avx2;
 use super::simd::avx512::Avx512;
 use super::simd::neon::Neon;
 use super::simd::scalar::Scalar;
 use super::simd::{Simd, SimdPath};
 use super::skip::{cell_of, FineClasses, Jumps, Skipper};
-use super::{corrected_opacity, PieceResult};
+use super::PieceResult;
 use crate::composite::Rgba;
 use crate::dataset::macrocell::{Level, MACROCELL_SHIFT};
 use crate::geometry::LineSamples;
@@ -176,7 +176,8 @@ struct Lanes {
     stop_alpha: [f32; MAX_W],
     /// How far a sample's f32 value may be from its f64 value ([`Packed::slack`]).
     slack: [f32; MAX_W],
-    ell: [f64; MAX_W],
+    /// The piece's step in voxels, ℓ, where opacity is corrected ([`corrected`]).
+    ell: [f32; MAX_W],
     /// The sample each lane is at (an integer, exact in f32: pieces have fewer than 2²⁴).
     k: [f32; MAX_W],
     /// Σ c·w per colour channel, then A.
@@ -481,16 +482,20 @@ impl Cast<'_, '_, '_> {
                         }
                     }
                     let (opacity, colour) = packets.packed.map(s, v, segment);
-                    let alpha =
-                        if self.correction { corrected(s, opacity, &lanes.ell[S::LANES * h..]) } else { opacity };
+                    let alpha = if self.correction { corrected(s, opacity, load(s, &lanes.ell, h)) } else { opacity };
                     // `Rgba::add_sample` in live lanes, then the stopping test of `composite`.
-                    let weight = s.neg_mul_add(alpha, r.acc[3], alpha);
+                    // Other lanes add a weight of +0 (colours are finite), which leaves
+                    // their sums as they are, bit for bit: no select between the old and
+                    // the new sum, which, with the sums kept in memory (AVX2 has too few
+                    // registers for both halves), compiles to masked stores, slow on AMD
+                    // processors and a stall for the loads that read them back.
+                    let weight = s.select(live, s.neg_mul_add(alpha, r.acc[3], alpha), zero);
                     for (acc, &c) in r.acc.iter_mut().zip(&colour) {
-                        *acc = s.select(live, s.mul_add(c, weight, *acc), *acc);
+                        *acc = s.mul_add(c, weight, *acc);
                     }
-                    r.acc[3] = s.select(live, s.add(r.acc[3], weight), r.acc[3]);
+                    r.acc[3] = s.add(r.acc[3], weight);
                     let done = live_bits & s.bits(s.and_m(s.ne(alpha, zero), s.ge(r.acc[3], r.stop_alpha)));
-                    r.samples = s.select(live, s.add(r.samples, one), r.samples);
+                    r.samples = s.add(r.samples, s.select(live, one, zero));
                     r.k = looked.next_k[h];
                     let end = half(active, h, S::LANES) & (done | s.bits(s.ge(r.k, r.n)));
                     ended |= end << (S::LANES * h);
@@ -697,7 +702,7 @@ impl Cast<'_, '_, '_> {
         // The slack serves only maps that jump.
         lanes.slack[l] = if packed.jumps.is_empty() { 0.0 } else { packed.slack(&piece.line) };
         // ℓ (a square root) only where opacity is corrected.
-        lanes.ell[l] = if self.correction { piece.line.ell() } else { 0.0 };
+        lanes.ell[l] = if self.correction { piece.line.ell() as f32 } else { 0.0 };
         lanes.k[l] = 0.0;
         for acc in &mut lanes.acc {
             acc[l] = 0.0;
@@ -715,16 +720,4 @@ impl Cast<'_, '_, '_> {
         }
         next + 1
     }
-}
-
-/// `opacity` corrected for each lane's step ℓ (`ell[l]`): in f64, as the f64 loops
-/// correct it.
-#[inline(always)]
-fn corrected<S: Simd>(s: S, opacity: S::F, ell: &[f64]) -> S::F {
-    let mut alpha = [0.0; 16];
-    s.store(&mut alpha, opacity);
-    for (alpha, &ell) in alpha.iter_mut().zip(&ell[..S::LANES]) {
-        *alpha = corrected_opacity(f64::from(*alpha), ell) as f32;
-    }
-    s.load(&alpha)
 }

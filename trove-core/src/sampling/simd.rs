@@ -222,6 +222,12 @@ pub(super) trait Simd: Copy + Send + Sync + 'static {
     fn and_i(self, a: Self::I, b: Self::I) -> Self::I;
     /// Logical right shift of every lane by `n` < 32.
     fn shr_i(self, a: Self::I, n: u32) -> Self::I;
+    /// Left shift of every lane by `n` < 32.
+    fn shl_i(self, a: Self::I, n: u32) -> Self::I;
+    /// The bits of each f32 lane as an i32 (no conversion).
+    fn to_bits(self, a: Self::F) -> Self::I;
+    /// The bits of each i32 lane as an f32 (no conversion).
+    fn bits_to_f32(self, a: Self::I) -> Self::F;
     /// Logical right shift of each lane by its own count (< 32).
     fn shr_each_i(self, a: Self::I, n: Self::I) -> Self::I;
     fn gt_i(self, a: Self::I, b: Self::I) -> Self::M;

@@ -160,6 +160,18 @@ mod imp {
             unsafe { _mm256_srl_epi32(a, _mm_cvtsi32_si128(n as i32)) }
         }
         #[inline(always)]
+        fn shl_i(self, a: __m256i, n: u32) -> __m256i {
+            unsafe { _mm256_sll_epi32(a, _mm_cvtsi32_si128(n as i32)) }
+        }
+        #[inline(always)]
+        fn to_bits(self, a: __m256) -> __m256i {
+            unsafe { _mm256_castps_si256(a) }
+        }
+        #[inline(always)]
+        fn bits_to_f32(self, a: __m256i) -> __m256 {
+            unsafe { _mm256_castsi256_ps(a) }
+        }
+        #[inline(always)]
         fn shr_each_i(self, a: __m256i, n: __m256i) -> __m256i {
             unsafe { _mm256_srlv_epi32(a, n) }
         }

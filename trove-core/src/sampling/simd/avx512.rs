@@ -164,6 +164,18 @@ mod imp {
             unsafe { _mm512_srl_epi32(a, _mm_cvtsi32_si128(n as i32)) }
         }
         #[inline(always)]
+        fn shl_i(self, a: __m512i, n: u32) -> __m512i {
+            unsafe { _mm512_sll_epi32(a, _mm_cvtsi32_si128(n as i32)) }
+        }
+        #[inline(always)]
+        fn to_bits(self, a: __m512) -> __m512i {
+            unsafe { _mm512_castps_si512(a) }
+        }
+        #[inline(always)]
+        fn bits_to_f32(self, a: __m512i) -> __m512 {
+            unsafe { _mm512_castsi512_ps(a) }
+        }
+        #[inline(always)]
         fn shr_each_i(self, a: __m512i, n: __m512i) -> __m512i {
             unsafe { _mm512_srlv_epi32(a, n) }
         }

@@ -162,6 +162,18 @@ mod imp {
             unsafe { vreinterpretq_s32_u32(vshlq_u32(vreinterpretq_u32_s32(a), vdupq_n_s32(-(n as i32)))) }
         }
         #[inline(always)]
+        fn shl_i(self, a: int32x4_t, n: u32) -> int32x4_t {
+            unsafe { vreinterpretq_s32_u32(vshlq_u32(vreinterpretq_u32_s32(a), vdupq_n_s32(n as i32))) }
+        }
+        #[inline(always)]
+        fn to_bits(self, a: float32x4_t) -> int32x4_t {
+            unsafe { vreinterpretq_s32_f32(a) }
+        }
+        #[inline(always)]
+        fn bits_to_f32(self, a: int32x4_t) -> float32x4_t {
+            unsafe { vreinterpretq_f32_s32(a) }
+        }
+        #[inline(always)]
         fn shr_each_i(self, a: int32x4_t, n: int32x4_t) -> int32x4_t {
             unsafe { vreinterpretq_s32_u32(vshlq_u32(vreinterpretq_u32_s32(a), vnegq_s32(n))) }
         }

@@ -2,8 +2,8 @@
 //! by lane in ordinary Rust, which the compiler may vectorise for the target's baseline
 //! (SSE2 on x86-64) but need not. Multiplies and adds are not fused (a fused one is a
 //! library call where the target has no FMA instruction), and floor and ceiling are
-//! computed from truncation rather than by `f32::floor`, which is a library call without
-//! SSE4.1.
+//! computed by adding and subtracting 2²³ rather than by `f32::floor`, which is a library
+//! call without SSE4.1.
 
 use super::Simd;
 
@@ -57,19 +57,21 @@ fn test(a: F, b: F, f: impl Fn(f32, f32) -> bool) -> M {
 }
 
 /// x rounded down (`up` false) or up: exact for every f32, NaN staying NaN. |x| ≥ 2²³ is
-/// an integer already; below, truncation through i32 is exact and off by one on the
-/// other side of zero.
+/// an integer already; below, |x| + 2²³ − 2²³ rounds |x| to the nearest integer, and one
+/// step corrects the side. Every step is a plain operation or a select, with no branch and
+/// no float-to-integer conversion (Rust's saturates, which costs several instructions a
+/// lane), so that the compiler vectorises a register's lanes with SSE2: the truncating
+/// form this replaced was a fifth of the scalar loop's time on the CT head (BENCHMARKS.md,
+/// issue 19).
 #[inline(always)]
 fn round(x: f32, up: bool) -> f32 {
-    if x.is_nan() || x.abs() >= 8_388_608.0 {
-        return x;
-    }
-    let t = x as i32 as f32;
-    if up {
-        t + f32::from(u8::from(t < x))
-    } else {
-        t - f32::from(u8::from(t > x))
-    }
+    const BIG: f32 = 8_388_608.0;
+    let magnitude = x.abs();
+    let nearest = if magnitude < BIG { ((magnitude + BIG) - BIG).copysign(x) } else { x };
+    let rounded =
+        if up { nearest - if nearest < x { -1.0 } else { 0.0 } } else { nearest - if nearest > x { 1.0 } else { 0.0 } };
+    // The result has x's sign (a ceiling of −0.5 is −0, as `f32::ceil`'s).
+    rounded.copysign(x)
 }
 
 impl Simd for Scalar {
@@ -205,6 +207,18 @@ impl Simd for Scalar {
         a.map(|x| ((x as u32) >> (n & 31)) as i32)
     }
     #[inline(always)]
+    fn shl_i(self, a: I, n: u32) -> I {
+        a.map(|x| ((x as u32) << (n & 31)) as i32)
+    }
+    #[inline(always)]
+    fn to_bits(self, a: F) -> I {
+        a.map(|x| x.to_bits() as i32)
+    }
+    #[inline(always)]
+    fn bits_to_f32(self, a: I) -> F {
+        a.map(|x| f32::from_bits(x as u32))
+    }
+    #[inline(always)]
     fn shr_each_i(self, a: I, n: I) -> I {
         pair_i(a, n, |x, n| ((x as u32) >> (n as u32 & 31)) as i32)
     }
@@ -248,5 +262,31 @@ impl Simd for Scalar {
     #[inline(always)]
     fn or_m(self, a: M, b: M) -> M {
         std::array::from_fn(|l| a[l] | b[l])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::round;
+
+    /// The branch-free floor and ceiling equal `f32::floor` and `f32::ceil` (bit for bit:
+    /// −0 stays −0), on halves, near-integers, the edges of 2²³ and 2²⁴, both signs,
+    /// infinities and NaN.
+    #[test]
+    fn floor_and_ceil_are_exact() {
+        let mut xs: Vec<f32> = vec![0.0, 0.5, 1.0, 1.5, 2.5, 0.3, 0.7, 1e-30, 8_388_607.5, 8_388_608.0, 16_777_215.0];
+        xs.extend([16_777_216.0, 3e9, 1e38, f32::MAX, f32::MIN_POSITIVE, f32::INFINITY, f32::EPSILON]);
+        for i in 0..2000 {
+            let x = i as f32 * 0.37 - 40.0;
+            xs.extend([x, x.next_up(), x.next_down(), (i as f32).next_up(), (i as f32).next_down()]);
+        }
+        for &x in &xs.clone() {
+            xs.push(-x);
+        }
+        for x in xs {
+            assert_eq!(round(x, false).to_bits(), x.floor().to_bits(), "floor({x:e})");
+            assert_eq!(round(x, true).to_bits(), x.ceil().to_bits(), "ceil({x:e})");
+        }
+        assert!(round(f32::NAN, false).is_nan() && round(f32::NAN, true).is_nan());
     }
 }
