@@ -133,7 +133,11 @@ fn record_of(args: &Args, rows: &[Value]) -> Result<CoordinatorRecord> {
         let per = |seconds: f64| seconds * 1e9 / pieces.max(1) as f64;
         let st = r["stages"].as_object().context("a row without stages")?;
         let wall = |k: &str| st.get(k).map_or(0.0, f);
-        let timed_loop = ["dispatch", "encoding", "decoding", "recording"].iter().map(|k| wall(k)).sum::<f64>();
+        // The loop's own timer counts every step of the job's task; what it also times
+        // apart (stages placed on it: none since bands have threads of their own) is taken
+        // out, and the rest is `loop_rest`.
+        let on_loop = |k: &str| place_of(k).is_some_and(|(runs_on, _)| runs_on == RunsOn::EventLoop);
+        let timed_loop = st.keys().filter(|k| on_loop(k)).map(|k| wall(k)).sum::<f64>();
         let loop_wall = wall("event_loop");
         let mut walls: Vec<(String, f64)> = Vec::new();
         for (key, seconds) in st {
@@ -148,7 +152,9 @@ fn record_of(args: &Args, rows: &[Value]) -> Result<CoordinatorRecord> {
         // the CPU of the thread it runs on.
         let loop_cpu = loop_wall.min(worker_cpu).min(cpu);
         let blocking_cpu = (cpu - worker_cpu).max(0.0);
-        let mut groups = [(RunsOn::EventLoop, 0.0), (RunsOn::Parallel, 0.0), (RunsOn::OneThread, 0.0)];
+        // Two groups: the event loop's stages, and those of blocking threads (the bands'
+        // threads, rayon's, the image's encoding).
+        let mut groups = [0.0, 0.0];
         let mut placed = Vec::new();
         for (key, seconds) in walls {
             let (runs_on, at) = place_of(&key).with_context(|| {
@@ -158,10 +164,10 @@ fn record_of(args: &Args, rows: &[Value]) -> Result<CoordinatorRecord> {
                 )
             })?;
             let group = if runs_on == RunsOn::EventLoop { 0 } else { 1 };
-            groups[group].1 += seconds;
+            groups[group] += seconds;
             placed.push((key, seconds, runs_on, at, group));
         }
-        let scale = [loop_cpu / groups[0].1.max(1e-12), blocking_cpu / groups[1].1.max(1e-12)];
+        let scale = [loop_cpu / groups[0].max(1e-12), blocking_cpu / groups[1].max(1e-12)];
         let mut stages: Vec<Stage> = placed
             .into_iter()
             .map(|(name, seconds, runs_on, at, group)| Stage {
@@ -402,14 +408,13 @@ fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> 
 fn print_table(rows: &[Value]) {
     let f = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
     println!(
-        "\n| scene | coordinator cores | pieces | tasks sent | job s (median) | pieces/s | coordinator CPU ns/piece | intersection | planning | dispatch | encoding | decoding + recording | rest of the event loop | composition | PNG | stand-ins' CPU ns/piece |"
+        "\n| scene | coordinator cores | pieces | tasks sent | job s (median) | pieces/s | coordinator CPU ns/piece | intersection | planning | dispatch | encoding | decoding + recording | event loop | composition | PNG | stand-ins' CPU ns/piece |"
     );
     println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in rows {
         let pieces = f(&r["pieces"]).max(1.0);
         let ns = |s: f64| s * 1e9 / pieces;
         let st = &r["stages"];
-        let timed_loop = f(&st["dispatch"]) + f(&st["encoding"]) + f(&st["decoding"]) + f(&st["recording"]);
         println!(
             "| {} | {}{} | {} | {} | {:.3} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} |",
             r["scene"].as_str().unwrap_or("?"),
@@ -425,16 +430,18 @@ fn print_table(rows: &[Value]) {
             ns(f(&st["dispatch"])),
             ns(f(&st["encoding"])),
             ns(f(&st["decoding"]) + f(&st["recording"])),
-            ns(f(&st["event_loop"]) - timed_loop),
+            ns(f(&st["event_loop"])),
             ns(f(&st["composition"])),
             ns(f(&st["image_encoding"])),
             ns(f(&r["standin_cpu"])),
         );
     }
     println!(
-        "\nStage columns: wall time per piece on the thread doing the step (the job's statistics). On the event loop \
-         that is close to CPU time; intersection, planning and composition run on blocking threads, several bands \
-         at once, so theirs add up waits for a processor and can exceed the CPU column."
+        "\nStage columns: wall time per piece on the thread doing the step (the job's statistics). Planning, dispatch, \
+         encoding, decoding and recording run on each band's own thread, intersection and composition there with \
+         rayon within, several bands at once, so theirs add up waits for a processor and can exceed the CPU column; \
+         the event loop (per-batch work only: the stock of batches, sending, asking bands, forwarding answers) is \
+         one task, close to CPU time."
     );
     for r1 in rows.iter().filter(|r| r["cores"] == 1) {
         for r2 in rows.iter().filter(|r| r["cores"] == 2 && r["scene"] == r1["scene"]) {
