@@ -148,9 +148,12 @@ fn record_of(args: &Args, rows: &[Value]) -> Result<CoordinatorRecord> {
         walls.push(("loop_rest".into(), (loop_wall - timed_loop).max(0.0)));
         let cpu = f(&r["coordinator_cpu"]);
         let worker_cpu = r["loop_thread_cpu"].as_f64().context("a 1-core row without its worker thread's CPU")?;
-        // The loop's CPU: its wall time, which on a shared core also counts waits, capped by
-        // the CPU of the thread it runs on.
-        let loop_cpu = loop_wall.min(worker_cpu).min(cpu);
+        let worker_wait = r["loop_thread_wait"].as_f64().unwrap_or(0.0);
+        // The loop's CPU: its timed steps never block, so their wall time is CPU and waits
+        // for the core, which on one core shared with the bands' threads and rayon's are
+        // many. Their CPU is taken as that wall time less its share of the thread's waits
+        // (the thread's CPU over its CPU and waits), capped by the CPU of the thread.
+        let loop_cpu = (loop_wall * worker_cpu / (worker_cpu + worker_wait).max(1e-12)).min(worker_cpu).min(cpu);
         let blocking_cpu = (cpu - worker_cpu).max(0.0);
         // Two groups: the event loop's stages, and those of blocking threads (the bands'
         // threads, rayon's, the image's encoding).
@@ -349,15 +352,16 @@ fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> 
         let name = case.scene.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let scene = Scene::parse_in(&text, &case.scene, &DataRoot::Given(root.clone()))?;
         let local = render(&scene, &RenderOptions::default())?.image.encode_png()?;
-        let loop_cpu = || loop_thread.map_or(Ok(0.0), tid_cpu);
-        let mut farm_render = || -> Result<(f64, f64, f64, Value, f64)> {
+        let loop_cpu = || loop_thread.map_or(Ok((0.0, 0.0)), tid_cpu);
+        let mut farm_render = || -> Result<(f64, f64, f64, Value, (f64, f64))> {
             let (cpu, standins, on_loop) = (thread_cpu("coord-")?, thread_cpu("standin-")?, loop_cpu()?);
             let started = Instant::now();
             let files =
                 standin_rt.block_on(client.render(text.clone(), name.clone(), pb::JobOptions::default(), |_| {}))?;
             let wall = started.elapsed().as_secs_f64();
             let (cpu, standins) = (thread_cpu("coord-")? - cpu, thread_cpu("standin-")? - standins);
-            let on_loop = loop_cpu()? - on_loop;
+            let after = loop_cpu()?;
+            let on_loop = (after.0 - on_loop.0, after.1 - on_loop.1);
             ensure!(files.png == local, "{}: the coordinator's image differs from local mode's", case.name);
             Ok((wall, cpu, standins, serde_json::from_slice(&files.stats_json)?, on_loop))
         };
@@ -391,7 +395,8 @@ fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> 
             "seconds": median(runs.iter().map(|r| r.0)),
             "coordinator_cpu": runs.iter().map(|r| r.1).sum::<f64>() / n,
             "standin_cpu": runs.iter().map(|r| r.2).sum::<f64>() / n,
-            "loop_thread_cpu": loop_thread.map(|_| runs.iter().map(|r| r.4).sum::<f64>() / n),
+            "loop_thread_cpu": loop_thread.map(|_| runs.iter().map(|r| r.4 .0).sum::<f64>() / n),
+            "loop_thread_wait": loop_thread.map(|_| runs.iter().map(|r| r.4 .1).sum::<f64>() / n),
             "pixels": u64::from(scene.image().width) * u64::from(scene.image().height),
             "stages": stages,
             "cast_during_measurement": cast_during,
@@ -441,7 +446,9 @@ fn print_table(rows: &[Value]) {
          encoding, decoding and recording run on each band's own thread, intersection and composition there with \
          rayon within, several bands at once, so theirs add up waits for a processor and can exceed the CPU column; \
          the event loop (per-batch work only: the stock of batches, sending, asking bands, forwarding answers) is \
-         one task, close to CPU time."
+         one task whose steps never block, so its column is CPU time and waits for a core (on one core shared \
+         with the bands' threads, many: the lines below give its thread's; the record takes the loop's CPU as its \
+         timer less its share of those waits)."
     );
     for r1 in rows.iter().filter(|r| r["cores"] == 1) {
         for r2 in rows.iter().filter(|r| r["cores"] == 2 && r["scene"] == r1["scene"]) {
@@ -451,6 +458,17 @@ fn print_table(rows: &[Value]) {
                 f(&r1["seconds"]) / f(&r2["seconds"])
             );
         }
+    }
+    for r in rows.iter().filter(|r| r["loop_thread_cpu"].is_number()) {
+        let ns = |v: &Value| f(v) * 1e9 / f(&r["pieces"]).max(1.0);
+        println!(
+            "{}, 1 core: the runtime's one worker thread (event loop and transport) ran {:.0} ns a piece and waited \
+             {:.0} ns a piece for the core; the loop's own timer counted {:.0} ns a piece",
+            r["scene"].as_str().unwrap_or("?"),
+            ns(&r["loop_thread_cpu"]),
+            ns(&r["loop_thread_wait"]),
+            ns(&r["stages"]["event_loop"])
+        );
     }
     let cast: u64 = rows.iter().filter_map(|r| r["cast_during_measurement"].as_u64()).sum();
     println!("tasks the stand-ins had to cast during the measured renders: {cast}");
@@ -507,12 +525,16 @@ fn simd_path() -> &'static str {
     recorded::simd_path()
 }
 
-/// CPU seconds run so far by thread `tid` of this process (its schedstat's first field).
-fn tid_cpu(tid: libc::pid_t) -> Result<f64> {
+/// Seconds thread `tid` of this process has run so far, and waited runnable for a
+/// processor (its schedstat's first two fields).
+fn tid_cpu(tid: libc::pid_t) -> Result<(f64, f64)> {
     let file = format!("/proc/self/task/{tid}/schedstat");
     let text = std::fs::read_to_string(&file).with_context(|| format!("reading {file}"))?;
-    let ns = text.split_whitespace().next().and_then(|v| v.parse::<u64>().ok()).context("an empty schedstat")?;
-    Ok(ns as f64 * 1e-9)
+    let mut fields = text.split_whitespace().map(|v| v.parse::<u64>().ok());
+    let (Some(Some(run)), Some(Some(wait))) = (fields.next(), fields.next()) else {
+        bail!("{file}: expected its run and wait times")
+    };
+    Ok((run as f64 * 1e-9, wait as f64 * 1e-9))
 }
 
 fn load_average() -> String {
