@@ -61,6 +61,12 @@ pub struct Args {
     /// repository keeps one: `bench/recorded/coordinator.json`). Needs 1 in `--cores`.
     #[arg(long)]
     record: Option<PathBuf>,
+    /// With 1 coordinator core: the runtime's one worker thread (the job's event loop and the
+    /// transport) runs on a processor of its own (the last allowed) and the stand-ins share
+    /// the first with the coordinator's other threads, so that the loop's timer counts no
+    /// waits behind the bands' threads. Those rows' throughput is then not one core's.
+    #[arg(long)]
+    loop_apart: bool,
     /// (Internal) measure with this many coordinator cores in this process, printing one
     /// JSON line per scene; `--dir` holds the scenes.
     #[arg(long, hide = true)]
@@ -103,6 +109,7 @@ fn run_in(args: &Args, dir: &Path) -> Result<()> {
             .args(["--one", &cores.to_string(), "--dir", path_str(dir)?])
             .args(["--size", &args.size.to_string(), "--repeat", &args.repeat.to_string()])
             .args(["--workers", &args.workers.to_string()])
+            .args(if args.loop_apart { &["--loop-apart"][..] } else { &[] })
             .stdin(Stdio::null())
             .stderr(Stdio::inherit())
             .output()?;
@@ -207,12 +214,13 @@ fn record_of(args: &Args, rows: &[Value]) -> Result<CoordinatorRecord> {
         simd: simd_path().to_string(),
         commit: recorded::commit(),
         command: format!(
-            "trove-bench coordinator --size {} --repeat {} --workers {} --cores {} --dims {} --record {file}",
+            "trove-bench coordinator --size {} --repeat {} --workers {} --cores {} --dims {}{} --record {file}",
             args.size,
             args.repeat,
             args.workers,
             cores.join(","),
-            args.dims
+            args.dims,
+            if args.loop_apart { " --loop-apart" } else { "" }
         ),
         cores: 1,
         scenes,
@@ -259,8 +267,15 @@ fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> 
     let cpus = allowed_cpus();
     ensure!(cores >= 1 && cores <= cpus.len(), "{cores} coordinator cores asked for, {} available", cpus.len());
     let coordinator_cpus: Vec<usize> = cpus[..cores].to_vec();
-    let (standin_cpus, separated) =
-        if cpus.len() > cores { (cpus[cores..].to_vec(), true) } else { (cpus.clone(), false) };
+    let loop_apart = args.loop_apart && cores == 1;
+    ensure!(!loop_apart || cpus.len() >= 2, "--loop-apart needs two processors");
+    let (standin_cpus, separated) = if loop_apart {
+        (coordinator_cpus.clone(), false)
+    } else if cpus.len() > cores {
+        (cpus[cores..].to_vec(), true)
+    } else {
+        (cpus.clone(), false)
+    };
     let (c, s) = (coordinator_cpus.clone(), standin_cpus.clone());
     rayon::ThreadPoolBuilder::new()
         .num_threads(cores)
@@ -320,6 +335,10 @@ fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> 
     } else {
         None
     };
+    if let (true, Some(tid), Some(&apart)) = (loop_apart, loop_thread, cpus.last()) {
+        pin_thread(tid, &[apart]).context("pinning the loop's thread apart")?;
+        eprintln!("the runtime's worker thread (event loop, transport) apart on processor {apart}");
+    }
     let root = dir.join("root");
     let answers = Arc::new(Answers::new(&root, pool)?);
     let mut stops = Vec::new();
@@ -389,6 +408,7 @@ fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> 
             "scene": case.name,
             "cores": cores,
             "separated": separated,
+            "loop_apart": loop_apart,
             "pieces": pieces,
             "tasks_sent": sent,
             "batches": stats["batches"],
@@ -424,7 +444,11 @@ fn print_table(rows: &[Value]) {
             "| {} | {}{} | {} | {} | {:.3} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} |",
             r["scene"].as_str().unwrap_or("?"),
             r["cores"],
-            if r["separated"].as_bool() == Some(true) { "" } else { " (shared)" },
+            match (r["loop_apart"].as_bool(), r["separated"].as_bool()) {
+                (Some(true), _) => " (shared; loop apart)",
+                (_, Some(true)) => "",
+                _ => " (shared)",
+            },
             r["pieces"],
             r["tasks_sent"],
             f(&r["seconds"]),
@@ -450,7 +474,7 @@ fn print_table(rows: &[Value]) {
          with the bands' threads, many: the lines below give its thread's; the record takes the loop's CPU as its \
          timer less its share of those waits)."
     );
-    for r1 in rows.iter().filter(|r| r["cores"] == 1) {
+    for r1 in rows.iter().filter(|r| r["cores"] == 1 && r["loop_apart"] != true) {
         for r2 in rows.iter().filter(|r| r["cores"] == 2 && r["scene"] == r1["scene"]) {
             println!(
                 "{}: throughput on 2 cores / 1 core = {:.2}",
@@ -523,6 +547,20 @@ fn processor() -> String {
 
 fn simd_path() -> &'static str {
     recorded::simd_path()
+}
+
+/// Pins thread `tid` of this process to `cpus`.
+fn pin_thread(tid: libc::pid_t, cpus: &[usize]) -> Result<()> {
+    // SAFETY: as in `allowed_cpus`; `tid` is a thread of this process.
+    let rc = unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        for &c in cpus {
+            libc::CPU_SET(c, &mut set);
+        }
+        libc::sched_setaffinity(tid, std::mem::size_of::<libc::cpu_set_t>(), &set)
+    };
+    ensure!(rc == 0, "sched_setaffinity: {}", std::io::Error::last_os_error());
+    Ok(())
 }
 
 /// Seconds thread `tid` of this process has run so far, and waited runnable for a
