@@ -262,6 +262,10 @@ fn cases(dir: &Path, size: u32) -> Vec<Case> {
     cases
 }
 
+/// One measured render: its wall time, the coordinator's and the stand-ins' CPU, the job's
+/// statistics, and the run and wait times of the coordinator's worker thread (with 1 core).
+type Run = (f64, f64, f64, Value, (f64, f64));
+
 /// One core count, in this process: see the module's doc.
 fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> {
     let cpus = allowed_cpus();
@@ -372,7 +376,7 @@ fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> 
         let scene = Scene::parse_in(&text, &case.scene, &DataRoot::Given(root.clone()))?;
         let local = render(&scene, &RenderOptions::default())?.image.encode_png()?;
         let loop_cpu = || loop_thread.map_or(Ok((0.0, 0.0)), tid_cpu);
-        let mut farm_render = || -> Result<(f64, f64, f64, Value, (f64, f64))> {
+        let mut farm_render = || -> Result<Run> {
             let (cpu, standins, on_loop) = (thread_cpu("coord-")?, thread_cpu("standin-")?, loop_cpu()?);
             let started = Instant::now();
             let files =
