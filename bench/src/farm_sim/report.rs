@@ -230,7 +230,7 @@ fn print_workloads(workloads: &[Workload], inputs: &Inputs, args: &Args) {
         "\n## Workloads ({0}×{0} pixels, bands of {1} pixels, datasets {2}³ u16, {3} datasets per ray on average)\n",
         args.size, args.band_pixels, args.dims, args.depth
     );
-    println!("| datasets | bands | tasks | samples / task | datasets per band | waves per dataset and band | MiB per band | casting (core-s) | bands' threads, per task (core-s) | event loop (s) |");
+    println!("| datasets | bands | tasks | samples / task | datasets per band | waves per dataset and band | MiB per band | casting (core-s) | bands' threads' per-task steps (core-s) | event loop (s) |");
     println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     let per_task = |runs_on| inputs.cost(At::Send, runs_on) + inputs.cost(At::Answer, runs_on);
     let (loop_per_task, band_per_task) = (per_task(RunsOn::EventLoop), per_task(RunsOn::Band));
