@@ -61,6 +61,12 @@ pub struct Args {
     /// repository keeps one: `bench/recorded/coordinator.json`). Needs 1 in `--cores`.
     #[arg(long)]
     record: Option<PathBuf>,
+    /// With 1 coordinator core: the runtime's one worker thread (the job's event loop and the
+    /// transport) runs on a processor of its own (the last allowed) and the stand-ins share
+    /// the first with the coordinator's other threads, so that the loop's timer counts no
+    /// waits behind the bands' threads. Those rows' throughput is then not one core's.
+    #[arg(long)]
+    loop_apart: bool,
     /// (Internal) measure with this many coordinator cores in this process, printing one
     /// JSON line per scene; `--dir` holds the scenes.
     #[arg(long, hide = true)]
@@ -103,6 +109,7 @@ fn run_in(args: &Args, dir: &Path) -> Result<()> {
             .args(["--one", &cores.to_string(), "--dir", path_str(dir)?])
             .args(["--size", &args.size.to_string(), "--repeat", &args.repeat.to_string()])
             .args(["--workers", &args.workers.to_string()])
+            .args(if args.loop_apart { &["--loop-apart"][..] } else { &[] })
             .stdin(Stdio::null())
             .stderr(Stdio::inherit())
             .output()?;
@@ -133,7 +140,11 @@ fn record_of(args: &Args, rows: &[Value]) -> Result<CoordinatorRecord> {
         let per = |seconds: f64| seconds * 1e9 / pieces.max(1) as f64;
         let st = r["stages"].as_object().context("a row without stages")?;
         let wall = |k: &str| st.get(k).map_or(0.0, f);
-        let timed_loop = ["dispatch", "encoding", "decoding", "recording"].iter().map(|k| wall(k)).sum::<f64>();
+        // The loop's own timer counts every step of the job's task; what it also times
+        // apart (stages placed on it: none since bands have threads of their own) is taken
+        // out, and the rest is `loop_rest`.
+        let on_loop = |k: &str| place_of(k).is_some_and(|(runs_on, _)| runs_on == RunsOn::EventLoop);
+        let timed_loop = st.keys().filter(|k| on_loop(k)).map(|k| wall(k)).sum::<f64>();
         let loop_wall = wall("event_loop");
         let mut walls: Vec<(String, f64)> = Vec::new();
         for (key, seconds) in st {
@@ -144,11 +155,16 @@ fn record_of(args: &Args, rows: &[Value]) -> Result<CoordinatorRecord> {
         walls.push(("loop_rest".into(), (loop_wall - timed_loop).max(0.0)));
         let cpu = f(&r["coordinator_cpu"]);
         let worker_cpu = r["loop_thread_cpu"].as_f64().context("a 1-core row without its worker thread's CPU")?;
-        // The loop's CPU: its wall time, which on a shared core also counts waits, capped by
-        // the CPU of the thread it runs on.
-        let loop_cpu = loop_wall.min(worker_cpu).min(cpu);
+        let worker_wait = r["loop_thread_wait"].as_f64().unwrap_or(0.0);
+        // The loop's CPU: its timed steps never block, so their wall time is CPU and waits
+        // for the core, which on one core shared with the bands' threads and rayon's are
+        // many. Their CPU is taken as that wall time less its share of the thread's waits
+        // (the thread's CPU over its CPU and waits), capped by the CPU of the thread.
+        let loop_cpu = (loop_wall * worker_cpu / (worker_cpu + worker_wait).max(1e-12)).min(worker_cpu).min(cpu);
         let blocking_cpu = (cpu - worker_cpu).max(0.0);
-        let mut groups = [(RunsOn::EventLoop, 0.0), (RunsOn::Parallel, 0.0), (RunsOn::OneThread, 0.0)];
+        // Two groups: the event loop's stages, and those of blocking threads (the bands'
+        // threads, rayon's, the image's encoding).
+        let mut groups = [0.0, 0.0];
         let mut placed = Vec::new();
         for (key, seconds) in walls {
             let (runs_on, at) = place_of(&key).with_context(|| {
@@ -158,10 +174,10 @@ fn record_of(args: &Args, rows: &[Value]) -> Result<CoordinatorRecord> {
                 )
             })?;
             let group = if runs_on == RunsOn::EventLoop { 0 } else { 1 };
-            groups[group].1 += seconds;
+            groups[group] += seconds;
             placed.push((key, seconds, runs_on, at, group));
         }
-        let scale = [loop_cpu / groups[0].1.max(1e-12), blocking_cpu / groups[1].1.max(1e-12)];
+        let scale = [loop_cpu / groups[0].max(1e-12), blocking_cpu / groups[1].max(1e-12)];
         let mut stages: Vec<Stage> = placed
             .into_iter()
             .map(|(name, seconds, runs_on, at, group)| Stage {
@@ -198,12 +214,13 @@ fn record_of(args: &Args, rows: &[Value]) -> Result<CoordinatorRecord> {
         simd: simd_path().to_string(),
         commit: recorded::commit(),
         command: format!(
-            "trove-bench coordinator --size {} --repeat {} --workers {} --cores {} --dims {} --record {file}",
+            "trove-bench coordinator --size {} --repeat {} --workers {} --cores {} --dims {}{} --record {file}",
             args.size,
             args.repeat,
             args.workers,
             cores.join(","),
-            args.dims
+            args.dims,
+            if args.loop_apart { " --loop-apart" } else { "" }
         ),
         cores: 1,
         scenes,
@@ -245,13 +262,24 @@ fn cases(dir: &Path, size: u32) -> Vec<Case> {
     cases
 }
 
+/// One measured render: its wall time, the coordinator's and the stand-ins' CPU, the job's
+/// statistics, and the run and wait times of the coordinator's worker thread (with 1 core).
+type Run = (f64, f64, f64, Value, (f64, f64));
+
 /// One core count, in this process: see the module's doc.
 fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> {
     let cpus = allowed_cpus();
     ensure!(cores >= 1 && cores <= cpus.len(), "{cores} coordinator cores asked for, {} available", cpus.len());
     let coordinator_cpus: Vec<usize> = cpus[..cores].to_vec();
-    let (standin_cpus, separated) =
-        if cpus.len() > cores { (cpus[cores..].to_vec(), true) } else { (cpus.clone(), false) };
+    let loop_apart = args.loop_apart && cores == 1;
+    ensure!(!loop_apart || cpus.len() >= 2, "--loop-apart needs two processors");
+    let (standin_cpus, separated) = if loop_apart {
+        (coordinator_cpus.clone(), false)
+    } else if cpus.len() > cores {
+        (cpus[cores..].to_vec(), true)
+    } else {
+        (cpus.clone(), false)
+    };
     let (c, s) = (coordinator_cpus.clone(), standin_cpus.clone());
     rayon::ThreadPoolBuilder::new()
         .num_threads(cores)
@@ -311,6 +339,10 @@ fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> 
     } else {
         None
     };
+    if let (true, Some(tid), Some(&apart)) = (loop_apart, loop_thread, cpus.last()) {
+        pin_thread(tid, &[apart]).context("pinning the loop's thread apart")?;
+        eprintln!("the runtime's worker thread (event loop, transport) apart on processor {apart}");
+    }
     let root = dir.join("root");
     let answers = Arc::new(Answers::new(&root, pool)?);
     let mut stops = Vec::new();
@@ -343,15 +375,16 @@ fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> 
         let name = case.scene.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let scene = Scene::parse_in(&text, &case.scene, &DataRoot::Given(root.clone()))?;
         let local = render(&scene, &RenderOptions::default())?.image.encode_png()?;
-        let loop_cpu = || loop_thread.map_or(Ok(0.0), tid_cpu);
-        let mut farm_render = || -> Result<(f64, f64, f64, Value, f64)> {
+        let loop_cpu = || loop_thread.map_or(Ok((0.0, 0.0)), tid_cpu);
+        let mut farm_render = || -> Result<Run> {
             let (cpu, standins, on_loop) = (thread_cpu("coord-")?, thread_cpu("standin-")?, loop_cpu()?);
             let started = Instant::now();
             let files =
                 standin_rt.block_on(client.render(text.clone(), name.clone(), pb::JobOptions::default(), |_| {}))?;
             let wall = started.elapsed().as_secs_f64();
             let (cpu, standins) = (thread_cpu("coord-")? - cpu, thread_cpu("standin-")? - standins);
-            let on_loop = loop_cpu()? - on_loop;
+            let after = loop_cpu()?;
+            let on_loop = (after.0 - on_loop.0, after.1 - on_loop.1);
             ensure!(files.png == local, "{}: the coordinator's image differs from local mode's", case.name);
             Ok((wall, cpu, standins, serde_json::from_slice(&files.stats_json)?, on_loop))
         };
@@ -379,13 +412,15 @@ fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> 
             "scene": case.name,
             "cores": cores,
             "separated": separated,
+            "loop_apart": loop_apart,
             "pieces": pieces,
             "tasks_sent": sent,
             "batches": stats["batches"],
             "seconds": median(runs.iter().map(|r| r.0)),
             "coordinator_cpu": runs.iter().map(|r| r.1).sum::<f64>() / n,
             "standin_cpu": runs.iter().map(|r| r.2).sum::<f64>() / n,
-            "loop_thread_cpu": loop_thread.map(|_| runs.iter().map(|r| r.4).sum::<f64>() / n),
+            "loop_thread_cpu": loop_thread.map(|_| runs.iter().map(|r| r.4 .0).sum::<f64>() / n),
+            "loop_thread_wait": loop_thread.map(|_| runs.iter().map(|r| r.4 .1).sum::<f64>() / n),
             "pixels": u64::from(scene.image().width) * u64::from(scene.image().height),
             "stages": stages,
             "cast_during_measurement": cast_during,
@@ -402,19 +437,22 @@ fn measure_in_this_process(args: &Args, cores: usize, dir: &Path) -> Result<()> 
 fn print_table(rows: &[Value]) {
     let f = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
     println!(
-        "\n| scene | coordinator cores | pieces | tasks sent | job s (median) | pieces/s | coordinator CPU ns/piece | intersection | planning | dispatch | encoding | decoding + recording | rest of the event loop | composition | PNG | stand-ins' CPU ns/piece |"
+        "\n| scene | coordinator cores | pieces | tasks sent | job s (median) | pieces/s | coordinator CPU ns/piece | intersection | planning | dispatch | encoding | decoding + recording | event loop | composition | PNG | stand-ins' CPU ns/piece |"
     );
     println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in rows {
         let pieces = f(&r["pieces"]).max(1.0);
         let ns = |s: f64| s * 1e9 / pieces;
         let st = &r["stages"];
-        let timed_loop = f(&st["dispatch"]) + f(&st["encoding"]) + f(&st["decoding"]) + f(&st["recording"]);
         println!(
             "| {} | {}{} | {} | {} | {:.3} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} |",
             r["scene"].as_str().unwrap_or("?"),
             r["cores"],
-            if r["separated"].as_bool() == Some(true) { "" } else { " (shared)" },
+            match (r["loop_apart"].as_bool(), r["separated"].as_bool()) {
+                (Some(true), _) => " (shared; loop apart)",
+                (_, Some(true)) => "",
+                _ => " (shared)",
+            },
             r["pieces"],
             r["tasks_sent"],
             f(&r["seconds"]),
@@ -425,18 +463,22 @@ fn print_table(rows: &[Value]) {
             ns(f(&st["dispatch"])),
             ns(f(&st["encoding"])),
             ns(f(&st["decoding"]) + f(&st["recording"])),
-            ns(f(&st["event_loop"]) - timed_loop),
+            ns(f(&st["event_loop"])),
             ns(f(&st["composition"])),
             ns(f(&st["image_encoding"])),
             ns(f(&r["standin_cpu"])),
         );
     }
     println!(
-        "\nStage columns: wall time per piece on the thread doing the step (the job's statistics). On the event loop \
-         that is close to CPU time; intersection, planning and composition run on blocking threads, several bands \
-         at once, so theirs add up waits for a processor and can exceed the CPU column."
+        "\nStage columns: wall time per piece on the thread doing the step (the job's statistics). Planning, dispatch, \
+         encoding, decoding and recording run on each band's own thread, intersection and composition there with \
+         rayon within, several bands at once, so theirs add up waits for a processor and can exceed the CPU column; \
+         the event loop (per-batch work only: the stock of batches, sending, asking bands, forwarding answers) is \
+         one task whose steps never block, so its column is CPU time and waits for a core (on one core shared \
+         with the bands' threads, many: the lines below give its thread's; the record takes the loop's CPU as its \
+         timer less its share of those waits)."
     );
-    for r1 in rows.iter().filter(|r| r["cores"] == 1) {
+    for r1 in rows.iter().filter(|r| r["cores"] == 1 && r["loop_apart"] != true) {
         for r2 in rows.iter().filter(|r| r["cores"] == 2 && r["scene"] == r1["scene"]) {
             println!(
                 "{}: throughput on 2 cores / 1 core = {:.2}",
@@ -444,6 +486,17 @@ fn print_table(rows: &[Value]) {
                 f(&r1["seconds"]) / f(&r2["seconds"])
             );
         }
+    }
+    for r in rows.iter().filter(|r| r["loop_thread_cpu"].is_number()) {
+        let ns = |v: &Value| f(v) * 1e9 / f(&r["pieces"]).max(1.0);
+        println!(
+            "{}, 1 core: the runtime's one worker thread (event loop and transport) ran {:.0} ns a piece and waited \
+             {:.0} ns a piece for the core; the loop's own timer counted {:.0} ns a piece",
+            r["scene"].as_str().unwrap_or("?"),
+            ns(&r["loop_thread_cpu"]),
+            ns(&r["loop_thread_wait"]),
+            ns(&r["stages"]["event_loop"])
+        );
     }
     let cast: u64 = rows.iter().filter_map(|r| r["cast_during_measurement"].as_u64()).sum();
     println!("tasks the stand-ins had to cast during the measured renders: {cast}");
@@ -500,12 +553,30 @@ fn simd_path() -> &'static str {
     recorded::simd_path()
 }
 
-/// CPU seconds run so far by thread `tid` of this process (its schedstat's first field).
-fn tid_cpu(tid: libc::pid_t) -> Result<f64> {
+/// Pins thread `tid` of this process to `cpus`.
+fn pin_thread(tid: libc::pid_t, cpus: &[usize]) -> Result<()> {
+    // SAFETY: as in `allowed_cpus`; `tid` is a thread of this process.
+    let rc = unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        for &c in cpus {
+            libc::CPU_SET(c, &mut set);
+        }
+        libc::sched_setaffinity(tid, std::mem::size_of::<libc::cpu_set_t>(), &set)
+    };
+    ensure!(rc == 0, "sched_setaffinity: {}", std::io::Error::last_os_error());
+    Ok(())
+}
+
+/// Seconds thread `tid` of this process has run so far, and waited runnable for a
+/// processor (its schedstat's first two fields).
+fn tid_cpu(tid: libc::pid_t) -> Result<(f64, f64)> {
     let file = format!("/proc/self/task/{tid}/schedstat");
     let text = std::fs::read_to_string(&file).with_context(|| format!("reading {file}"))?;
-    let ns = text.split_whitespace().next().and_then(|v| v.parse::<u64>().ok()).context("an empty schedstat")?;
-    Ok(ns as f64 * 1e-9)
+    let mut fields = text.split_whitespace().map(|v| v.parse::<u64>().ok());
+    let (Some(Some(run)), Some(Some(wait))) = (fields.next(), fields.next()) else {
+        bail!("{file}: expected its run and wait times")
+    };
+    Ok((run as f64 * 1e-9, wait as f64 * 1e-9))
 }
 
 fn load_average() -> String {

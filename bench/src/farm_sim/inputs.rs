@@ -1,6 +1,7 @@
 //! What the simulation is fed: the cost of each step of the farm. The coordinator's come
 //! from `trove-bench coordinator --record` (the real coordinator, its CPU per piece by
-//! stage, each stage placed on the job's event loop or on the other threads); the workers'
+//! stage, each stage placed on the job's event loop, a band's thread or the other
+//! threads); the workers'
 //! from the worker's own caster timed on this processor (`super::measure`), recorded in
 //! `bench/recorded/worker.json` or measured at start with `--measure`. Only the network is
 //! a parameter or an assumption.

@@ -10,8 +10,9 @@
 //!   `trove-bench coordinator --record`, and the workers', timed by [`measure`] with the
 //!   worker's own caster; [`inputs`] turns them into costs per step;
 //! * [`placement`] puts datasets on workers;
-//! * [`sim`] is the model of the coordinator's driver and the workers, over [`pool`]'s cores
-//!   and links;
+//! * [`sim`] is the model of the coordinator's driver (the job's event loop, and a thread per
+//!   band in flight that does the band's per-task steps) and the workers, over [`pool`]'s
+//!   cores and links;
 //! * [`report`] runs the sweeps and prints the tables.
 //!
 //! The simulation is deterministic: the same options and recorded files give the same
@@ -67,7 +68,8 @@ pub struct Args {
     /// Cores per worker.
     #[arg(long, default_value_t = 8)]
     worker_threads: usize,
-    /// Cores of each coordinator (the job's event loop takes one).
+    /// Cores of each coordinator (the job's event loop takes one; the bands' threads,
+    /// rayon's work and the transport share the others).
     #[arg(long, default_value_t = 16)]
     coordinator_cores: usize,
     /// Coordinators sharing the workers, each a tile of the image (or, with
@@ -154,7 +156,9 @@ mod tests {
         let c = recorded::CoordinatorRecord::read(&recorded_file("coordinator.json")).unwrap();
         let w = recorded::WorkerRecord::read(&recorded_file("worker.json")).unwrap();
         let inputs = Inputs::from_records(&c, &w);
-        assert!(inputs.stages.iter().any(|s| s.runs_on == recorded::RunsOn::EventLoop && s.seconds > 0.0));
+        for place in [recorded::RunsOn::EventLoop, recorded::RunsOn::Band] {
+            assert!(inputs.stages.iter().any(|s| s.runs_on == place && s.seconds > 0.0), "{place:?}");
+        }
         assert!(inputs.cast_per_sample > 0.0);
     }
 }

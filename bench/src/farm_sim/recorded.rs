@@ -3,8 +3,9 @@
 //!
 //! * `bench/recorded/coordinator.json`, written by `trove-bench coordinator --record PATH`:
 //!   the real coordinator's CPU per piece, in all and by stage, with where each stage runs
-//!   (the job's one event loop, serial; or the coordinator's other threads, in parallel) and
-//!   at which step of a job it is paid;
+//!   (the job's one event loop, serial per job; a band's own thread, serial per band and
+//!   parallel across the bands in flight; or the coordinator's other threads, in parallel)
+//!   and at which step of a job it is paid;
 //! * `bench/recorded/worker.json`, written by `trove-bench farm-sim --measure --record-worker
 //!   PATH`: the worker's costs (casting per sample and per task, binding, loading, parsing),
 //!   timed with the code a worker runs.
@@ -21,7 +22,11 @@ use serde_json::{json, Value};
 /// `trove_coordinator::farm::stats::CoordinatorSeconds`, their meaning, where they run
 /// ([`place_of`]) or the shape of the driver the simulation models change: a file recorded
 /// before then is refused until it is recorded again.
-pub(crate) const COORDINATOR_FORMAT: u64 = 1;
+///
+/// 2: each band in flight has a thread of its own (`coordinator/src/farm/driver/band.rs`)
+/// that does the per-task steps (dispatch, encoding, decoding, recording) and planning; the
+/// job's event loop keeps only per-batch work (`loop_rest`: all of the loop's time).
+pub(crate) const COORDINATOR_FORMAT: u64 = 2;
 
 /// The worker file's format. Bump it whenever the inputs in it, or what they mean (the
 /// worker's cast loop, its binding), change.
@@ -32,10 +37,14 @@ pub(crate) const WORKER_FORMAT: u64 = 1;
 pub(crate) enum RunsOn {
     /// The job's one event loop: one step at a time, serial per job.
     EventLoop,
+    /// The thread of the band the step is for (a blocking thread that owns the band's
+    /// scheduler): one step at a time per band, bands in flight side by side, on the
+    /// coordinator's cores.
+    Band,
     /// Blocking threads with rayon within: as many of the coordinator's cores as it has.
     Parallel,
-    /// One blocking thread per occurrence (a band's planning, the image's encoding): steps
-    /// of different bands run side by side, one step on one core.
+    /// One blocking thread per occurrence (the image's encoding): one step on one core,
+    /// waiting for nothing else of the job.
     OneThread,
 }
 
@@ -58,13 +67,14 @@ impl RunsOn {
     fn name(self) -> &'static str {
         match self {
             RunsOn::EventLoop => "event_loop",
+            RunsOn::Band => "band",
             RunsOn::Parallel => "parallel",
             RunsOn::OneThread => "one_thread",
         }
     }
 
     fn parse(s: &str) -> Option<RunsOn> {
-        [RunsOn::EventLoop, RunsOn::Parallel, RunsOn::OneThread].into_iter().find(|r| r.name() == s)
+        [RunsOn::EventLoop, RunsOn::Band, RunsOn::Parallel, RunsOn::OneThread].into_iter().find(|r| r.name() == s)
     }
 }
 
@@ -85,18 +95,23 @@ impl At {
 }
 
 /// Where each stage the recorder writes runs and when it is paid, as the driver
-/// (`coordinator/src/farm/driver/`) does it today. `loop_rest` is the event loop's time
-/// outside the four steps it times (the job's other bookkeeping, opening streams, the
-/// tick); `transport` is the CPU of the runtime's worker threads outside the job's task
-/// (gRPC, HTTP/2 and protobuf, on whichever worker thread is free). A stage of
-/// `coordinator_seconds` missing here stops the recording: say where it runs and bump
-/// [`COORDINATOR_FORMAT`].
+/// (`coordinator/src/farm/driver/`) does it today: a band's thread (`driver/band.rs`)
+/// intersects its band (rayon within: [`RunsOn::Parallel`]) and plans it, hands out and
+/// encodes the batches the job's loop asks of it (`dispatch`, `encoding`), decodes and
+/// records each answer the loop forwards (`decoding`, `recording`) and composites the band
+/// (rayon within). `loop_rest` is the event loop's time outside the stages placed on it
+/// (none but itself now: keeping the stock of batches, sending them, asking bands for more,
+/// validating and forwarding answers, opening streams, the tick); `transport` is the CPU
+/// of the runtime's worker threads outside the job's task (gRPC, HTTP/2 and protobuf, on
+/// whichever worker thread is free). A stage of `coordinator_seconds` missing here stops
+/// the recording: say where it runs and bump [`COORDINATOR_FORMAT`].
 pub(crate) fn place_of(stage: &str) -> Option<(RunsOn, At)> {
     Some(match stage {
         "intersection" => (RunsOn::Parallel, At::Intersect),
-        "planning" => (RunsOn::OneThread, At::Intersect),
-        "dispatch" | "encoding" => (RunsOn::EventLoop, At::Send),
-        "decoding" | "recording" | "loop_rest" => (RunsOn::EventLoop, At::Answer),
+        "planning" => (RunsOn::Band, At::Intersect),
+        "dispatch" | "encoding" => (RunsOn::Band, At::Send),
+        "decoding" | "recording" => (RunsOn::Band, At::Answer),
+        "loop_rest" => (RunsOn::EventLoop, At::Answer),
         "transport" => (RunsOn::Parallel, At::Answer),
         "composition" => (RunsOn::Parallel, At::Composite),
         "image_encoding" => (RunsOn::OneThread, At::Finish),
@@ -123,7 +138,8 @@ pub(crate) struct Stage {
 /// a shared core count the waits for it too; so a stage's CPU is its wall time scaled so
 /// that each group adds up to its measured CPU: the event-loop stages to the loop's wall
 /// time capped by the worker threads' CPU, `transport` to the rest of the worker threads'
-/// CPU, and the blocking stages to the rest of the coordinator's CPU.
+/// CPU, and the stages on blocking threads (the bands' threads and rayon's) to the rest of
+/// the coordinator's CPU.
 #[derive(Clone, Debug, PartialEq)]
 pub(crate) struct SceneCosts {
     pub scene: String,
@@ -222,7 +238,7 @@ impl CoordinatorRecord {
                     cpu_ns_per_piece: ft.number(st, "cpu_ns_per_piece")?,
                     wall_ns_per_piece: st.get("wall_ns_per_piece").and_then(Value::as_f64),
                     runs_on: RunsOn::parse(&runs_on)
-                        .with_context(|| ft.bad("runs_on", "event_loop, parallel or one_thread"))?,
+                        .with_context(|| ft.bad("runs_on", "event_loop, band, parallel or one_thread"))?,
                     at: At::parse(&at).with_context(|| ft.bad("at", "intersect, send, answer, composite or finish"))?,
                 });
             }
@@ -421,7 +437,7 @@ pub(crate) fn commit() -> String {
 pub(crate) mod tests {
     use super::*;
 
-    /// A record of one scene with one stage at each step of a job.
+    /// A record of one scene with one stage at each step of a job and at each place.
     pub(crate) fn sample() -> CoordinatorRecord {
         let stage = |name: &str, cpu: f64| {
             let (runs_on, at) = place_of(name).unwrap();
@@ -439,12 +455,13 @@ pub(crate) mod tests {
                 pixels: 1000,
                 pieces: 2000,
                 tasks_sent: 1000,
-                cpu_ns_per_piece: 100.0,
+                cpu_ns_per_piece: 105.0,
                 stages: vec![
                     stage("intersection", 40.0),
                     stage("planning", 10.0),
                     stage("dispatch", 20.0),
                     stage("recording", 10.0),
+                    stage("loop_rest", 5.0),
                     stage("composition", 15.0),
                     stage("image_encoding", 5.0),
                 ],

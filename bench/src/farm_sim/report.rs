@@ -8,7 +8,7 @@ use anyhow::Result;
 
 use super::inputs::Inputs;
 use super::placement::Placement;
-use super::recorded::{CoordinatorRecord, WorkerRecord};
+use super::recorded::{At, CoordinatorRecord, RunsOn, WorkerRecord};
 use super::scene::SceneSpec;
 use super::sim::{simulate, FarmConfig, Outcome, Split};
 use super::workload::{extract, Workload};
@@ -86,11 +86,14 @@ pub(crate) fn scaled(farm: &Farm, work: &Workload, inputs: &Inputs, baselines: &
     Scaled { speedup, efficiency: speedup / farm.config.workers as f64, outcome }
 }
 
-/// What limits a run: the busiest resource, and for the event loop the parts that fill it.
+/// What limits a run: the busiest resource, and for the event loop and the bands' threads
+/// the parts that fill them. The bands' threads wait for a core when the cores are full, so
+/// they are named only when the cores are not.
 pub(crate) fn bottleneck(o: &Outcome) -> String {
     let candidates = [
         ("coordinator event loop", o.loop_busy),
         ("coordinator's other cores", o.pool_busy),
+        ("bands' threads", if o.pool_busy < 0.9 { o.band_busy } else { 0.0 }),
         ("coordinator link", o.link_busy),
         ("workers", o.worker_max),
     ];
@@ -113,6 +116,16 @@ pub(crate) fn bottleneck(o: &Outcome) -> String {
                 100.0 * busy,
                 100.0 * o.loop_send / t,
                 100.0 * o.loop_answer / t
+            )
+        }
+        "bands' threads" => {
+            let t = (o.band_send + o.band_answer + o.band_other).max(1e-12);
+            format!(
+                "bands' threads {:.0}% busy, {:.1} bands held (handing out {:.0}%, answers {:.0}%)",
+                100.0 * busy,
+                o.bands_held,
+                100.0 * o.band_send / t,
+                100.0 * o.band_answer / t
             )
         }
         "workers" if o.worker_mean < 0.85 * o.worker_max => {
@@ -190,9 +203,9 @@ fn print_inputs(args: &Args, inputs: &Inputs, c: &CoordinatorRecord, w: &WorkerR
     println!("| coordinator stage | runs on | paid | cost | unit |\n|---|---|---|---:|---|");
     for s in &inputs.stages {
         let unit = match s.at {
-            super::recorded::At::Intersect | super::recorded::At::Composite => "ns a piece",
-            super::recorded::At::Send | super::recorded::At::Answer => "ns a task",
-            super::recorded::At::Finish => "ns a pixel",
+            At::Intersect | At::Composite => "ns a piece",
+            At::Send | At::Answer => "ns a task",
+            At::Finish => "ns a pixel",
         };
         println!("| {} | {:?} | {:?} | {:.1} | {unit} |", s.name, s.runs_on, s.at, s.seconds * 1e9);
     }
@@ -217,17 +230,17 @@ fn print_workloads(workloads: &[Workload], inputs: &Inputs, args: &Args) {
         "\n## Workloads ({0}×{0} pixels, bands of {1} pixels, datasets {2}³ u16, {3} datasets per ray on average)\n",
         args.size, args.band_pixels, args.dims, args.depth
     );
-    println!("| datasets | bands | tasks | samples / task | datasets per band | waves per dataset and band | MiB per band | casting (core-s) | event loop (s) |");
-    println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
-    let loop_per_task = inputs.cost(super::recorded::At::Send, super::recorded::RunsOn::EventLoop)
-        + inputs.cost(super::recorded::At::Answer, super::recorded::RunsOn::EventLoop);
+    println!("| datasets | bands | tasks | samples / task | datasets per band | waves per dataset and band | MiB per band | casting (core-s) | bands' threads' per-task steps (core-s) | event loop (s) |");
+    println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let per_task = |runs_on| inputs.cost(At::Send, runs_on) + inputs.cost(At::Answer, runs_on);
+    let (loop_per_task, band_per_task) = (per_task(RunsOn::EventLoop), per_task(RunsOn::Band));
     for w in workloads {
         let cast = w.tasks() as f64 * inputs.cast_per_task + w.samples() as f64 * inputs.cast_per_sample;
         let lanes: usize = w.bands.iter().map(|b| b.lanes.len()).sum();
         let waves: usize = w.bands.iter().flat_map(|b| &b.lanes).map(|l| l.waves.len()).sum();
         let bytes = w.bands.iter().map(|b| b.bytes).sum::<u64>() as f64 / w.bands.len().max(1) as f64;
         println!(
-            "| {} | {} | {} | {:.0} | {:.1} | {:.2} | {:.1} | {:.0} | {:.1} |",
+            "| {} | {} | {} | {:.0} | {:.1} | {:.2} | {:.1} | {:.0} | {:.1} | {:.1} |",
             w.datasets,
             w.bands.len(),
             w.tasks(),
@@ -236,6 +249,7 @@ fn print_workloads(workloads: &[Workload], inputs: &Inputs, args: &Args) {
             waves as f64 / lanes.max(1) as f64,
             bytes / (1 << 20) as f64,
             cast,
+            w.tasks() as f64 * band_per_task,
             w.tasks() as f64 * loop_per_task
         );
     }
@@ -361,6 +375,10 @@ mod tests {
             loop_send: 0.6,
             loop_answer: 0.3,
             loop_other: 0.1,
+            band_busy: 0.0,
+            band_send: 0.5,
+            band_answer: 0.25,
+            band_other: 0.25,
             pool_busy,
             link_busy: 0.1,
             no_band_cast: 0.0,
@@ -380,5 +398,10 @@ mod tests {
         assert_eq!(bottleneck(&outcome(0.3, 0.2, 0.5, 0.9)), "workers, uneven: busiest 90%, mean 50%");
         assert_eq!(bottleneck(&outcome(0.3, 0.2, 0.85, 0.9)), "workers 90% busy");
         assert!(bottleneck(&outcome(0.3, 0.2, 0.3, 0.4)).starts_with("nothing saturated"));
+        let bands = Outcome { band_busy: 0.97, ..outcome(0.1, 0.3, 0.3, 0.4) };
+        assert_eq!(bottleneck(&bands), "bands' threads 97% busy, 8.0 bands held (handing out 50%, answers 25%)");
+        // Threads waiting for full cores: the cores are the limit.
+        let cores = Outcome { band_busy: 0.99, ..outcome(0.1, 0.95, 0.3, 0.4) };
+        assert_eq!(bottleneck(&cores), "coordinator's other cores 95% busy");
     }
 }

@@ -1,21 +1,39 @@
 //! The discrete-event model of farm jobs, following `coordinator/src/farm/driver/` and
-//! `worker/src/cast.rs` step by step, with each coordinator stage's cost and place (the
-//! job's event loop, or the other threads) read from the recorded inputs:
+//! `worker/src/cast.rs` step by step, with each coordinator stage's cost and place read from
+//! the recorded inputs (the job's event loop, a band's own thread, or the other threads):
 //!
 //! * **Bands.** The image is worked through in bands of rows started in bit-reversed order
 //!   (`trove_core::render::dispatch::band_order`), as many at once as
 //!   `trove_core::render::dispatch::Admission` admits: at most `max_bands`, and their
 //!   schedulers' bytes within `memory_bound`, a band not yet intersected counted as large as
-//!   the largest so far (a fair share of the bound before any) — `render/bands.rs`. A band
-//!   is intersected and planned on the blocking threads, cast, then composited there.
-//! * **The job's event loop** handles one event at a time — a band intersected or
-//!   composited, a stream accepted, an answer — paying the stages the record places on it,
-//!   then hands out batches: for every (band, dataset) pair that may have one, earliest
-//!   started band first, while the least-loaded holder with room
-//!   (`trove_core::render::dispatch::least_loaded`, holders kept per job) can take one. A
-//!   holder without a stream for the dataset is first sent the scene; its batches wait until
-//!   it has parsed it and accepted the stream, and meanwhile other holders are asked. Stages
-//!   the record places elsewhere load the coordinator's other cores without delaying the loop.
+//!   the largest so far (a fair share of the bound before any) — `render/bands.rs`.
+//! * **A thread per band** (`driver/band.rs`). Each band in flight has a thread of its own
+//!   that owns its scheduler and does, one step at a time, every per-task step: it
+//!   intersects the band (the stages placed [`RunsOn::Parallel`] at [`At::Intersect`], over
+//!   the coordinator's cores, one work item per 4 rows) and plans it ([`RunsOn::Band`]);
+//!   when the loop asks it for up to `n` batches of a dataset, it hands out what the
+//!   scheduler has ready (`next_batch`: the dataset's current wave, batch by batch; its next
+//!   wave only once every batch of this one is recorded) and pays the [`At::Send`] stages
+//!   on [`RunsOn::Band`] per task; for each answer the loop forwards it pays the
+//!   [`At::Answer`] stages on [`RunsOn::Band`] and records it; once every task is recorded it
+//!   composites the band (parallel part, then its own part) and reads no more messages. Its
+//!   steps are serial; the threads of the bands in flight run side by side on the
+//!   coordinator's cores, with rayon's work and the transport.
+//! * **The job's event loop** handles one event at a time — news from a band (intersected,
+//!   batches produced, an answer recorded, composited), a stream accepted, an answer —
+//!   paying only the stages placed on [`RunsOn::EventLoop`] (per batch sent, per answer
+//!   taken). It keeps per dataset a stock of the batches bands produced, and for each dataset
+//!   that may have work (in dataset order) sends its stock to the least-loaded holder with
+//!   room (`trove_core::render::dispatch::least_loaded`, holders kept per job; a holder
+//!   without a stream is first sent the scene, and its batches wait until it has parsed it
+//!   and accepted the stream); then asks the bands that may have batches of it for
+//!   `room + holders − stock − asked` more (`room` from `dispatch::capacity`), earliest
+//!   started band first, a share each. A band is asked again when it produced all it was
+//!   asked for, or recorded an answer. So a batch goes out only after its band's thread
+//!   produced it, and a dataset's next wave waits until its band's thread recorded the last
+//!   answer of the previous one. Work placed [`RunsOn::Parallel`] or [`RunsOn::OneThread`]
+//!   at a send or an answer (`transport`) loads the coordinator's cores without delaying
+//!   anything.
 //! * **Workers.** Each holds some datasets ([`super::placement`]). A worker has one stream
 //!   per job and dataset: the dataset is loaded once and stays resident, its objects bound
 //!   the first time through the store (cells classified and kept) and again, cheaply,
@@ -23,6 +41,10 @@
 //!   each over the worker's threads in chunks of 256 tasks.
 //! * **Network.** Every machine has a link each way; messages queue on the sender's link and
 //!   the receiver's, one after the other, with a one-way latency between.
+//!
+//! A coordinator of `coordinator_cores` cores runs its event loop on one of them and
+//! everything else (the bands' threads, rayon's work, the transport, the image's encoding)
+//! on the others, older work first ([`Pool`]).
 //!
 //! **Layouts.** `coordinators` coordinators of `coordinator_cores` cores each share the
 //! workers, each counting only its own batches in flight (each has its own registry): with
@@ -32,12 +54,12 @@
 use std::cmp::Ordering;
 use std::collections::{BTreeMap, BTreeSet, BinaryHeap, HashMap, HashSet, VecDeque};
 
-use trove_core::render::dispatch::{band_order, least_loaded, Admission, Load};
+use trove_core::render::dispatch::{band_order, capacity, least_loaded, Admission, Load};
 
 use super::inputs::{Inputs, TASK_BYTES_BACK, TASK_BYTES_OUT};
 use super::pool::{transfer, Link, Pool};
 use super::recorded::{At, RunsOn};
-use super::workload::Workload;
+use super::workload::{Lane, Workload};
 
 /// Tasks per rayon work item in a worker's batch (`CHUNK_TASKS` in `worker/src/cast.rs`).
 const CHUNK_TASKS: u64 = 256;
@@ -63,8 +85,8 @@ pub(crate) struct FarmConfig {
     pub workers: usize,
     /// Cores (rayon threads) per worker.
     pub worker_threads: usize,
-    /// Cores of each coordinator: the job's event loop runs on one, everything else on the
-    /// rest (one at least).
+    /// Cores of each coordinator: the job's event loop runs on one; the bands' threads,
+    /// rayon's work and the transport share the rest (one at least).
     pub coordinator_cores: usize,
     /// Coordinators sharing the workers.
     pub coordinators: usize,
@@ -88,6 +110,16 @@ pub(crate) struct Outcome {
     pub loop_send: f64,
     pub loop_answer: f64,
     pub loop_other: f64,
+    /// The bands' threads: the time they had a step running or waiting for a core over the
+    /// time their bands were held, on the coordinator where that is highest. Near 1, the
+    /// bands in flight are each as busy as one thread can be.
+    pub band_busy: f64,
+    /// Core-seconds of the bands' threads over all coordinators: handing out batches
+    /// (fronts, culls, encoding), taking answers (decoding, recording), the rest
+    /// (intersection, planning, composition).
+    pub band_send: f64,
+    pub band_answer: f64,
+    pub band_other: f64,
     /// The busiest coordinator's other cores: core-seconds / (cores × run time).
     pub pool_busy: f64,
     /// The busiest coordinator link (either direction): busy time / run time.
@@ -143,8 +175,10 @@ impl Ord for Event {
 enum EventKind {
     /// A coordinator's event loop takes its next event.
     LoopRun(usize),
-    /// A job starts on a coordinator's other cores.
-    Spawn(usize, CoordJob),
+    /// Band `.1`'s thread on coordinator `.0` takes its next step if it is idle.
+    BandRun(usize, usize),
+    /// The image's encoding starts on a coordinator's other cores.
+    Finish(usize),
     /// Pool completion checks, valid while the pool's version is unchanged.
     CoordPool(usize, u64),
     WorkerPool(usize, u64),
@@ -158,27 +192,64 @@ enum EventKind {
     AnswerArrives(usize),
 }
 
-/// What a coordinator's event loop handles.
+/// A batch a band's thread handed out, in its dataset's stock until it is sent.
+#[derive(Clone, Copy, Debug)]
+struct Made {
+    band: usize,
+    lane: usize,
+    tasks: u64,
+    samples: u64,
+}
+
+/// What a coordinator's event loop handles (`driver/mod.rs`' `Event`, a band's `News`).
 #[derive(Debug)]
 enum LoopEvent {
     Start,
+    /// Band `.0` is intersected and planned.
     Intersected(usize),
+    /// Batches of `dataset` a band was asked for: as many as were ready, up to `asked`.
+    Produced {
+        band: usize,
+        dataset: usize,
+        asked: usize,
+        batches: Vec<Made>,
+        more: bool,
+    },
+    /// An answer of `dataset` is recorded by its band.
+    Recorded {
+        band: usize,
+        dataset: usize,
+    },
     Composited(usize),
     Opened(usize, usize),
     Answer(usize),
 }
 
+/// What a band's thread does next (`driver/band.rs`: its own phases, and `ToBand`).
+#[derive(Clone, Copy, Debug)]
+enum BandStep {
+    /// The stages at [`At::Intersect`]: the parallel part, then the band's own.
+    Intersect,
+    Plan,
+    /// `ToBand::Produce`.
+    Produce {
+        dataset: usize,
+        n: usize,
+    },
+    /// `ToBand::Answer` for batch `.0`.
+    Answer(usize),
+    /// The stages at [`At::Composite`], likewise.
+    Composite,
+    CompositeOne,
+}
+
 #[derive(Clone, Copy, Debug)]
 enum CoordJob {
-    /// A band's stages at [`At::Intersect`]: the parallel part, then the one-thread part.
-    Intersect(usize),
-    Plan(usize),
-    /// A band's stages at [`At::Composite`], likewise.
-    Composite(usize),
-    CompositeOne(usize),
+    /// The step band `.0`'s thread is running.
+    Band(usize),
     /// The stages at [`At::Finish`].
     Finish,
-    /// Work off the loop for a batch sent or answered: it loads the cores, nothing waits.
+    /// Work for a batch sent or answered that nothing waits for: it loads the cores.
     Background,
 }
 
@@ -202,6 +273,8 @@ struct Batch {
     samples: u64,
 }
 
+/// A dataset's lane of a band's scheduler: the wave it is in, the tasks of that wave
+/// handed out, its batches not yet recorded.
 #[derive(Clone, Debug, Default)]
 struct LaneState {
     wave: usize,
@@ -209,10 +282,65 @@ struct LaneState {
     outstanding: usize,
 }
 
-enum BandState {
-    Intersecting,
-    Casting { lanes: Vec<LaneState>, unfinished: usize },
-    Compositing,
+impl LaneState {
+    /// `Scheduler::next_batch` on this lane: up to `batch_tasks` tasks of the current wave
+    /// (as tasks, samples), moving on to the next wave once this one is handed out and
+    /// recorded; `None` when the wave waits for answers or the lane is done.
+    fn next_batch(&mut self, spec: &Lane, batch_tasks: u64) -> Option<(u64, u64)> {
+        loop {
+            let wave = *spec.waves.get(self.wave)?;
+            if self.handed < wave.tasks {
+                let tasks = batch_tasks.min(wave.tasks - self.handed);
+                // The wave's samples, shared out in proportion to tasks, summing exactly.
+                let share = |n: u64| (wave.samples as u128 * n as u128 / wave.tasks as u128) as u64;
+                let samples = share(self.handed + tasks) - share(self.handed);
+                self.handed += tasks;
+                self.outstanding += 1;
+                return Some((tasks, samples));
+            }
+            if self.outstanding > 0 {
+                return None;
+            }
+            self.wave += 1;
+            self.handed = 0;
+        }
+    }
+
+    /// Records one answer; whether the lane is done (its last wave handed out and recorded).
+    fn record(&mut self, spec: &Lane) -> bool {
+        self.outstanding -= 1;
+        self.outstanding == 0
+            && self.wave + 1 >= spec.waves.len()
+            && spec.waves.get(self.wave).is_none_or(|w| self.handed == w.tasks)
+    }
+}
+
+/// A band's thread and the scheduler it owns.
+struct BandThread {
+    lanes: Vec<LaneState>,
+    /// Lanes not yet done.
+    unfinished: usize,
+    /// Its own next phases, then the loop's messages, in order.
+    inbox: VecDeque<BandStep>,
+    /// Whether a [`EventKind::BandRun`] is due.
+    scheduled: bool,
+    /// The step running on the cores, with what it tells the loop when done.
+    running: Option<Option<LoopEvent>>,
+    /// Every task recorded: it composites and reads no more messages.
+    complete: bool,
+    /// Composited: its inbox is gone (sending to it fails).
+    ended: bool,
+}
+
+/// Per dataset, what the loop keeps (`driver/mod.rs`' `Stock`).
+#[derive(Default)]
+struct Stock {
+    /// Batches bands handed out, not yet sent.
+    ready: VecDeque<Made>,
+    /// (start order, band) of the bands that may have batches of it.
+    bands: BTreeSet<(usize, usize)>,
+    /// Batches asked of each band and not yet produced.
+    asked: BTreeMap<usize, usize>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -226,11 +354,16 @@ struct Shard {
     /// Its bands in the order they start.
     bands: Vec<usize>,
     next: usize,
-    active: BTreeMap<usize, BandState>,
+    /// The bands held, as the loop sees them: started, and whether intersected (casting).
+    active: BTreeMap<usize, bool>,
+    /// The bands' threads, until the loop hears they composited.
+    threads: BTreeMap<usize, BandThread>,
     /// Per band of the image: its start order, once started.
     seq: Vec<usize>,
-    /// (start order, band, lane) that can hand out a batch now.
-    ready: BTreeSet<(usize, usize, usize)>,
+    /// Per dataset.
+    stock: Vec<Stock>,
+    /// Datasets that may have batches to send or to ask for (`driver/mod.rs`' `active`).
+    datasets: BTreeSet<usize>,
     held: u64,
     largest: u64,
     inbox: VecDeque<LoopEvent>,
@@ -239,6 +372,13 @@ struct Shard {
     loop_send: f64,
     loop_answer: f64,
     loop_other: f64,
+    band_send: f64,
+    band_answer: f64,
+    band_other: f64,
+    /// Bands' threads with a step running, ∫ of that dt, and when it last changed.
+    busy_threads: usize,
+    busy_time: f64,
+    busy_change: f64,
     pool: Pool<CoordJob>,
     out: Link,
     into: Link,
@@ -310,7 +450,7 @@ impl<'a> Sim<'a> {
                     Split::Jobs => (0..n).collect(),
                 };
                 let pixels = tile.iter().map(|&b| work.bands[b].rays).sum();
-                Shard::new(config, tile, n, pixels)
+                Shard::new(config, tile, n, work.datasets, pixels)
             })
             .collect();
         let workers = (0..config.workers)
@@ -354,7 +494,8 @@ impl<'a> Sim<'a> {
             self.now = event.time;
             match event.kind {
                 EventKind::LoopRun(s) => self.loop_run(s),
-                EventKind::Spawn(s, job) => self.spawn(s, job),
+                EventKind::BandRun(s, b) => self.band_run(s, b),
+                EventKind::Finish(s) => self.finish(s),
                 EventKind::CoordPool(s, v) if v == self.shards[s].pool.version => self.coord_pool(s),
                 EventKind::WorkerPool(w, v) if v == self.workers[w].pool.version => self.worker_pool(w),
                 EventKind::CoordPool(..) | EventKind::WorkerPool(..) => {}
@@ -400,6 +541,10 @@ impl<'a> Sim<'a> {
             loop_send: self.shards.iter().map(|s| s.loop_send).sum(),
             loop_answer: self.shards.iter().map(|s| s.loop_answer).sum(),
             loop_other: self.shards.iter().map(|s| s.loop_other).sum(),
+            band_busy: self.shards.iter().map(|s| s.busy_time / s.held_time.max(1e-12)).fold(0.0, f64::max),
+            band_send: self.shards.iter().map(|s| s.band_send).sum(),
+            band_answer: self.shards.iter().map(|s| s.band_answer).sum(),
+            band_other: self.shards.iter().map(|s| s.band_other).sum(),
             pool_busy: self.shards.iter().map(|s| s.pool.busy / (s.pool.capacity() * t)).fold(0.0, f64::max),
             link_busy: self.shards.iter().map(|s| s.out.busy.max(s.into.busy) / t).fold(0.0, f64::max),
             no_band_cast: self.shards.iter().map(|s| s.no_band_cast / t).fold(0.0, f64::max),
@@ -415,16 +560,18 @@ impl<'a> Sim<'a> {
 }
 
 impl Shard {
-    /// A coordinator of an image of `bands` bands that works through `tile` (its bands,
-    /// `pixels` pixels) in the driver's spread order.
-    fn new(config: &FarmConfig, tile: Vec<usize>, bands: usize, pixels: u64) -> Shard {
+    /// A coordinator of an image of `bands` bands and `datasets` datasets that works
+    /// through `tile` (its bands, `pixels` pixels) in the driver's spread order.
+    fn new(config: &FarmConfig, tile: Vec<usize>, bands: usize, datasets: usize, pixels: u64) -> Shard {
         let order: Vec<usize> = band_order(tile.len()).into_iter().map(|i| tile[i]).collect();
         Shard {
             bands: order,
             next: 0,
             active: BTreeMap::new(),
+            threads: BTreeMap::new(),
             seq: vec![usize::MAX; bands],
-            ready: BTreeSet::new(),
+            stock: (0..datasets).map(|_| Stock::default()).collect(),
+            datasets: BTreeSet::new(),
             held: 0,
             largest: 0,
             inbox: VecDeque::from([LoopEvent::Start]),
@@ -433,6 +580,12 @@ impl Shard {
             loop_send: 0.0,
             loop_answer: 0.0,
             loop_other: 0.0,
+            band_send: 0.0,
+            band_answer: 0.0,
+            band_other: 0.0,
+            busy_threads: 0,
+            busy_time: 0.0,
+            busy_change: 0.0,
             pool: Pool::new(config.coordinator_cores.saturating_sub(1).max(1) as f64),
             out: Link::default(),
             into: Link::default(),
@@ -452,6 +605,12 @@ impl Shard {
         self.held_time += self.active.len() as f64 * (now - self.last_change).max(0.0);
         self.last_change = self.last_change.max(now);
     }
+
+    /// Keeps the time integral of the bands' threads busy up to `now`.
+    fn note_busy(&mut self, now: f64) {
+        self.busy_time += self.busy_threads as f64 * (now - self.busy_change).max(0.0);
+        self.busy_change = self.busy_change.max(now);
+    }
 }
 
 /// Where an event-loop cost is counted.
@@ -462,7 +621,7 @@ enum Part {
     Other,
 }
 
-/// The coordinator side.
+/// The coordinator's event loop.
 impl Sim<'_> {
     /// Handles the next event of coordinator `s`'s loop, charging its cost from now on.
     fn loop_run(&mut self, s: usize) {
@@ -472,18 +631,39 @@ impl Sim<'_> {
         match event {
             LoopEvent::Start => {}
             LoopEvent::Intersected(b) => self.intersected(s, b, &mut clock),
+            LoopEvent::Produced { band, dataset, asked, batches, more } => {
+                let shard = &mut self.shards[s];
+                let stock = &mut shard.stock[dataset];
+                if let Some(left) = stock.asked.get_mut(&band) {
+                    *left = left.saturating_sub(asked);
+                    if *left == 0 {
+                        stock.asked.remove(&band);
+                    }
+                }
+                stock.ready.extend(batches);
+                shard.datasets.insert(dataset);
+                if more {
+                    self.wake(s, band, dataset);
+                }
+            }
+            LoopEvent::Recorded { band, dataset } => self.wake(s, band, dataset),
             LoopEvent::Composited(b) => {
                 let pieces = self.work.bands[b].pieces as f64;
                 self.charge(s, &mut clock, Part::Other, pieces * self.inputs.cost(At::Composite, RunsOn::EventLoop));
                 let shard = &mut self.shards[s];
                 shard.note_held(clock);
                 shard.active.remove(&b);
+                shard.threads.remove(&b);
+                shard.stock.iter_mut().for_each(|stock| {
+                    stock.asked.remove(&b);
+                });
                 shard.held -= self.work.bands[b].bytes;
             }
             LoopEvent::Opened(w, d) => {
                 self.shards[s].streams.insert((w, d), StreamState::Open);
+                self.shards[s].datasets.insert(d);
             }
-            LoopEvent::Answer(id) => self.record(s, id, &mut clock),
+            LoopEvent::Answer(id) => self.answered(s, id, &mut clock),
         }
         self.advance(s, &mut clock);
         let shard = &mut self.shards[s];
@@ -494,7 +674,7 @@ impl Sim<'_> {
             }
             let pixels = shard.pixels as f64;
             self.charge(s, &mut clock, Part::Other, pixels * self.inputs.cost(At::Finish, RunsOn::EventLoop));
-            self.at(clock, EventKind::Spawn(s, CoordJob::Finish));
+            self.at(clock, EventKind::Finish(s));
         }
         self.note_bands(s, clock);
         self.shards[s].busy_until = clock;
@@ -504,7 +684,7 @@ impl Sim<'_> {
     /// Keeps count of the time coordinator `s` has no band being cast.
     fn note_bands(&mut self, s: usize, clock: f64) {
         let shard = &mut self.shards[s];
-        let casting = shard.active.values().any(|b| matches!(b, BandState::Casting { .. }));
+        let casting = shard.active.values().any(|&intersected| intersected);
         match (casting, shard.idle_since) {
             (true, Some(since)) => {
                 shard.no_band_cast += clock - since;
@@ -538,25 +718,28 @@ impl Sim<'_> {
     fn intersected(&mut self, s: usize, b: usize, clock: &mut f64) {
         let band = &self.work.bands[b];
         self.charge(s, clock, Part::Other, band.pieces as f64 * self.inputs.cost(At::Intersect, RunsOn::EventLoop));
-        let lanes = vec![LaneState::default(); band.lanes.len()];
         let shard = &mut self.shards[s];
         shard.held += band.bytes;
         shard.largest = shard.largest.max(band.bytes);
-        let seq = shard.seq[b];
-        shard.ready.extend((0..band.lanes.len()).map(|l| (seq, b, l)));
-        shard.active.insert(b, BandState::Casting { lanes, unfinished: band.lanes.len() });
-        if band.lanes.is_empty() {
-            self.band_cast(s, b, *clock);
+        shard.active.insert(b, true);
+        for lane in &band.lanes {
+            self.wake(s, b, lane.dataset);
         }
     }
 
-    /// Band `b` is wholly cast: composite it on the other cores.
-    fn band_cast(&mut self, s: usize, b: usize, clock: f64) {
-        self.shards[s].active.insert(b, BandState::Compositing);
-        self.at(clock, EventKind::Spawn(s, CoordJob::Composite(b)));
+    /// The driver's `wake`: dataset `d` of band `b` may have batches, if the band is being
+    /// cast.
+    fn wake(&mut self, s: usize, b: usize, d: usize) {
+        let shard = &mut self.shards[s];
+        if shard.active.get(&b) == Some(&true) {
+            shard.stock[d].bands.insert((shard.seq[b], b));
+            shard.datasets.insert(d);
+        }
     }
 
-    fn record(&mut self, s: usize, id: usize, clock: &mut f64) {
+    /// The driver's `answered`: the batch's worker has room again, and the answer goes to
+    /// its band's thread.
+    fn answered(&mut self, s: usize, id: usize, clock: &mut f64) {
         let (band, lane, worker, tasks) = {
             let b = &self.batches[id];
             (b.band, b.lane, b.worker, b.tasks)
@@ -566,29 +749,12 @@ impl Sim<'_> {
         self.charge(s, clock, Part::Answer, tasks as f64 * i.cost(At::Answer, RunsOn::EventLoop));
         let off = i.cost(At::Answer, RunsOn::Parallel) + i.cost(At::Answer, RunsOn::OneThread);
         self.background(s, *clock, tasks as f64 * off);
-        let work = self.work;
-        let spec = &work.bands[band].lanes[lane];
-        let shard = &mut self.shards[s];
-        let seq = shard.seq[band];
-        let Some(BandState::Casting { lanes, unfinished }) = shard.active.get_mut(&band) else {
-            unreachable!("an answer for a band that is not being cast")
-        };
-        let l = &mut lanes[lane];
-        l.outstanding -= 1;
-        if l.outstanding > 0 || l.handed < spec.waves[l.wave].tasks {
-            return;
-        }
-        if l.wave + 1 < spec.waves.len() {
-            shard.ready.insert((seq, band, lane));
-            return;
-        }
-        *unfinished -= 1;
-        if *unfinished == 0 {
-            self.band_cast(s, band, *clock);
-        }
+        let d = self.work.bands[band].lanes[lane].dataset;
+        self.shards[s].datasets.insert(d);
+        self.tell_band(s, band, BandStep::Answer(id), *clock);
     }
 
-    /// The driver's `advance`: start bands while admission allows, then hand out batches.
+    /// The driver's `advance`: start bands while admission allows, then `dispatch_ready`.
     fn advance(&mut self, s: usize, clock: &mut f64) {
         loop {
             let shard = &mut self.shards[s];
@@ -604,21 +770,38 @@ impl Sim<'_> {
             shard.note_held(*clock);
             shard.seq[b] = shard.next;
             shard.next += 1;
-            shard.active.insert(b, BandState::Intersecting);
-            self.at(*clock, EventKind::Spawn(s, CoordJob::Intersect(b)));
+            shard.active.insert(b, false);
+            let lanes = self.work.bands[b].lanes.len();
+            shard.threads.insert(
+                b,
+                BandThread {
+                    lanes: vec![LaneState::default(); lanes],
+                    unfinished: lanes,
+                    inbox: VecDeque::from([BandStep::Intersect, BandStep::Plan]),
+                    scheduled: false,
+                    running: None,
+                    complete: false,
+                    ended: false,
+                },
+            );
+            self.schedule_band(s, b, *clock);
         }
-        let ready: Vec<(usize, usize, usize)> = self.shards[s].ready.iter().copied().collect();
-        for key @ (_, band, lane) in ready {
-            let d = self.work.bands[band].lanes[lane].dataset;
+        let datasets: Vec<usize> = self.shards[s].datasets.iter().copied().collect();
+        for d in datasets {
             while let Some(worker) = self.pick(s, d) {
                 if !self.shards[s].streams.contains_key(&(worker, d)) {
+                    // Its batches wait until the worker accepts the stream.
                     self.open(s, worker, d, *clock);
                     continue;
                 }
-                self.send(s, band, lane, worker, clock);
-                if !self.shards[s].ready.contains(&key) {
-                    break;
-                }
+                let Some(made) = self.shards[s].stock[d].ready.pop_front() else { break };
+                self.send(s, made, worker, clock);
+            }
+            self.ask(s, d, *clock);
+            let shard = &mut self.shards[s];
+            let stock = &shard.stock[d];
+            if stock.ready.is_empty() && stock.bands.is_empty() {
+                shard.datasets.remove(&d);
             }
         }
     }
@@ -637,6 +820,33 @@ impl Sim<'_> {
         least_loaded(loads).map(|i| usable[i])
     }
 
+    /// The driver's `ask`: as many batches of dataset `d` as its holders have room for, and
+    /// one per holder more, less the stock and what is already asked for; earliest started
+    /// band first, a share each.
+    fn ask(&mut self, s: usize, d: usize, clock: f64) {
+        let shard = &self.shards[s];
+        let cap = capacity(self.config.worker_threads as u32) as usize;
+        let room: usize = self.holders[d].iter().map(|&w| cap.saturating_sub(shard.in_flight[w])).sum();
+        let stock = &shard.stock[d];
+        let asked: usize = stock.asked.values().sum();
+        let mut want = (room + self.holders[d].len()).saturating_sub(stock.ready.len() + asked);
+        if want == 0 || stock.bands.is_empty() {
+            return;
+        }
+        let share = want.div_ceil(stock.bands.len()).max(1);
+        while want > 0 {
+            let Some((_, band)) = self.shards[s].stock[d].bands.pop_first() else { break };
+            let n = share.min(want);
+            if !self.shards[s].threads.contains_key(&band) {
+                continue;
+            }
+            if self.tell_band(s, band, BandStep::Produce { dataset: d, n }, clock) {
+                *self.shards[s].stock[d].asked.entry(band).or_default() += n;
+                want -= n;
+            }
+        }
+    }
+
     /// Opens a stream to `worker` for dataset `d`: the scene and its headers go first.
     fn open(&mut self, s: usize, worker: usize, d: usize, clock: f64) {
         self.shards[s].streams.insert((worker, d), StreamState::Opening);
@@ -646,29 +856,10 @@ impl Sim<'_> {
         self.at(arrival, EventKind::OpenArrives(worker, s, d));
     }
 
-    /// `next_batch` on a ready lane and `send` to `worker`.
-    fn send(&mut self, s: usize, band: usize, lane: usize, worker: usize, clock: &mut f64) {
-        let work = self.work;
-        let spec = &work.bands[band].lanes[lane];
-        let shard = &mut self.shards[s];
-        let seq = shard.seq[band];
-        let Some(BandState::Casting { lanes, .. }) = shard.active.get_mut(&band) else { unreachable!("ready lane") };
-        let l = &mut lanes[lane];
-        if l.handed == spec.waves[l.wave].tasks {
-            l.wave += 1;
-            l.handed = 0;
-        }
-        let wave = spec.waves[l.wave];
-        let tasks = self.config.batch_tasks.min(wave.tasks - l.handed);
-        // The wave's samples, shared out in proportion to tasks, summing exactly.
-        let share = |n: u64| (wave.samples as u128 * n as u128 / wave.tasks as u128) as u64;
-        let samples = share(l.handed + tasks) - share(l.handed);
-        l.handed += tasks;
-        l.outstanding += 1;
-        if l.handed == wave.tasks {
-            shard.ready.remove(&(seq, band, lane));
-        }
-        shard.in_flight[worker] += 1;
+    /// Sends batch `made` to `worker`, whose stream for its dataset is open.
+    fn send(&mut self, s: usize, made: Made, worker: usize, clock: &mut f64) {
+        let Made { band, lane, tasks, samples } = made;
+        self.shards[s].in_flight[worker] += 1;
         let i = self.inputs;
         self.charge(s, clock, Part::Send, tasks as f64 * i.cost(At::Send, RunsOn::EventLoop));
         let off = i.cost(At::Send, RunsOn::Parallel) + i.cost(At::Send, RunsOn::OneThread);
@@ -679,28 +870,13 @@ impl Sim<'_> {
         self.at(arrival, EventKind::BatchArrives(self.batches.len() - 1));
     }
 
-    /// A job starts on coordinator `s`'s other cores.
-    fn spawn(&mut self, s: usize, job: CoordJob) {
+    /// The image's encoding, on the coordinator's other cores.
+    fn finish(&mut self, s: usize) {
         let i = self.inputs;
-        let cores = self.shards[s].pool.capacity();
-        let band_pieces = |b: usize| self.work.bands[b].pieces as f64;
-        let (work, cap) = match job {
-            CoordJob::Intersect(b) => {
-                let rows = self.work.bands[b].rays / self.work.width as u64;
-                let cap = cores.min(rows.div_ceil(INTERSECT_ROWS) as f64);
-                (band_pieces(b) * i.cost(At::Intersect, RunsOn::Parallel), cap)
-            }
-            CoordJob::Plan(b) => (band_pieces(b) * i.cost(At::Intersect, RunsOn::OneThread), 1.0),
-            CoordJob::Composite(b) => (band_pieces(b) * i.cost(At::Composite, RunsOn::Parallel), cores),
-            CoordJob::CompositeOne(b) => (band_pieces(b) * i.cost(At::Composite, RunsOn::OneThread), 1.0),
-            CoordJob::Finish => {
-                let one = i.cost(At::Finish, RunsOn::OneThread);
-                let work = self.shards[s].pixels as f64 * (one + i.cost(At::Finish, RunsOn::Parallel));
-                (work, if one > 0.0 { 1.0 } else { cores })
-            }
-            CoordJob::Background => unreachable!("background work is added directly"),
-        };
-        self.shards[s].pool.add(self.now, job, work, cap);
+        let one = i.cost(At::Finish, RunsOn::OneThread) + i.cost(At::Finish, RunsOn::Band);
+        let work = self.shards[s].pixels as f64 * (one + i.cost(At::Finish, RunsOn::Parallel));
+        let cap = if one > 0.0 { 1.0 } else { self.shards[s].pool.capacity() };
+        self.shards[s].pool.add(self.now, CoordJob::Finish, work, cap);
         self.check_coord_pool(s);
     }
 
@@ -715,10 +891,7 @@ impl Sim<'_> {
     fn coord_pool(&mut self, s: usize) {
         for job in self.shards[s].pool.take_finished(self.now) {
             match job {
-                CoordJob::Intersect(b) => self.spawn(s, CoordJob::Plan(b)),
-                CoordJob::Plan(b) => self.post(s, LoopEvent::Intersected(b)),
-                CoordJob::Composite(b) => self.spawn(s, CoordJob::CompositeOne(b)),
-                CoordJob::CompositeOne(b) => self.post(s, LoopEvent::Composited(b)),
+                CoordJob::Band(b) => self.band_step_done(s, b),
                 CoordJob::Finish => self.shards[s].finished = Some(self.now),
                 CoordJob::Background => {}
             }
@@ -727,6 +900,124 @@ impl Sim<'_> {
     }
 }
 
+/// The bands' threads.
+impl Sim<'_> {
+    /// Sends `step` to band `b`'s thread at `clock`; whether the send succeeded (a thread
+    /// that ended has dropped its inbox; one compositing takes the message and never reads
+    /// it).
+    fn tell_band(&mut self, s: usize, b: usize, step: BandStep, clock: f64) -> bool {
+        let Some(thread) = self.shards[s].threads.get_mut(&b) else { return false };
+        if thread.ended {
+            return false;
+        }
+        if !thread.complete {
+            thread.inbox.push_back(step);
+            self.schedule_band(s, b, clock);
+        }
+        true
+    }
+
+    /// Makes sure band `b`'s thread looks at its inbox at `clock` (or when its step ends).
+    fn schedule_band(&mut self, s: usize, b: usize, clock: f64) {
+        let Some(thread) = self.shards[s].threads.get_mut(&b) else { return };
+        if !thread.scheduled && thread.running.is_none() && !thread.inbox.is_empty() {
+            thread.scheduled = true;
+            self.at(clock.max(self.now), EventKind::BandRun(s, b));
+        }
+    }
+
+    /// Band `b`'s thread starts its next step, if it is idle.
+    fn band_run(&mut self, s: usize, b: usize) {
+        let cores = self.shards[s].pool.capacity();
+        let (i, work, band) = (self.inputs, self.work, &self.work.bands[b]);
+        let batch_tasks = self.config.batch_tasks;
+        let shard = &mut self.shards[s];
+        let Some(thread) = shard.threads.get_mut(&b) else { return };
+        thread.scheduled = false;
+        if thread.running.is_some() {
+            return;
+        }
+        let Some(step) = thread.inbox.pop_front() else { return };
+        let pieces = band.pieces as f64;
+        let own = |at: At| i.cost(at, RunsOn::Band) + i.cost(at, RunsOn::OneThread);
+        let (seconds, cap, news) = match step {
+            BandStep::Intersect => {
+                let rows = band.rays / work.width as u64;
+                let cap = cores.min(rows.div_ceil(INTERSECT_ROWS) as f64);
+                shard.band_other += pieces * i.cost(At::Intersect, RunsOn::Parallel);
+                (pieces * i.cost(At::Intersect, RunsOn::Parallel), cap, None)
+            }
+            BandStep::Plan => {
+                if thread.unfinished == 0 {
+                    thread.complete = true;
+                    thread.inbox = VecDeque::from([BandStep::Composite, BandStep::CompositeOne]);
+                }
+                shard.band_other += pieces * own(At::Intersect);
+                (pieces * own(At::Intersect), 1.0, Some(LoopEvent::Intersected(b)))
+            }
+            BandStep::Produce { dataset, n } => {
+                let mut batches = Vec::with_capacity(n.min(64));
+                if let Ok(lane) = band.lanes.binary_search_by_key(&dataset, |l| l.dataset) {
+                    while batches.len() < n {
+                        let Some((tasks, samples)) = thread.lanes[lane].next_batch(&band.lanes[lane], batch_tasks)
+                        else {
+                            break;
+                        };
+                        batches.push(Made { band: b, lane, tasks, samples });
+                    }
+                }
+                let more = batches.len() == n;
+                let seconds = batches.iter().map(|m| m.tasks).sum::<u64>() as f64 * own(At::Send);
+                shard.band_send += seconds;
+                (seconds, 1.0, Some(LoopEvent::Produced { band: b, dataset, asked: n, batches, more }))
+            }
+            BandStep::Answer(id) => {
+                let (lane, tasks) = (self.batches[id].lane, self.batches[id].tasks);
+                if thread.lanes[lane].record(&band.lanes[lane]) {
+                    thread.unfinished -= 1;
+                    if thread.unfinished == 0 {
+                        // Every task recorded: it composites next and reads nothing more.
+                        thread.complete = true;
+                        thread.inbox = VecDeque::from([BandStep::Composite, BandStep::CompositeOne]);
+                    }
+                }
+                let seconds = tasks as f64 * own(At::Answer);
+                shard.band_answer += seconds;
+                let dataset = band.lanes[lane].dataset;
+                (seconds, 1.0, Some(LoopEvent::Recorded { band: b, dataset }))
+            }
+            BandStep::Composite => {
+                shard.band_other += pieces * i.cost(At::Composite, RunsOn::Parallel);
+                (pieces * i.cost(At::Composite, RunsOn::Parallel), cores, None)
+            }
+            BandStep::CompositeOne => {
+                shard.band_other += pieces * own(At::Composite);
+                (pieces * own(At::Composite), 1.0, Some(LoopEvent::Composited(b)))
+            }
+        };
+        thread.running = Some(news);
+        shard.note_busy(self.now);
+        shard.busy_threads += 1;
+        shard.pool.add(self.now, CoordJob::Band(b), seconds, cap);
+        self.check_coord_pool(s);
+    }
+
+    /// Band `b`'s thread finished its step: it tells the loop, and goes on with its inbox.
+    fn band_step_done(&mut self, s: usize, b: usize) {
+        let shard = &mut self.shards[s];
+        shard.note_busy(self.now);
+        shard.busy_threads -= 1;
+        let thread = shard.threads.get_mut(&b).expect("a band's thread that ran a step");
+        let news = thread.running.take().flatten();
+        if matches!(news, Some(LoopEvent::Composited(_))) {
+            thread.ended = true;
+        }
+        if let Some(news) = news {
+            self.post(s, news);
+        }
+        self.schedule_band(s, b, self.now);
+    }
+}
 /// The worker side.
 impl Sim<'_> {
     fn batch_arrives(&mut self, id: usize) {
@@ -930,10 +1221,11 @@ mod tests {
     fn twice_the_workers_take_half_the_time_on_an_embarrassingly_parallel_scene() {
         let work = workload(1, 64, &[64 * 2048]);
         let mut inputs = cast_only().with_link(100.0, 50.0);
-        // Some 5 µs of casting per task: the coordinator's link (24 bytes a task) and loop
-        // stay far from busy.
+        // Some 5 µs of casting per task: the coordinator's link (24 bytes a task), its loop
+        // and its band's thread stay far from busy.
         inputs.cast_per_sample = 1e-7;
-        let inputs = with_stage(inputs, RunsOn::EventLoop, At::Send, 2e-9);
+        let inputs = with_stage(inputs, RunsOn::Band, At::Send, 2e-9);
+        let inputs = with_stage(inputs, RunsOn::Band, At::Answer, 1e-9);
         let inputs = with_stage(inputs, RunsOn::EventLoop, At::Answer, 1e-9);
         let t8 = run(&work, &inputs, &config(8, 8), 1).seconds;
         let t16 = run(&work, &inputs, &config(16, 8), 1).seconds;
@@ -942,29 +1234,74 @@ mod tests {
         assert!((t16 / t32 - 2.0).abs() < 0.1, "16 → 32 workers: {t16} / {t32}");
     }
 
+    /// Handing out a task costs as much as casting it costs one worker core.
+    fn heavy(work: &Workload, runs_on: RunsOn) -> (Inputs, f64) {
+        let per_task = work.samples() as f64 / work.tasks() as f64 * 1e-8 + 1e-7;
+        (with_stage(cast_only(), runs_on, At::Send, per_task), work.tasks() as f64 * per_task)
+    }
+
     #[test]
     fn a_farm_bound_by_the_event_loop_stops_getting_faster_and_more_coordinators_lift_it() {
         let work = workload(4, 64, &[4096]);
-        // Handing out a task costs the loop as much as casting it costs one worker core.
-        let per_task = work.samples() as f64 / work.tasks() as f64 * 1e-8 + 1e-7;
-        let inputs = with_stage(cast_only(), RunsOn::EventLoop, At::Send, per_task);
+        let (inputs, loop_work) = heavy(&work, RunsOn::EventLoop);
         let runs: Vec<Outcome> = [8, 16, 32].iter().map(|&w| run(&work, &inputs, &config(w, 8), 1)).collect();
-        let loop_work = work.tasks() as f64 * per_task;
         for out in &runs {
             assert!(out.seconds >= loop_work, "the loop's own work bounds the job");
             assert!(out.loop_busy > 0.9, "loop busy {}", out.loop_busy);
         }
         assert!(runs[2].seconds > 0.9 * runs[0].seconds, "{} vs {}", runs[2].seconds, runs[0].seconds);
-        // The same stage placed off the loop, on 32 cores, no longer bounds it.
-        let off = with_stage(cast_only(), RunsOn::Parallel, At::Send, per_task);
+        // More cores change nothing: the loop is one.
         let mut wide = config(32, 8);
         wide.coordinator_cores = 33;
-        assert!(run(&work, &off, &wide, 1).seconds < 0.5 * runs[2].seconds);
+        assert!(run(&work, &inputs, &wide, 1).seconds >= loop_work);
         // Four coordinators, each a tile of one band, share the loop's work.
         let mut tiles = config(32, 8);
         tiles.coordinators = 4;
         let t = run(&work, &inputs, &tiles, 1).seconds;
         assert!(t < 0.3 * runs[2].seconds, "4 tiles: {t} vs {}", runs[2].seconds);
+    }
+
+    #[test]
+    fn per_band_threads_lift_the_event_loops_bound_as_cores_grow() {
+        let work = workload(16, 64, &[4096]);
+        let (on_loop, serial) = heavy(&work, RunsOn::EventLoop);
+        let (on_bands, _) = heavy(&work, RunsOn::Band);
+        let mut farm = config(32, 8);
+        farm.max_bands = 8;
+        let mut runs = Vec::new();
+        for cores in [2, 5, 9] {
+            farm.coordinator_cores = cores;
+            assert!(run(&work, &on_loop, &farm, 1).seconds >= serial, "on the loop, {cores} cores");
+            let out = run(&work, &on_bands, &farm, 1);
+            // The bands' threads share the cores besides the loop's: their work over those
+            // cores bounds the job, and nothing is left on the loop.
+            assert!(out.seconds >= serial / (cores - 1) as f64, "{cores} cores: {}", out.seconds);
+            assert!(out.loop_busy == 0.0 && (out.band_send - serial).abs() < 1e-9 * serial);
+            runs.push(out);
+        }
+        // One core for eight bands' threads: they wait for it, and the job takes the loop's
+        // time; four and eight cores (one per band in flight) take a fourth and an eighth.
+        assert!(runs[0].pool_busy > 0.95 && runs[0].seconds < 1.05 * serial, "{:?}", runs[0]);
+        assert!(runs[1].seconds < 0.3 * serial, "4 cores: {} vs {serial}", runs[1].seconds);
+        assert!(runs[2].seconds < 0.6 * runs[1].seconds, "8 cores: {} vs 4: {}", runs[2].seconds, runs[1].seconds);
+        assert!(runs[2].band_busy > 0.9, "each band's thread busy: {}", runs[2].band_busy);
+    }
+
+    #[test]
+    fn a_one_band_job_is_bound_by_its_bands_thread() {
+        let work = workload(1, 64, &[4096]);
+        let (inputs, serial) = heavy(&work, RunsOn::Band);
+        let mut farm = config(32, 8);
+        farm.coordinator_cores = 33;
+        let out = run(&work, &inputs, &farm, 1);
+        // 32 cores, but the band's steps are one after the other on its thread.
+        assert!(out.seconds >= serial && out.seconds < 1.05 * serial, "{} vs {serial}", out.seconds);
+        assert!(out.band_busy > 0.95 && out.pool_busy < 0.05, "{out:?}");
+        // The same work in four bands (four threads, all in flight) takes about a fourth.
+        let four = workload(4, 16, &[4096]);
+        farm.max_bands = 4;
+        let t = run(&four, &inputs, &farm, 1).seconds;
+        assert!(t < 0.3 * out.seconds, "four bands: {t} vs one: {}", out.seconds);
     }
 
     #[test]
@@ -1031,19 +1368,22 @@ mod tests {
         config.coordinator_cores = 5; // 4 cores besides the loop
         let out = run(&work, &inputs, &config, 1);
         // The sample, per piece: intersection 40 ns (parallel: 64 rows in 16 items, on 4
-        // cores), planning 10 ns (one thread), composition 15 ns (4 cores); per task (half a
-        // task a piece): dispatch 40 ns, recording 20 ns on the loop; per pixel (2 pieces a
-        // pixel): the image 10 ns.
+        // cores), planning 10 ns (the band's thread), composition 15 ns (4 cores); per task
+        // (half a task a piece): dispatch 40 ns on the band's thread before the batch goes
+        // out, 10 ns on the loop for the answer, then recording 20 ns on the band's thread;
+        // per pixel (2 pieces a pixel): the image 10 ns.
         let pieces = 4096.0;
         let expected = pieces * 40e-9 / 4.0
             + pieces * 10e-9
             + 2048.0 * 40e-9
             + (2048.0 * 1e-7 + 2048.0 * 50.0 * 1e-8) / 8.0
+            + 2048.0 * 10e-9
             + 2048.0 * 20e-9
             + pieces * 15e-9 / 4.0
             + 4096.0 * 10e-9;
         assert!((out.seconds / expected - 1.0).abs() < 1e-9, "{} vs {expected}", out.seconds);
-        assert!((out.loop_send - 2048.0 * 40e-9).abs() < 1e-15 && (out.loop_answer - 2048.0 * 20e-9).abs() < 1e-15);
+        assert!((out.band_send - 2048.0 * 40e-9).abs() < 1e-15 && (out.band_answer - 2048.0 * 20e-9).abs() < 1e-15);
+        assert!(out.loop_send == 0.0 && (out.loop_answer - 2048.0 * 10e-9).abs() < 1e-15);
     }
 
     #[test]
