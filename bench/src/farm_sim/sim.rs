@@ -54,7 +54,7 @@
 use std::cmp::Ordering;
 use std::collections::{BTreeMap, BTreeSet, BinaryHeap, HashMap, HashSet, VecDeque};
 
-use trove_core::render::dispatch::{band_order, capacity, least_loaded, Admission, Load};
+use trove_core::render::dispatch::{band_order, batches_to_ask, capacity, least_loaded, Admission, Load};
 
 use super::inputs::{Inputs, TASK_BYTES_BACK, TASK_BYTES_OUT};
 use super::pool::{transfer, Link, Pool};
@@ -829,11 +829,8 @@ impl Sim<'_> {
         let room: usize = self.holders[d].iter().map(|&w| cap.saturating_sub(shard.in_flight[w])).sum();
         let stock = &shard.stock[d];
         let asked: usize = stock.asked.values().sum();
-        let mut want = (room + self.holders[d].len()).saturating_sub(stock.ready.len() + asked);
-        if want == 0 || stock.bands.is_empty() {
-            return;
-        }
-        let share = want.div_ceil(stock.bands.len()).max(1);
+        let asking = batches_to_ask(room, self.holders[d].len(), stock.ready.len(), asked, stock.bands.len());
+        let Some((mut want, share)) = asking else { return };
         while want > 0 {
             let Some((_, band)) = self.shards[s].stock[d].bands.pop_first() else { break };
             let n = share.min(want);

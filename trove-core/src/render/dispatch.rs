@@ -51,6 +51,20 @@ pub fn least_loaded(candidates: impl IntoIterator<Item = Load>) -> Option<usize>
     best.map(|(i, _)| i)
 }
 
+/// How many more batches of one dataset a driver asks its bands for: as many as the
+/// dataset's holders have room for (`room`, summed over them), and one per holder more so
+/// that an answer finds the next batch waiting, less the batches in stock and those already
+/// asked for; and the share asked of each of the `bands` that may have some (earliest
+/// started first), so that several bands' threads make them at once. `None` when nothing
+/// is to be asked. The farm's driver and `farm-sim` both ask by it.
+pub fn batches_to_ask(room: usize, holders: usize, stock: usize, asked: usize, bands: usize) -> Option<(usize, usize)> {
+    let want = (room + holders).saturating_sub(stock + asked);
+    if want == 0 || bands == 0 {
+        return None;
+    }
+    Some((want, want.div_ceil(bands).max(1)))
+}
+
 /// How much of an image a driver works on at once.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Admission {
@@ -135,6 +149,16 @@ mod tests {
             holders[pick].in_flight += 1;
         }
         assert_eq!(least_loaded(holders.iter().copied()), Some(0));
+    }
+
+    #[test]
+    fn bands_are_asked_for_the_room_and_one_per_holder_less_what_is_stocked_or_asked_in_shares() {
+        // Two holders with 3 batches of room between them: 5 wanted, over two bands 3 each.
+        assert_eq!(batches_to_ask(3, 2, 0, 0, 2), Some((5, 3)));
+        assert_eq!(batches_to_ask(3, 2, 2, 1, 2), Some((2, 1)));
+        assert_eq!(batches_to_ask(3, 2, 4, 1, 2), None, "stock and asks cover the room");
+        assert_eq!(batches_to_ask(0, 1, 0, 0, 3), Some((1, 1)), "full holders still get one waiting");
+        assert_eq!(batches_to_ask(8, 2, 0, 0, 0), None, "no band to ask");
     }
 
     #[test]

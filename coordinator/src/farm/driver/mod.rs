@@ -54,7 +54,7 @@ use prost::Message;
 use tokio::sync::mpsc;
 use tonic::Status;
 use trove_core::render::bands::{Bands, Casting};
-use trove_core::render::dispatch::Admission;
+use trove_core::render::dispatch::{batches_to_ask, Admission};
 use trove_core::render::schedule::Progress;
 use trove_core::render::{Algorithm, Raster};
 use trove_core::scene::Scene;
@@ -368,11 +368,8 @@ impl Driver {
     fn ask(&mut self, d: usize) {
         let (room, holders) = self.dispatch.room(d);
         let stock = &mut self.stock[d];
-        let mut want = (room + holders).saturating_sub(stock.ready.len() + stock.asked());
-        if want == 0 || stock.bands.is_empty() {
-            return;
-        }
-        let share = want.div_ceil(stock.bands.len()).max(1);
+        let asking = batches_to_ask(room, holders, stock.ready.len(), stock.asked(), stock.bands.len());
+        let Some((mut want, share)) = asking else { return };
         while want > 0 {
             let Some((seq, band)) = stock.bands.pop_first() else { break };
             let n = share.min(want);
