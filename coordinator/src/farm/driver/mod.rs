@@ -394,6 +394,15 @@ impl Driver {
     /// Sends batch `ready` of dataset `d` to `worker`'s stream for it, which is open.
     fn send(&mut self, d: usize, worker: WorkerHandle, ready: Ready) {
         let key = (worker.id.clone(), d);
+        // A place in the stream's queue first, so that a batch that cannot go stays whole.
+        let Some(permit) = self.streams.get(&key).and_then(|s| s.tx.try_reserve().ok()) else {
+            // The stream's reader is gone or its queue is full: the batch goes back to the
+            // front of the stock, and the stream is lost.
+            self.stock[d].ready.push_front(ready);
+            self.active.insert(d);
+            self.lose_stream(&key, self.rest_lost());
+            return;
+        };
         let wire = self.dispatch.next_wire();
         let Ready { band, id, attempt, tasks, encoded } = ready;
         let _span = tracing::debug_span!("batch", wire, dataset = d, attempt, worker = %worker.id, tasks).entered();
@@ -401,18 +410,7 @@ impl Driver {
             kind: Some(pb::cast_request::Kind::Batch(pb::CastBatch { batch_id: wire, attempt, tasks: encoded })),
         };
         self.tally.wire_to += request.encoded_len() as u64;
-        if let Err(refused) = self.streams.get(&key).map_or(Err(None), |s| s.tx.try_send(request).map_err(Some)) {
-            // The stream's reader is gone or its queue is full: the batch goes back to the
-            // front of the stock, unchanged, and the stream is lost.
-            let encoded = match refused.map(|e| e.into_inner().kind) {
-                Some(Some(pb::cast_request::Kind::Batch(b))) => b.tasks,
-                _ => unreachable!("a batch request comes back as it went"),
-            };
-            self.stock[d].ready.push_front(Ready { band, id, attempt, tasks, encoded });
-            self.active.insert(d);
-            self.lose_stream(&key, self.rest_lost());
-            return;
-        }
+        permit.send(request);
         let in_flight = InFlight { band, id, dataset: d, attempt, stream: key, tasks, sent: Instant::now() };
         self.dispatch.sent(wire, &worker, in_flight);
         if self.tally.cast_started.is_none() {
