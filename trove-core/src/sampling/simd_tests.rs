@@ -110,7 +110,7 @@ fn render(scene: &Scene, path: SimdPath, one_by_one: bool) -> (Image, usize) {
 #[test]
 fn every_available_path_renders_every_example_scene_within_a_level_of_the_f64_loops() {
     let required = std::env::var_os("TROVE_REQUIRE_DATA").is_some();
-    let (mut scenes_checked, mut packet_objects) = (0, 0);
+    let (mut scenes_checked, mut packet_objects, mut skipped) = (0, 0, 0);
     for (file, data) in scenes() {
         let scene = match Scene::load_in(&file, &DataRoot::Given(data.clone())) {
             Ok(scene) => scene,
@@ -119,6 +119,7 @@ fn every_available_path_renders_every_example_scene_within_a_level_of_the_f64_lo
                 if !required || file.ends_with("synthetic-u8.toml") =>
             {
                 eprintln!("SKIPPED {}: its data is absent under {}", file.display(), data.display());
+                skipped += 1;
                 continue;
             }
             Err(e) => panic!("{}: {e}", file.display()),
@@ -155,6 +156,12 @@ fn every_available_path_renders_every_example_scene_within_a_level_of_the_f64_lo
         scenes_checked += 1;
     }
     eprintln!("{scenes_checked} scenes, {packet_objects} (object, path) pairs cast in packets");
+    // The scenes whose objects take the packet loop read real data: a fresh clone without
+    // ../shared/data checks what it has and says what it skipped (CI, with the data, fails).
+    if packet_objects == 0 && skipped > 0 && !required {
+        eprintln!("SKIPPED the packet loop's part: no scene with data to cast in packets");
+        return;
+    }
     assert!(scenes_checked > 0 && packet_objects > 0, "no scene exercised the packet loop");
 }
 
