@@ -51,8 +51,20 @@ impl PixelRays {
         y * self.up
     }
 
-    /// The ray of pixel (`col`, a row whose [`PixelRays::row`] is `row_part`).
+    /// `forward + x·right` of each column.
     #[inline]
+    pub(crate) fn columns(&self) -> &[DVec3] {
+        &self.columns
+    }
+
+    /// The eye, where every ray starts.
+    #[inline]
+    pub(crate) fn eye(&self) -> DVec3 {
+        self.eye
+    }
+
+    /// The ray of pixel (`col`, a row whose [`PixelRays::row`] is `row_part`).
+    #[cfg(test)]
     pub(crate) fn ray(&self, col: u32, row_part: DVec3) -> Ray {
         Ray { origin: self.eye, dir: (self.columns[col as usize] + row_part).normalize() }
     }
@@ -243,6 +255,12 @@ impl PixelRect {
     #[inline]
     pub(crate) fn has_col(&self, col: u32) -> bool {
         (self.cols[0]..self.cols[1]).contains(&col)
+    }
+
+    /// Its columns.
+    #[inline]
+    pub(crate) fn cols(&self) -> std::ops::Range<u32> {
+        self.cols[0]..self.cols[1]
     }
 
     /// How many pixels are inside.

@@ -6,6 +6,7 @@ mod camera;
 pub mod hexahedron;
 mod pieces;
 mod placement;
+mod slab;
 
 pub(crate) use camera::PixelRays;
 pub(crate) use camera::PixelRect;
@@ -14,3 +15,4 @@ pub use pieces::{count_pieces, split_into_pieces, Piece, PieceScratch, Segment};
 pub use placement::{
     sample_count, BoxOrigin, Extent, InversionPrecisionError, LineSamples, Placement, SampleWalk, Shape, VcLine,
 };
+pub(crate) use slab::{Crossing, Crossings, RowDirections, VectorWidth};

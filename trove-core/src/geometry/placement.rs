@@ -282,8 +282,32 @@ pub struct BoxOrigin {
 }
 
 impl BoxOrigin {
-    fn new(world: DVec3, o: DVec3, linear: DMat3) -> BoxOrigin {
+    pub(crate) fn new(world: DVec3, o: DVec3, linear: DMat3) -> BoxOrigin {
         BoxOrigin { world, o, slack: BOX_SLACK * (1.0 + o.abs().max_element()), o_len: o.length(), linear }
+    }
+
+    /// The box-from-world map of directions.
+    #[inline]
+    pub(crate) fn linear(&self) -> &DMat3 {
+        &self.linear
+    }
+
+    /// The ray origin in box coordinates.
+    #[inline]
+    pub(crate) fn box_point(&self) -> DVec3 {
+        self.o
+    }
+
+    /// The rounding slack of the slab test at this origin.
+    #[inline]
+    pub(crate) fn slack(&self) -> f64 {
+        self.slack
+    }
+
+    /// |origin| in box coordinates.
+    #[inline]
+    pub(crate) fn o_len(&self) -> f64 {
+        self.o_len
     }
 
     /// Whether `ray` starts where this was worked out.

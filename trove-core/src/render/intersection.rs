@@ -19,8 +19,10 @@ use rayon::prelude::*;
 use super::limits::LimitError;
 use super::workunit::PieceTask;
 use crate::geometry::{
-    count_pieces, split_into_pieces, BoxOrigin, Piece, PieceScratch, PixelRays, PixelRect, Ray, Segment,
+    count_pieces, split_into_pieces, BoxOrigin, Crossing, Crossings, Piece, PieceScratch, PixelRays, PixelRect, Ray,
+    RowDirections, Segment, VectorWidth,
 };
+use crate::sampling::SimdPath;
 use crate::scene::Scene;
 use glam::DVec3;
 
@@ -95,25 +97,39 @@ struct Band {
 /// outside is not tested against the object. An object's box lies in the convex hull of its
 /// corners (trilinear points are convex combinations of them), so this never drops a hit.
 /// It also keeps the image's pixel rays' shared parts ([`PixelRays`]).
-pub(crate) struct Reach(Vec<PixelRect>, Vec<Option<BoxOrigin>>, PixelRays);
+/// And how wide the slab tests of a row's rays may run ([`VectorWidth`]).
+pub(crate) struct Reach(Vec<PixelRect>, Vec<Option<BoxOrigin>>, PixelRays, VectorWidth);
 
 impl Reach {
     pub(crate) fn new(scene: &Scene) -> Reach {
         let (w, h) = (scene.image().width, scene.image().height);
         let camera = scene.camera();
-        let eye = camera.ray(0, 0, w.max(1), h.max(1)).origin;
+        let rays = camera.pixel_rays(w.max(1), h.max(1));
         Reach(
             scene.objects().iter().map(|o| camera.pixels_reaching(&o.placement().corners(), w, h)).collect(),
             // Every ray starts at the eye: its part of each slab test is worked out once.
-            scene.objects().iter().map(|o| o.placement().box_origin(eye)).collect(),
-            camera.pixel_rays(w.max(1), h.max(1)),
+            scene.objects().iter().map(|o| o.placement().box_origin(rays.eye())).collect(),
+            rays,
+            slab_width(),
         )
     }
 }
 
+/// The width of the intersection's vector loops: the widest the processor has, but no wider
+/// than the sampler's configured path, so `TROVE_SIMD=scalar` keeps a whole render on the
+/// baseline. Every width gives the same bits.
+fn slab_width() -> VectorWidth {
+    let cap = match SimdPath::configured() {
+        Ok(SimdPath::Avx512) => VectorWidth::Avx512,
+        Ok(SimdPath::Avx2) => VectorWidth::Avx2,
+        _ => VectorWidth::Baseline,
+    };
+    VectorWidth::detect(cap)
+}
+
 impl Reach {
     /// The objects some pixel of image row `row` can meet, in scene order: what the rays of
-    /// that row are tested against ([`segments_among`]), so that a ray is not even
+    /// that row are tested against ([`RayScratch::segments`]), so that a ray is not even
     /// rectangle-tested against objects far from its row.
     fn on_row(&self, row: u32, out: &mut Vec<u32>) {
         out.clear();
@@ -144,28 +160,6 @@ pub(crate) fn segments_of(
     }
 }
 
-/// [`segments_of`] for a ray of a row whose candidate objects are `row_objects`
-/// ([`Reach::on_row`]): the same segments, in the same (scene) order.
-fn segments_among(scene: &Scene, reach: &Reach, row_objects: &[u32], col: u32, ray: &Ray, segments: &mut Vec<Segment>) {
-    segments.clear();
-    let objects = scene.objects();
-    for &i in row_objects {
-        let i = i as usize;
-        if !reach.0[i].has_col(col) {
-            continue;
-        }
-        let segment = match &reach.1[i] {
-            Some(origin) if origin.starts(ray) => origin.segment(ray),
-            _ => objects[i].placement().segment(ray),
-        };
-        if let Some((t_near, t_far)) = segment {
-            if t_far > t_near {
-                segments.push(Segment { object: i as u32, t_near, t_far });
-            }
-        }
-    }
-}
-
 /// What one ray's intersection needs, kept from ray to ray so that none allocates.
 #[derive(Default)]
 struct RayScratch {
@@ -178,10 +172,25 @@ struct RayScratch {
     row_objects: Vec<u32>,
     row_part: DVec3,
     row_objects_of: Option<u32>,
+    /// The (row, first column) of the chunk of columns whose rays are held below.
+    chunk_of: Option<(u32, u32)>,
+    /// The chunk's ray directions, from its first column.
+    dirs: RowDirections,
+    /// Per candidate object of the row (as `row_objects`), its crossings of the chunk's rays
+    /// that its columns reach, from the column in `first_col`.
+    crossings: Vec<Crossings>,
+    first_col: Vec<u32>,
 }
 
+/// Columns of a row whose rays are tested against an object together
+/// ([`BoxOrigin::cross_many`]): long enough to fill vector registers many times over, short
+/// enough that a row's candidates' results stay in cache on a scene of many objects.
+const CHUNK_COLS: u32 = 64;
+
 impl RayScratch {
-    /// The segments of the ray of pixel `(col, row)`, tested against its row's candidates.
+    /// The segments of the ray of pixel `(col, row)`, tested against its row's candidates:
+    /// affine boxes from the crossings of the ray's chunk of columns, worked out together
+    /// the first time one of its rays is asked for.
     fn segments(&mut self, scene: &Scene, reach: &Reach, (col, row): (u32, u32)) {
         if self.row_objects_of != Some(row) {
             reach.on_row(row, &mut self.row_objects);
@@ -192,8 +201,56 @@ impl RayScratch {
         if self.row_objects.is_empty() {
             return;
         }
-        let ray = reach.2.ray(col, self.row_part);
-        segments_among(scene, reach, &self.row_objects, col, &ray, &mut self.segments);
+        let chunk_start = col - col % CHUNK_COLS;
+        if self.chunk_of != Some((row, chunk_start)) {
+            self.cross_chunk(reach, row, chunk_start, scene.image().width);
+        }
+        let i_ray = (col - chunk_start) as usize;
+        let objects = scene.objects();
+        for (k, &i) in self.row_objects.iter().enumerate() {
+            let i = i as usize;
+            if !reach.0[i].has_col(col) {
+                continue;
+            }
+            let segment = match &reach.1[i] {
+                Some(origin) => match self.crossings[k].get((col - self.first_col[k]) as usize) {
+                    Crossing::Segment(t_near, t_far) => Some((t_near, t_far)),
+                    Crossing::Miss => None,
+                    Crossing::Graze => origin.segment(&self.dirs.ray(reach.2.eye(), i_ray)),
+                },
+                None => objects[i].placement().segment(&self.dirs.ray(reach.2.eye(), i_ray)),
+            };
+            if let Some((t_near, t_far)) = segment {
+                if t_far > t_near {
+                    self.segments.push(Segment { object: i as u32, t_near, t_far });
+                }
+            }
+        }
+    }
+
+    /// The directions of the rays of columns `chunk_start..` (a chunk) of `row`, and each
+    /// affine candidate's crossings of those its columns reach.
+    fn cross_chunk(&mut self, reach: &Reach, row: u32, chunk_start: u32, width: u32) {
+        let chunk = chunk_start..(chunk_start + CHUNK_COLS).min(width);
+        self.dirs.fill(&reach.2, self.row_part, chunk.start as usize..chunk.end as usize);
+        let n = self.row_objects.len();
+        if self.crossings.len() < n {
+            self.crossings.resize_with(n, Crossings::default);
+        }
+        self.first_col.resize(n, 0);
+        for (k, &i) in self.row_objects.iter().enumerate() {
+            let i = i as usize;
+            let Some(origin) = &reach.1[i] else { continue };
+            let cols = reach.0[i].cols();
+            // Columns outside the chunk (an object whose span ends before it or starts after
+            // it) make an empty range: the object is not asked about any of its rays.
+            let first = cols.start.clamp(chunk.start, chunk.end);
+            let end = cols.end.clamp(first, chunk.end);
+            self.first_col[k] = first;
+            let rays = (first - chunk.start) as usize..(end - chunk.start) as usize;
+            origin.cross_many(&self.dirs, rays, reach.3, &mut self.crossings[k]);
+        }
+        self.chunk_of = Some((row, chunk_start));
     }
 
     /// Splits the ray of pixel `(col, row)` into pieces (`self.pieces`, their objects in
@@ -356,7 +413,7 @@ mod tests {
             "transform = { matrix = [[1, 0, 0, 30], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]] }",
         ];
         let mut text = String::from(
-            "[image]\nwidth = 61\nheight = 47\nbackground = [0, 0, 0]\n[camera]\neye = [0.2, 0.3, 4.0]\ntarget = [0, 0, 0]\nup = [0, 1, 0]\n\
+            "[image]\nwidth = 161\nheight = 47\nbackground = [0, 0, 0]\n[camera]\neye = [0.2, 0.3, 4.0]\ntarget = [0, 0, 0]\nup = [0, 1, 0]\n\
              fov_y = 40.0\n[[datasets]]\nname = \"v\"\ndims = [3, 4, 5]\n[datasets.channels.voxel]\n\
              generator = { kind = \"ramp\", axis = \"x\", from = 0.0, to = 1.0 }\n",
         );
@@ -374,6 +431,7 @@ mod tests {
             vec![PixelRect::whole(w, h); objects.len()],
             vec![None; objects.len()],
             scene.camera().pixel_rays(w, h),
+            VectorWidth::Baseline,
         );
         let (mut culled, mut hits) = (0, 0);
         let (mut a, mut b) = (Vec::new(), Vec::new());
