@@ -816,7 +816,7 @@ impl Sim<'_> {
             .copied()
             .filter(|&w| shard.streams.get(&(w, d)) != Some(&StreamState::Opening))
             .collect();
-        let loads = usable.iter().map(|&w| Load { in_flight: shard.in_flight[w] as u64, threads });
+        let loads = usable.iter().map(|&w| Load { in_flight: shard.in_flight[w] as u64, threads, refused: false });
         least_loaded(loads).map(|i| usable[i])
     }
 
