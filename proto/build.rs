@@ -13,6 +13,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // batch is answered, to send them again if a busy worker refuses them.
     tonic_prost_build::configure()
         .bytes(".trove.v1.CastBatch.tasks")
-        .build_client(true).build_server(true).compile_fds(descriptors)?;
+        .build_client(true)
+        .build_server(true)
+        .compile_fds(descriptors)?;
     Ok(())
 }

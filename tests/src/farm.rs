@@ -424,7 +424,10 @@ impl SharedFarm {
             if alive >= n {
                 return;
             }
-            assert!(started.elapsed() < Duration::from_secs(10), "coordinator {i}: only {alive} of {n} workers registered");
+            assert!(
+                started.elapsed() < Duration::from_secs(10),
+                "coordinator {i}: only {alive} of {n} workers registered"
+            );
             std::thread::sleep(Duration::from_millis(20));
         }
     }
@@ -446,10 +449,13 @@ impl SharedFarm {
 
     /// Renders each (coordinator, scene text, name) at once, each through its coordinator, as
     /// `trove render --coordinator` does; every job must end within [`RENDER_DEADLINE`].
-    pub fn render_at_once(&self, jobs: &[(usize, String, String, pb::JobOptions)]) -> Vec<Result<JobFiles, ClientError>> {
+    pub fn render_at_once(
+        &self,
+        jobs: &[(usize, String, String, pb::JobOptions)],
+    ) -> Vec<Result<JobFiles, ClientError>> {
         self.block_on(async {
             let renders = jobs.iter().map(|(i, text, name, options)| {
-                let (text, name, options) = (text.clone(), name.clone(), options.clone());
+                let (text, name, options) = (text.clone(), name.clone(), *options);
                 let url = self.urls[*i].clone();
                 tokio::spawn(async move {
                     let mut client = FarmClient::connect(&url).await?;

@@ -85,8 +85,7 @@ fn two_coordinators_sharing_three_workers_render_their_jobs_at_once_as_in_local_
     let expected = scenes.clone().map(|text| local_png(&text, &data));
     let farm = SharedFarm::start(2, &roots(&dir, &data, 3), None);
     for round in 0..2 {
-        let jobs: Vec<_> =
-            (0..2).map(|c| (c, scenes[c].clone(), format!("scene-{c}.toml"), many_batches())).collect();
+        let jobs: Vec<_> = (0..2).map(|c| (c, scenes[c].clone(), format!("scene-{c}.toml"), many_batches())).collect();
         let files = farm.render_at_once(&jobs);
         for (c, files) in files.into_iter().enumerate() {
             let files = files.unwrap_or_else(|e| panic!("round {round}, coordinator {c}: {e}"));

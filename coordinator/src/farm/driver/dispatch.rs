@@ -189,7 +189,12 @@ impl Dispatch {
     /// flight (the worker's count given back), and the worker has no room for this job
     /// until it answers one of its batches. The caller sends the batch again, attempt
     /// unchanged.
-    pub fn refused(&mut self, wire: u64, stream: &StreamKey, worker: Option<&WorkerHandle>) -> Result<InFlight, Refused> {
+    pub fn refused(
+        &mut self,
+        wire: u64,
+        stream: &StreamKey,
+        worker: Option<&WorkerHandle>,
+    ) -> Result<InFlight, Refused> {
         let batch = self.in_flight.get(&wire).ok_or(Refused::Unknown)?;
         if batch.stream != *stream {
             return Err(Refused::WrongStream);

@@ -407,7 +407,11 @@ impl Driver {
         let Ready { band, id, attempt, tasks, encoded } = ready;
         let _span = tracing::debug_span!("batch", wire, dataset = d, attempt, worker = %worker.id, tasks).entered();
         let request = pb::CastRequest {
-            kind: Some(pb::cast_request::Kind::Batch(pb::CastBatch { batch_id: wire, attempt, tasks: encoded.clone() })),
+            kind: Some(pb::cast_request::Kind::Batch(pb::CastBatch {
+                batch_id: wire,
+                attempt,
+                tasks: encoded.clone(),
+            })),
         };
         self.tally.wire_to += request.encoded_len() as u64;
         permit.send(request);
