@@ -49,7 +49,11 @@
 //! **Layouts.** `coordinators` coordinators of `coordinator_cores` cores each share the
 //! workers, each counting only its own batches in flight (each has its own registry): with
 //! [`Split::Tiles`] they split one image into tiles of whole bands, one job each; with
-//! [`Split::Jobs`] each runs a whole job of its own (the same scene), side by side.
+//! [`Split::Jobs`] each runs a whole job of its own (the same scene), side by side — the
+//! layout the farm runs (`trove-worker --coordinator A,B,…`). A simulated worker queues all
+//! its coordinators send; a real one refuses beyond `--max-batches` a job over its fair
+//! share as busy (`dispatch::admits`), which is not modelled: every [`Load`] here has
+//! `refused: false`.
 
 use std::cmp::Ordering;
 use std::collections::{BTreeMap, BTreeSet, BinaryHeap, HashMap, HashSet, VecDeque};
