@@ -292,7 +292,12 @@ fn output_within(command: &mut Command, limit: Duration) -> Output {
 
 /// The deployment files, relative to the repository root, with their flag uses.
 fn deploy_flag_uses() -> Vec<(String, Vec<FlagUse>)> {
-    let mut files = vec!["deploy/docker-compose.yml".to_string(), "deploy/k8s-tls/kustomization.yaml".to_string()];
+    let mut files = vec![
+        "deploy/docker-compose.yml".to_string(),
+        "deploy/k8s-tls/kustomization.yaml".to_string(),
+        "deploy/k8s-multi/kustomization.yaml".to_string(),
+        "deploy/k8s-multi/coordinators.yaml".to_string(),
+    ];
     for entry in std::fs::read_dir(repo().join("deploy/k8s")).unwrap() {
         let name = entry.unwrap().file_name().into_string().unwrap();
         if name.ends_with(".yaml") {
@@ -331,6 +336,8 @@ fn every_flag_deploy_and_the_operator_docs_pass_is_in_the_binaries_help() {
     assert!(count("deploy/docker-compose.yml", &coordinator()) >= 8);
     assert!(count("deploy/docker-compose.yml", &Program::Worker) >= 24);
     assert!(count("deploy/k8s-tls/kustomization.yaml", &Program::Worker) >= 3);
+    assert!(count("deploy/k8s-multi/coordinators.yaml", &coordinator()) >= 8);
+    assert!(count("deploy/k8s-multi/kustomization.yaml", &Program::Worker) >= 2);
 
     let mut helps: BTreeMap<Program, Result<BTreeSet<String>, String>> = BTreeMap::new();
     let mut missing: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();

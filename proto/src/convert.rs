@@ -33,7 +33,7 @@ pub fn failure_status(f: pb::Failure) -> Status {
         pb::Reason::DatasetNotHeld | pb::Reason::DatasetInvalid => Code::FailedPrecondition,
         pb::Reason::Cancelled => Code::Cancelled,
         pb::Reason::WorkerLost | pb::Reason::Unavailable => Code::Unavailable,
-        pb::Reason::LimitExceeded => Code::ResourceExhausted,
+        pb::Reason::LimitExceeded | pb::Reason::Busy => Code::ResourceExhausted,
         pb::Reason::NotFound => Code::NotFound,
         pb::Reason::DeadlineExceeded => Code::DeadlineExceeded,
         pb::Reason::Internal | pb::Reason::Unspecified => Code::Internal,

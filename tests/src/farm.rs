@@ -1,9 +1,11 @@
 //! A whole farm in this process: a coordinator and workers on `127.0.0.1:0`, each worker
 //! over its own data root, driven through the same client a user's `trove render
 //! --coordinator` uses. Dropping the farm shuts every server down. [`FarmOptions`] give it
-//! tokens, TLS and a stream cap, as an operator's flags would.
+//! tokens, TLS and a stream cap, as an operator's flags would. [`SharedFarm`] is several
+//! coordinators sharing one pool of workers.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use tokio::sync::oneshot;
@@ -13,6 +15,7 @@ use trove_proto::auth::Token;
 use trove_proto::connect::Connector;
 use trove_proto::tls::{CaCert, ServerTls};
 use trove_proto::v1 as pb;
+use trove_worker::metrics::WorkerMetrics;
 use trove_worker::{WorkerConfig, WorkerSecurity};
 
 /// A running in-process farm.
@@ -302,4 +305,188 @@ pub fn spawn_server_with_env(
         return Err(std::io::Error::other(message));
     }
     Ok((child, address))
+}
+
+/// Several coordinators sharing one pool of workers, each worker registered with all of them
+/// (`trove-worker --coordinator A --coordinator B`): each coordinator owns the jobs
+/// submitted to it, and every worker casts for all of them. A coordinator can be stopped and
+/// started again on its address while the others go on. Dropping the farm shuts every
+/// server down.
+pub struct SharedFarm {
+    /// Each coordinator's URL.
+    pub urls: Vec<String>,
+    /// Each worker's metrics (batches answered, batches refused as busy).
+    pub worker_metrics: Vec<Arc<WorkerMetrics>>,
+    runtime: tokio::runtime::Runtime,
+    config: FarmConfig,
+    coordinators: Vec<Option<RunningCoordinator>>,
+    workers: Vec<Option<oneshot::Sender<()>>>,
+}
+
+/// A coordinator of a [`SharedFarm`]: what stops it, and its task.
+struct RunningCoordinator {
+    stop: oneshot::Sender<()>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl SharedFarm {
+    /// `coordinators` coordinators and one worker per data root, each worker registered with
+    /// every coordinator and holding at most `max_batches` batches (`None`: the default);
+    /// returns once every coordinator lists every worker alive.
+    pub fn start(coordinators: usize, roots: &[PathBuf], max_batches: Option<usize>) -> SharedFarm {
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .expect("a tokio runtime");
+        let config = FarmConfig { heartbeat: TEST_HEARTBEAT, ..FarmConfig::default() };
+        let mut farm = SharedFarm {
+            urls: Vec::new(),
+            worker_metrics: Vec::new(),
+            runtime,
+            config,
+            coordinators: Vec::new(),
+            workers: Vec::new(),
+        };
+        for _ in 0..coordinators {
+            let listener = farm.runtime.block_on(tokio::net::TcpListener::bind("127.0.0.1:0")).expect("bind");
+            farm.urls.push(format!("http://{}", listener.local_addr().expect("address")));
+            let running = farm.run_coordinator(listener);
+            farm.coordinators.push(Some(running));
+        }
+        for root in roots {
+            let mut config = WorkerConfig::new(farm.urls[0].clone(), root);
+            config.coordinators = farm.urls.clone();
+            if let Some(n) = max_batches {
+                config.max_batches = n;
+            }
+            farm.worker_metrics.push(config.metrics.clone());
+            let tx = farm.runtime.block_on(async {
+                let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind a worker");
+                let (tx, rx) = oneshot::channel::<()>();
+                tokio::spawn(async move {
+                    let stopped = async {
+                        let _ = rx.await;
+                    };
+                    if let Err(e) = trove_worker::run(listener, stopped, config).await {
+                        eprintln!("worker stopped: {e}");
+                    }
+                });
+                tx
+            });
+            farm.workers.push(Some(tx));
+        }
+        for i in 0..coordinators {
+            farm.wait_for_workers(i, roots.len());
+        }
+        farm
+    }
+
+    fn run_coordinator(&self, listener: tokio::net::TcpListener) -> RunningCoordinator {
+        let config = self.config.clone();
+        let (stop, stopped) = oneshot::channel::<()>();
+        let task = self.runtime.spawn(async move {
+            let stopped = async {
+                let _ = stopped.await;
+            };
+            if let Err(e) = farm::run(listener, stopped, config).await {
+                eprintln!("coordinator stopped: {e}");
+            }
+        });
+        RunningCoordinator { stop, task }
+    }
+
+    /// Stops coordinator `i` and waits until it has (it holds no job: its drain is at once);
+    /// its workers go on serving the others and keep trying to reach it.
+    pub fn stop_coordinator(&mut self, i: usize) {
+        let running = self.coordinators[i].take().expect("coordinator running");
+        let _ = running.stop.send(());
+        self.runtime
+            .block_on(async { tokio::time::timeout(Duration::from_secs(30), running.task).await })
+            .expect("the coordinator stops within 30 s")
+            .expect("the coordinator's task");
+    }
+
+    /// Starts coordinator `i` again on its address, empty: its workers register again when
+    /// their next heartbeat is answered "unknown".
+    pub fn restart_coordinator(&mut self, i: usize) {
+        assert!(self.coordinators[i].is_none(), "coordinator {i} is running");
+        let address = self.urls[i].trim_start_matches("http://").to_string();
+        let listener = self.runtime.block_on(tokio::net::TcpListener::bind(&address)).expect("bind the same address");
+        self.coordinators[i] = Some(self.run_coordinator(listener));
+    }
+
+    /// Waits until coordinator `i` lists `n` alive workers (at most ten seconds).
+    pub fn wait_for_workers(&self, i: usize, n: usize) {
+        let started = Instant::now();
+        loop {
+            let alive = self.workers(i).map(|w| w.iter().filter(|w| w.alive).count()).unwrap_or(0);
+            if alive >= n {
+                return;
+            }
+            assert!(
+                started.elapsed() < Duration::from_secs(10),
+                "coordinator {i}: only {alive} of {n} workers registered"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// The workers coordinator `i` lists, with its counts of their batches.
+    pub fn workers(&self, i: usize) -> Result<Vec<pb::WorkerInfo>, ClientError> {
+        self.block_on(async { self.client(i).await?.workers().await })
+    }
+
+    /// A client of coordinator `i`.
+    pub async fn client(&self, i: usize) -> Result<FarmClient, ClientError> {
+        FarmClient::connect(&self.urls[i]).await
+    }
+
+    /// Runs a future on the farm's runtime.
+    pub fn block_on<F: std::future::Future>(&self, f: F) -> F::Output {
+        self.runtime.block_on(f)
+    }
+
+    /// Renders each (coordinator, scene text, name) at once, each through its coordinator, as
+    /// `trove render --coordinator` does; every job must end within [`RENDER_DEADLINE`].
+    pub fn render_at_once(
+        &self,
+        jobs: &[(usize, String, String, pb::JobOptions)],
+    ) -> Vec<Result<JobFiles, ClientError>> {
+        self.block_on(async {
+            let renders = jobs.iter().map(|(i, text, name, options)| {
+                let (text, name, options) = (text.clone(), name.clone(), *options);
+                let url = self.urls[*i].clone();
+                tokio::spawn(async move {
+                    let mut client = FarmClient::connect(&url).await?;
+                    client.render(text, name, options, |_| {}).await
+                })
+            });
+            let handles: Vec<_> = renders.collect();
+            let mut out = Vec::with_capacity(handles.len());
+            for handle in handles {
+                let files = tokio::time::timeout(RENDER_DEADLINE, handle)
+                    .await
+                    .unwrap_or_else(|_| panic!("no result within {RENDER_DEADLINE:?}"))
+                    .expect("the render task");
+                out.push(files);
+            }
+            out
+        })
+    }
+}
+
+impl Drop for SharedFarm {
+    fn drop(&mut self) {
+        for w in self.workers.iter_mut() {
+            if let Some(tx) = w.take() {
+                let _ = tx.send(());
+            }
+        }
+        for c in self.coordinators.iter_mut() {
+            if let Some(running) = c.take() {
+                let _ = running.stop.send(());
+            }
+        }
+    }
 }

@@ -2,7 +2,9 @@
 //! only the workers hold beside a generated one ([`SLAB_AND_BALL`], with its data root
 //! [`slab_root`]), quick and slow generated balls, and the hostile scenes of the
 //! bounded-work limits (nested boxes, many objects), so that the limit tests, the fault
-//! tests and the operator tests refuse and render the same inputs.
+//! tests and the operator tests refuse and render the same inputs; and random scenes of many
+//! raw datasets ([`random_scene`]), which the farm tests render on one coordinator and on
+//! several.
 
 use std::path::{Path, PathBuf};
 
@@ -104,4 +106,59 @@ pub fn ball(size: u32, extra: &str) -> String {
 /// A ball slow enough to keep a worker busy for a while: cubic at a fine step.
 pub fn slow_ball(size: u32) -> String {
     ball(size, "interpolation = \"cubic\"\nsampling_distance = 0.002")
+}
+
+/// A small deterministic generator (SplitMix64), so a failing scene can be rebuilt from its
+/// seed.
+pub struct Rng(pub u64);
+
+impl Rng {
+    /// The next 64 random bits.
+    pub fn bits(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [lo, hi).
+    pub fn in_range(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * (self.bits() >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// A scene of `datasets` raw u8 datasets written under `dir` (keys `d{i}.raw`), each used
+/// by one or two objects scattered so that rays cross several of them, with translucent
+/// and opaque maps, so that fronts, culling and co-located pieces all occur.
+pub fn random_scene(dir: &Path, datasets: usize, seed: u64) -> String {
+    let mut rng = Rng(seed);
+    let mut text = String::from(
+        "[image]\nwidth = 40\nheight = 36\nbackground = [0.05, 0.1, 0.15]\n\
+         [camera]\neye = [0.5, 0.5, 4.0]\ntarget = [0.5, 0.5, 0.5]\nup = [0, 1, 0]\nfov_y = 30.0\n",
+    );
+    for i in 0..datasets {
+        let n = 3 + (rng.bits() % 6) as usize;
+        let voxels: Vec<u8> = (0..n * n * n).map(|_| (rng.bits() % 256) as u8).collect();
+        std::fs::write(dir.join(format!("d{i}.raw")), voxels).unwrap();
+        text += &format!(
+            "[[datasets]]\nname = \"d{i}\"\ndims = [{n}, {n}, {n}]\n[datasets.channels.voxel]\nraw = \"d{i}.raw\"\ntype = \"u8\"\n"
+        );
+    }
+    for i in 0..datasets {
+        for copy in 0..1 + (i % 2) {
+            let s = rng.in_range(0.3, 0.6);
+            let (x, y, z) = (rng.in_range(-0.1, 0.8), rng.in_range(-0.1, 0.8), rng.in_range(-0.5, 0.8));
+            let top = if rng.bits().is_multiple_of(3) { 1.0 } else { rng.in_range(0.05, 0.5) };
+            text += &format!(
+                "[[objects]]\nname = \"o{i}-{copy}\"\ndataset = \"d{i}\"\n\
+                 transform = {{ matrix = [[{s}, 0, 0, {x}], [0, {s}, 0, {y}], [0, 0, {s}, {z}], [0, 0, 0, 1]] }}\n\
+                 colour = {{ type = \"ramp\", points = [[0, {r}, 0.2, 0.1], [255, 0.1, {g}, 0.9]] }}\n\
+                 opacity = {{ type = \"ramp\", points = [[0, 0], [120, 0], [255, {top}]] }}\n",
+                r = rng.in_range(0.2, 1.0),
+                g = rng.in_range(0.2, 1.0),
+            );
+        }
+    }
+    text
 }

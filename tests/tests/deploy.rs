@@ -2,7 +2,7 @@
 //! with `kubernetes-validate --strict` (the schemas ship in the package) at the oldest and the
 //! newest Kubernetes the manifests are written for, the compose file with `check-jsonschema`'s
 //! vendored compose-spec schema, and, where `kubectl` is at hand, what `kubectl kustomize`
-//! renders of `deploy/k8s` and `deploy/k8s-tls`. Each tool is also shown a broken copy, which
+//! renders of `deploy/k8s`, `deploy/k8s-tls` and `deploy/k8s-multi`. Each tool is also shown a broken copy, which
 //! it must refuse: a validator that accepts anything would otherwise pass here.
 //!
 //! The Python tools come from PyPI (`.ci/run` installs them, pinned). Where one is missing its
@@ -151,6 +151,13 @@ fn the_kustomization_lists_every_manifest_and_the_tls_overlay_builds_on_it() {
     assert_eq!(sorted, present, "deploy/k8s/kustomization.yaml must list exactly the manifests beside it");
     let tls = kustomization_resources(&std::fs::read_to_string(deploy().join("k8s-tls/kustomization.yaml")).unwrap());
     assert_eq!(tls, ["../k8s"], "deploy/k8s-tls/kustomization.yaml must build on deploy/k8s alone");
+    let multi =
+        kustomization_resources(&std::fs::read_to_string(deploy().join("k8s-multi/kustomization.yaml")).unwrap());
+    assert_eq!(
+        multi,
+        ["../k8s", "coordinators.yaml"],
+        "deploy/k8s-multi/kustomization.yaml must build on deploy/k8s and its coordinators.yaml"
+    );
 }
 
 #[test]
@@ -168,6 +175,7 @@ fn the_kubernetes_manifests_validate_strictly() {
     let mut files = farm_manifests();
     assert!(files.len() >= 3, "deploy/k8s has {} manifests", files.len());
     files.push(deploy().join("shard-loader.yaml"));
+    files.push(deploy().join("k8s-multi/coordinators.yaml"));
     let failures = kubernetes_validate(&files);
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 
@@ -196,11 +204,20 @@ fn what_kustomize_renders_validates_strictly() {
         return;
     }
     let dir = scratch("deploy-kustomize");
-    for overlay in ["k8s", "k8s-tls"] {
+    for overlay in ["k8s", "k8s-tls", "k8s-multi"] {
         let path = deploy().join(overlay);
         let out = run("kubectl", &["kustomize", path.to_str().unwrap()]).unwrap();
         assert!(out.success, "kubectl kustomize deploy/{overlay}:\n{}", out.output);
         assert!(out.output.contains("kind: StatefulSet"), "deploy/{overlay} renders no StatefulSet");
+        if overlay == "k8s-multi" {
+            // The one coordinator gives way to the StatefulSet, which the workers list.
+            assert!(!out.output.contains("kind: Deployment"), "deploy/k8s-multi keeps the one coordinator");
+            assert!(!out.output.contains("claimName: trove-coordinator-state"), "deploy/k8s-multi keeps its claim");
+            for i in 0..4 {
+                let url = format!("http://trove-coordinator-{i}.trove-coordinators:7000");
+                assert!(out.output.contains(&url), "deploy/k8s-multi's workers do not list {url}");
+            }
+        }
         let rendered = dir.join(format!("{overlay}.yaml"));
         std::fs::write(&rendered, &out.output).unwrap();
         let failures = kubernetes_validate(&[rendered]);

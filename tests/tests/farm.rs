@@ -11,6 +11,7 @@ use trove_core::render::{render, RenderOptions};
 use trove_core::scene::{DataRoot, Scene};
 use trove_proto::v1 as pb;
 use trove_tests::farm::{data_root, TestFarm};
+use trove_tests::scenes::random_scene;
 use trove_tests::{example_scenes, scratch, shared_data, shrunk_scene_text};
 
 /// The files the example scenes read, split over three workers; the CT head (used by four
@@ -219,60 +220,6 @@ fn a_worker_refuses_keys_that_leave_its_root() {
     }
     // The file inside the root is held and casts.
     assert!(farm.render(&scene("inside.raw"), "s.toml", false).is_ok());
-}
-
-/// A small deterministic generator (SplitMix64), so a failing scene can be rebuilt from its
-/// seed.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in [lo, hi).
-    fn in_range(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * (self.next() >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
-
-/// A scene of `datasets` raw u8 datasets written under `dir` (keys `d{i}.raw`), each used
-/// by one or two objects scattered so that rays cross several of them, with translucent
-/// and opaque maps, so that fronts, culling and co-located pieces all occur.
-fn random_scene(dir: &Path, datasets: usize, seed: u64) -> String {
-    let mut rng = Rng(seed);
-    let mut text = String::from(
-        "[image]\nwidth = 40\nheight = 36\nbackground = [0.05, 0.1, 0.15]\n\
-         [camera]\neye = [0.5, 0.5, 4.0]\ntarget = [0.5, 0.5, 0.5]\nup = [0, 1, 0]\nfov_y = 30.0\n",
-    );
-    for i in 0..datasets {
-        let n = 3 + (rng.next() % 6) as usize;
-        let voxels: Vec<u8> = (0..n * n * n).map(|_| (rng.next() % 256) as u8).collect();
-        std::fs::write(dir.join(format!("d{i}.raw")), voxels).unwrap();
-        text += &format!(
-            "[[datasets]]\nname = \"d{i}\"\ndims = [{n}, {n}, {n}]\n[datasets.channels.voxel]\nraw = \"d{i}.raw\"\ntype = \"u8\"\n"
-        );
-    }
-    for i in 0..datasets {
-        for copy in 0..1 + (i % 2) {
-            let s = rng.in_range(0.3, 0.6);
-            let (x, y, z) = (rng.in_range(-0.1, 0.8), rng.in_range(-0.1, 0.8), rng.in_range(-0.5, 0.8));
-            let top = if rng.next().is_multiple_of(3) { 1.0 } else { rng.in_range(0.05, 0.5) };
-            text += &format!(
-                "[[objects]]\nname = \"o{i}-{copy}\"\ndataset = \"d{i}\"\n\
-                 transform = {{ matrix = [[{s}, 0, 0, {x}], [0, {s}, 0, {y}], [0, 0, {s}, {z}], [0, 0, 0, 1]] }}\n\
-                 colour = {{ type = \"ramp\", points = [[0, {r}, 0.2, 0.1], [255, 0.1, {g}, 0.9]] }}\n\
-                 opacity = {{ type = \"ramp\", points = [[0, 0], [120, 0], [255, {top}]] }}\n",
-                r = rng.in_range(0.2, 1.0),
-                g = rng.in_range(0.2, 1.0),
-            );
-        }
-    }
-    text
 }
 
 #[test]

@@ -15,10 +15,18 @@
 //! later". When the worker drains ([`CastService::drain`], on SIGTERM), new streams are
 //! refused with `UNAVAILABLE`, each stream stops taking batches, casts those it already
 //! holds, and then ends, so that the coordinator sends whatever was left to another holder.
+//!
+//! A worker also holds at most `max_batches` batches at once (queued or being cast), over
+//! every stream, job and coordinator ([`BatchSlots`]): each coordinator counts only the
+//! batches it sent, so several coordinators sharing the worker could otherwise queue
+//! several times what it casts while a replica elsewhere stands idle. A batch beyond it is
+//! answered at once with a `BUSY` failure unless its job holds less than its fair share
+//! (`trove_core::render::dispatch::admits`), so no job is starved by others keeping the
+//! worker full; the coordinator sends a refused batch again, costing it no attempt.
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -26,6 +34,7 @@ use tokio::sync::{mpsc, watch, OwnedSemaphorePermit, Semaphore};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 use trove_core::dataset::{Catalog, DatasetError, FileInfo, FileKind};
+use trove_core::render::dispatch;
 use trove_core::render::wire::{decode_tasks, encode_results};
 use trove_core::render::{BatchCaster, PieceRgba, VolumeStore};
 use trove_core::scene::Scene;
@@ -40,6 +49,74 @@ const CHUNK_TASKS: usize = 256;
 /// Streams a worker serves at once when not told.
 pub const DEFAULT_MAX_STREAMS: usize = 64;
 
+/// Batches a worker holds at most when not told: what one coordinator sends it at most
+/// (`trove_core::render::dispatch::capacity` of its rayon threads), so that a worker of one
+/// coordinator never refuses a batch.
+pub fn default_max_batches() -> usize {
+    dispatch::capacity(rayon::current_num_threads() as u32) as usize
+}
+
+/// The batches a worker holds (queued or being cast), over every stream, and per job.
+pub struct BatchSlots {
+    max: u64,
+    held: Mutex<Held>,
+}
+
+#[derive(Default)]
+struct Held {
+    total: u64,
+    /// Per job id (`CastOpen.job_id`): batches held; jobs holding none are removed.
+    jobs: HashMap<Arc<str>, u64>,
+}
+
+/// One batch held; dropping it (the batch answered, failed or dropped) frees its place.
+pub struct Slot {
+    slots: Arc<BatchSlots>,
+    job: Arc<str>,
+}
+
+impl BatchSlots {
+    /// Places for `max` batches (at least one).
+    pub fn new(max: usize) -> Arc<BatchSlots> {
+        Arc::new(BatchSlots { max: max.max(1) as u64, held: Mutex::default() })
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Held> {
+        self.held.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// A place for one more batch of `job`, or `None`: busy (see [`dispatch::admits`]).
+    pub fn take(self: &Arc<Self>, job: &Arc<str>) -> Option<Slot> {
+        let mut held = self.lock();
+        let mine = held.jobs.get(job).copied().unwrap_or(0);
+        let others = held.jobs.len() as u64 - u64::from(mine > 0);
+        if !dispatch::admits(self.max, held.total, mine, others) {
+            return None;
+        }
+        held.total += 1;
+        *held.jobs.entry(job.clone()).or_default() += 1;
+        Some(Slot { slots: self.clone(), job: job.clone() })
+    }
+
+    /// Batches held now, over every job.
+    pub fn held(&self) -> u64 {
+        self.lock().total
+    }
+}
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        let mut held = self.slots.lock();
+        held.total = held.total.saturating_sub(1);
+        if let Some(n) = held.jobs.get_mut(&self.job) {
+            *n -= 1;
+            if *n == 0 {
+                held.jobs.remove(&self.job);
+            }
+        }
+    }
+}
+
 /// The `Worker` service.
 pub struct CastService {
     files: Arc<DataFiles>,
@@ -48,6 +125,7 @@ pub struct CastService {
     /// One permit per stream served at once.
     streams: Arc<Semaphore>,
     max_streams: usize,
+    slots: Arc<BatchSlots>,
     draining: watch::Sender<bool>,
 }
 
@@ -66,9 +144,16 @@ impl Drain {
 
 impl CastService {
     /// Serves casts of the datasets in `files`, keeping voxels in `store`, at most
-    /// `max_streams` streams at once (at least one); `busy` counts the batches being cast
-    /// (reported with heartbeats).
-    pub fn new(files: Arc<DataFiles>, store: VolumeStore, busy: Arc<AtomicU64>, max_streams: usize) -> CastService {
+    /// `max_streams` streams at once (at least one) holding at most `max_batches` batches
+    /// (at least one; beyond, a job over its share is refused as busy); `busy` counts the
+    /// batches being cast (reported with heartbeats).
+    pub fn new(
+        files: Arc<DataFiles>,
+        store: VolumeStore,
+        busy: Arc<AtomicU64>,
+        max_streams: usize,
+        max_batches: usize,
+    ) -> CastService {
         let max_streams = max_streams.max(1);
         CastService {
             files,
@@ -76,6 +161,7 @@ impl CastService {
             busy,
             streams: Arc::new(Semaphore::new(max_streams)),
             max_streams,
+            slots: BatchSlots::new(max_batches),
             draining: watch::channel(false).0,
         }
     }
@@ -172,6 +258,7 @@ impl pb::worker_server::Worker for CastService {
             _ => return Err(Status::invalid_argument("a cast stream starts with an `open` message")),
         };
         let span = tracing::info_span!("cast", job = %job, dataset = open.dataset);
+        let job: Arc<str> = if open.job_id.is_empty() { job.into() } else { open.job_id.as_str().into() };
         let files = self.files.clone();
         let opened = tokio::task::spawn_blocking(move || open_job(&files, &open))
             .await
@@ -180,7 +267,9 @@ impl pb::worker_server::Worker for CastService {
         span.in_scope(|| tracing::info!(name = scene.datasets()[dataset].name(), "stream open"));
 
         let (out_tx, out_rx) = mpsc::channel(16);
-        let (batch_tx, batch_rx) = mpsc::channel::<pb::CastBatch>(256);
+        let (batch_tx, batch_rx) = mpsc::channel::<(pb::CastBatch, Slot)>(256);
+        let slots = self.slots.clone();
+        let max_batches = slots.max;
         let cancelled = Arc::new(AtomicBool::new(false));
         let feeder_cancel = cancelled.clone();
         let feeder_out = out_tx.clone();
@@ -193,7 +282,20 @@ impl pb::worker_server::Worker for CastService {
                 };
                 match message {
                     Ok(Some(pb::CastRequest { kind: Some(pb::cast_request::Kind::Batch(b)) })) => {
-                        if batch_tx.send(b).await.is_err() {
+                        let Some(slot) = slots.take(&job) else {
+                            let message = format!(
+                                "this worker holds {max_batches} batches (--max-batches) over every coordinator and job, \
+                                 and this job has its share; send it again later or elsewhere"
+                            );
+                            let mut f = convert::failure(pb::Reason::Busy, true, message);
+                            f.batch_id = b.batch_id;
+                            let busy = pb::CastResponse { kind: Some(pb::cast_response::Kind::Failure(f)) };
+                            if feeder_out.send(Ok(busy)).await.is_err() {
+                                break false;
+                            }
+                            continue;
+                        };
+                        if batch_tx.send((b, slot)).await.is_err() {
                             break false;
                         }
                     }
@@ -246,9 +348,11 @@ struct Caster {
 }
 
 impl Caster {
-    fn run(self, mut batches: mpsc::Receiver<pb::CastBatch>) {
+    /// Casts the stream's batches until its queue closes; each batch's place is freed before
+    /// its answer goes, so the worker never counts more than a coordinator does.
+    fn run(self, mut batches: mpsc::Receiver<(pb::CastBatch, Slot)>) {
         let info = &self.scene.datasets()[self.dataset];
-        while let Some(first) = batches.blocking_recv() {
+        while let Some((first, slot)) = batches.blocking_recv() {
             if self.cancelled.load(Ordering::SeqCst) {
                 return;
             }
@@ -258,6 +362,7 @@ impl Caster {
                 Err(e) => {
                     let mut f = convert::store_failure(&e);
                     f.batch_id = first.batch_id;
+                    drop(slot);
                     if !self.send(pb::cast_response::Kind::Failure(f)) {
                         return;
                     }
@@ -271,12 +376,13 @@ impl Caster {
                 Err(e) => {
                     let mut f = convert::cast_failure(&e);
                     f.batch_id = first.batch_id;
+                    drop(slot);
                     let _ = self.send(pb::cast_response::Kind::Failure(f));
                     return;
                 }
             };
-            let mut next = Some((first, loaded, loading_nanos));
-            while let Some((batch, bytes_loaded, loading_nanos)) = next.take() {
+            let mut next = Some((first, slot, loaded, loading_nanos));
+            while let Some((batch, slot, bytes_loaded, loading_nanos)) = next.take() {
                 if self.cancelled.load(Ordering::SeqCst) {
                     return;
                 }
@@ -284,10 +390,11 @@ impl Caster {
                 let Some(kind) = span.in_scope(|| self.cast(&caster, &batch, bytes_loaded, loading_nanos)) else {
                     return;
                 };
+                drop(slot);
                 if !self.send(kind) {
                     return;
                 }
-                next = batches.try_recv().ok().map(|b| (b, 0, 0));
+                next = batches.try_recv().ok().map(|(b, slot)| (b, slot, 0, 0));
             }
             // The queue ran dry: release the pin so others may load under a budget.
         }

@@ -13,10 +13,11 @@ use trove_worker::{WorkerConfig, WorkerSecurity};
 #[derive(Parser)]
 #[command(name = "trove-worker", version)]
 struct Args {
-    /// The coordinator's URL, e.g. http://127.0.0.1:7000 (https://... for TLS, with
-    /// --tls-ca).
-    #[arg(long)]
-    coordinator: String,
+    /// A coordinator's URL, e.g. http://127.0.0.1:7000 (https://... for TLS, with
+    /// --tls-ca). Repeat it, or separate URLs with commas, to serve several coordinators
+    /// (each registers the worker and sends it batches of its own jobs).
+    #[arg(long = "coordinator", value_name = "URL", required = true, value_delimiter = ',')]
+    coordinators: Vec<String>,
     /// Address to listen on (port 0 picks a free port); the bound address is printed as the
     /// first line of standard output.
     #[arg(long, default_value = "127.0.0.1:0")]
@@ -55,6 +56,12 @@ struct Args {
     /// more is refused as busy, and the coordinator asks again later.
     #[arg(long, default_value_t = trove_worker::cast::DEFAULT_MAX_STREAMS as u32, value_parser = clap::value_parser!(u32).range(1..))]
     max_streams: u32,
+    /// Batches held at once (queued or being cast), over every coordinator and job; one
+    /// more is refused as busy unless its job has less than its share, and its coordinator
+    /// sends it again later or elsewhere. Default: twice the threads (at least 4), the most
+    /// one coordinator sends, so a worker of one coordinator never refuses a batch.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
+    max_batches: Option<u32>,
     /// Serve Prometheus metrics at http://ADDR/metrics (e.g. 0.0.0.0:9101); off when not
     /// given. Its bound address is printed as the second line of standard output.
     #[arg(long, value_name = "ADDR")]
@@ -126,13 +133,14 @@ async fn run() -> Result<()> {
     let bound = listener.local_addr().context("the listener has no address")?;
     println!("{bound}");
     let config = WorkerConfig {
-        coordinator: args.coordinator,
+        coordinators: args.coordinators,
         advertise: args.advertise,
         data_root: args.data_root,
         memory_budget: args.memory_budget,
         worker_id,
         security,
         max_streams: args.max_streams as usize,
+        max_batches: args.max_batches.map_or_else(trove_worker::cast::default_max_batches, |n| n as usize),
         metrics: Default::default(),
     };
     // The metrics server stops when the worker does.

@@ -1,4 +1,10 @@
-//! Registering with the coordinator and staying alive in its eyes.
+//! Registering with each coordinator and staying alive in its eyes.
+//!
+//! A worker may serve several coordinators (`--coordinator` repeated): it runs one
+//! [`stay_registered`] task per coordinator, each with its own registration, heartbeats,
+//! re-registration after that coordinator restarts and [`deregister`] at shutdown, and
+//! counts in one [`Registered`] how many know it now (its health is SERVING while at least
+//! one does).
 //!
 //! Heartbeats come from this task alone, on the async runtime, while casting runs on its
 //! own threads: a worker busy with a long batch still answers on time (Ballista's lesson:
@@ -6,7 +12,8 @@
 //! deadline; a coordinator that restarted answers `known = false` and the worker registers
 //! again; one that is unreachable is retried with capped backoff until shutdown. One that
 //! refuses the worker's token is not retried: no number of attempts would change its answer,
-//! so the worker stops and says why ([`Refused`]). A worker that stops deregisters
+//! so that coordinator's task ends and says why ([`Refused`]); the worker stops only once
+//! every coordinator it serves has refused it (server.rs). A worker that stops deregisters
 //! ([`deregister`]), so that no new batch is sent to it.
 
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -39,7 +46,34 @@ pub fn check_worker_id(id: &str) -> Result<(), String> {
     Ok(())
 }
 
-/// What the worker tells the coordinator about itself.
+/// How many coordinators know this worker now (registered, not yet forgotten): what the
+/// worker's gRPC health reports as SERVING while at least one does.
+pub type Registered = watch::Sender<usize>;
+
+/// One coordinator's part of [`Registered`]: counted while it knows the worker, and given
+/// back when its task ends.
+struct Known<'a> {
+    count: &'a Registered,
+    known: bool,
+}
+
+impl Known<'_> {
+    fn set(&mut self, known: bool) {
+        if known != self.known {
+            self.known = known;
+            self.count.send_modify(|n| if known { *n += 1 } else { *n = n.saturating_sub(1) });
+        }
+    }
+}
+
+impl Drop for Known<'_> {
+    fn drop(&mut self) {
+        self.set(false);
+    }
+}
+
+/// What the worker tells every coordinator about itself.
+#[derive(Clone)]
 pub struct Announcement {
     /// Its stable id: the same across coordinator restarts, so it gets its entry back.
     pub worker_id: String,
@@ -51,28 +85,33 @@ pub struct Announcement {
     pub memory_budget: Option<u64>,
     /// Batches being cast right now.
     pub busy: Arc<AtomicU64>,
-    /// True while the coordinator knows this worker (registered, not yet forgotten): what
-    /// the worker's gRPC health reports as SERVING.
-    pub registered: watch::Sender<bool>,
+    /// How many coordinators know this worker, shared by every coordinator's task.
+    pub registered: Registered,
 }
 
-/// The coordinator refused this worker's credentials.
+/// A coordinator refused this worker's credentials.
 #[derive(Debug, thiserror::Error)]
 #[error(
-    "the coordinator refused this worker ({code:?}): {message}; the worker presents the token in its \
-     --token-file, which must hold the coordinator's --worker-token-file token"
+    "the coordinator at {coordinator} refused this worker ({code:?}): {message}; the worker presents the \
+     token in its --token-file, which must hold the coordinator's --worker-token-file token"
 )]
 pub struct Refused {
+    /// The coordinator's URL.
+    pub coordinator: String,
     /// `UNAUTHENTICATED` or `PERMISSION_DENIED`.
     pub code: tonic::Code,
     /// The coordinator's reason.
     pub message: String,
 }
 
-/// The refusal in `status`, when it is one that retrying cannot fix.
-fn refusal(status: &tonic::Status) -> Option<Refused> {
-    matches!(status.code(), tonic::Code::Unauthenticated | tonic::Code::PermissionDenied)
-        .then(|| Refused { code: status.code(), message: status.message().to_string() })
+/// The refusal in `status` from the coordinator at `url`, when it is one that retrying
+/// cannot fix.
+fn refusal(url: &str, status: &tonic::Status) -> Option<Refused> {
+    matches!(status.code(), tonic::Code::Unauthenticated | tonic::Code::PermissionDenied).then(|| Refused {
+        coordinator: url.to_string(),
+        code: status.code(),
+        message: status.message().to_string(),
+    })
 }
 
 /// A lazily connecting channel to the coordinator at `url` (it reconnects by itself), every
@@ -82,10 +121,17 @@ pub fn channel(connector: &Connector, url: &str) -> Result<AuthChannel, ConnectE
     Ok(connector.authorize(endpoint.connect_lazy()))
 }
 
-/// Registers, then heartbeats, until the coordinator refuses the worker's credentials (the
-/// caller drops this future at shutdown). `id` is set to the id the coordinator gave on
-/// every registration, for [`deregister`].
-pub async fn stay_registered(channel: AuthChannel, me: Announcement, id: watch::Sender<Option<String>>) -> Refused {
+/// Registers with the coordinator at `url` (reached over `channel`), then heartbeats, until
+/// it refuses the worker's credentials (the caller drops this future at shutdown). `id` is
+/// set to the id the coordinator gave on every registration, for [`deregister`]; while the
+/// coordinator knows the worker it is counted in `me.registered`.
+pub async fn stay_registered(
+    url: String,
+    channel: AuthChannel,
+    me: Announcement,
+    id: watch::Sender<Option<String>>,
+) -> Refused {
+    let mut known = Known { count: &me.registered, known: false };
     let mut client = MembershipClient::new(channel);
     let mut backoff = Duration::from_millis(50);
     loop {
@@ -106,8 +152,8 @@ pub async fn stay_registered(channel: AuthChannel, me: Announcement, id: watch::
                 continue;
             }
             Err(status) => {
-                if let Some(refused) = refusal(&status) {
-                    tracing::error!(code = ?status.code(), message = status.message(), "the coordinator refused this worker's token");
+                if let Some(refused) = refusal(&url, &status) {
+                    tracing::error!(coordinator = %url, code = ?status.code(), message = status.message(), "the coordinator refused this worker's token");
                     return refused;
                 }
                 tracing::warn!(code = ?status.code(), message = status.message(), "cannot register; retrying");
@@ -117,9 +163,9 @@ pub async fn stay_registered(channel: AuthChannel, me: Announcement, id: watch::
             }
         };
         backoff = Duration::from_millis(50);
-        tracing::info!(worker = %registered.worker_id, "registered");
+        tracing::info!(worker = %registered.worker_id, coordinator = %url, "registered");
         id.send_replace(Some(registered.worker_id.clone()));
-        me.registered.send_replace(true);
+        known.set(true);
         let every = Duration::from_millis(registered.heartbeat_millis.max(10) as u64);
         loop {
             tokio::time::sleep(every).await;
@@ -131,11 +177,12 @@ pub async fn stay_registered(channel: AuthChannel, me: Announcement, id: watch::
                 Ok(r) if r.get_ref().known => {}
                 Ok(_) => {
                     tracing::warn!("the coordinator does not know this worker any more; registering again");
-                    me.registered.send_replace(false);
+                    known.set(false);
                     break;
                 }
                 Err(status) => {
-                    if let Some(refused) = refusal(&status) {
+                    if let Some(refused) = refusal(&url, &status) {
+                        tracing::error!(coordinator = %url, code = ?status.code(), message = status.message(), "the coordinator refused this worker's token");
                         return refused;
                     }
                     tracing::warn!(code = ?status.code(), "heartbeat failed");

@@ -13,6 +13,7 @@
 //! | `trove_worker_casting_seconds_total` | counter | wall time casting them (rayon threads within) |
 //! | `trove_worker_resident_bytes` | gauge | voxel bytes resident in the store (kept classifications included) |
 //! | `trove_worker_streams_open` | gauge | `Cast` streams open now |
+//! | `trove_worker_batches_refused_total` | counter | batches refused as busy (`--max-batches`; several coordinators) |
 
 use std::future::Future;
 use std::pin::Pin;
@@ -37,6 +38,7 @@ pub struct WorkerMetrics {
     casting_seconds: Counter<f64>,
     resident_bytes: Gauge,
     streams_open: Gauge,
+    refused: Counter,
     store: Mutex<Option<VolumeStore>>,
 }
 
@@ -76,6 +78,12 @@ impl WorkerMetrics {
         );
         let streams_open = Gauge::default();
         registry.register("streams_open", "Cast streams open now", streams_open.clone());
+        let refused = Counter::default();
+        registry.register(
+            "batches_refused",
+            "Batches refused as busy: the worker held --max-batches and the job had its share",
+            refused.clone(),
+        );
         WorkerMetrics {
             registry,
             batches,
@@ -83,6 +91,7 @@ impl WorkerMetrics {
             casting_seconds,
             resident_bytes,
             streams_open,
+            refused,
             store: Mutex::new(None),
         }
     }
@@ -103,7 +112,16 @@ impl WorkerMetrics {
                 self.pieces.inc_by(pieces);
             }
             self.casting_seconds.inc_by(result.casting_nanos as f64 * 1e-9);
+        } else if let Some(pb::cast_response::Kind::Failure(f)) = &response.kind {
+            if f.reason() == pb::Reason::Busy {
+                self.refused.inc();
+            }
         }
+    }
+
+    /// Batches refused as busy so far.
+    pub fn refused(&self) -> u64 {
+        self.refused.get()
     }
 
     /// Batches answered so far.

@@ -50,3 +50,31 @@ fn a_simd_path_it_does_not_know_is_refused_at_start() {
     // Refused before it listens: no address printed.
     assert!(out.stdout.is_empty(), "{}", String::from_utf8_lossy(&out.stdout));
 }
+
+#[test]
+fn coordinators_are_given_by_repeating_the_flag_or_with_commas_and_each_only_once() {
+    // A list and a repeated flag make one list: the third URL repeats the first.
+    let out = Command::new(env!("CARGO_BIN_EXE_trove-worker"))
+        .args([
+            "--coordinator",
+            "http://127.0.0.1:9,http://127.0.0.1:10",
+            "--coordinator",
+            "http://127.0.0.1:9",
+            "--listen",
+            "127.0.0.1:0",
+            "--data-root",
+            ".",
+        ])
+        .output()
+        .expect("run trove-worker");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(stderr.contains("coordinator http://127.0.0.1:9 is listed twice"), "{stderr}");
+    // None at all is refused by the parser.
+    let out = Command::new(env!("CARGO_BIN_EXE_trove-worker"))
+        .args(["--listen", "127.0.0.1:0", "--data-root", "."])
+        .output()
+        .expect("run trove-worker");
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--coordinator <URL>"));
+}

@@ -49,7 +49,11 @@
 //! **Layouts.** `coordinators` coordinators of `coordinator_cores` cores each share the
 //! workers, each counting only its own batches in flight (each has its own registry): with
 //! [`Split::Tiles`] they split one image into tiles of whole bands, one job each; with
-//! [`Split::Jobs`] each runs a whole job of its own (the same scene), side by side.
+//! [`Split::Jobs`] each runs a whole job of its own (the same scene), side by side — the
+//! layout the farm runs (`trove-worker --coordinator A,B,…`). A simulated worker queues all
+//! its coordinators send; a real one refuses beyond `--max-batches` a job over its fair
+//! share as busy (`dispatch::admits`), which is not modelled: every [`Load`] here has
+//! `refused: false`.
 
 use std::cmp::Ordering;
 use std::collections::{BTreeMap, BTreeSet, BinaryHeap, HashMap, HashSet, VecDeque};
@@ -816,7 +820,7 @@ impl Sim<'_> {
             .copied()
             .filter(|&w| shard.streams.get(&(w, d)) != Some(&StreamState::Opening))
             .collect();
-        let loads = usable.iter().map(|&w| Load { in_flight: shard.in_flight[w] as u64, threads });
+        let loads = usable.iter().map(|&w| Load { in_flight: shard.in_flight[w] as u64, threads, refused: false });
         least_loaded(loads).map(|i| usable[i])
     }
 

@@ -45,6 +45,9 @@ pub struct FarmStats {
     pub mode: &'static str,
     /// Batches answered.
     pub batches: u64,
+    /// Batches a worker refused as busy (it serves other coordinators or jobs too, and this
+    /// job had its share), each sent again without spending an attempt.
+    pub batches_refused_busy: u64,
     /// Payload bytes of every message to the workers (scenes once per stream, then tasks).
     pub wire_bytes_to_workers: u64,
     /// Payload bytes of every answer from the workers.
@@ -90,6 +93,7 @@ impl FarmStats {
             render,
             mode: "farm",
             batches,
+            batches_refused_busy: 0,
             wire_bytes_to_workers: to,
             wire_bytes_from_workers: from,
             workers,

@@ -3,6 +3,11 @@
 //! image are admitted at once and in what order. The farm's coordinator and `trove-bench
 //! farm-sim` both call it, so the simulation cannot drift from the code it models; it knows
 //! no clocks, sockets or threads, so its unit tests are exact.
+//!
+//! Several coordinators may share a worker, each counting only its own batches on it. The
+//! worker therefore has the last word ([`admits`]: it holds at most its own maximum, beyond
+//! which a job over its fair share is refused as busy), and a coordinator counts a worker
+//! that refused it as full until that worker answers one of its batches ([`Load::refused`]).
 
 /// Batches a worker of `threads` threads may have in flight at once: enough that its
 /// threads stay busy while answers travel (two per thread), few enough that culling, which
@@ -18,13 +23,42 @@ pub struct Load {
     pub in_flight: u64,
     /// Its threads.
     pub threads: u32,
+    /// It refused a batch as busy (other coordinators fill it) and has not answered one since:
+    /// it has no room, whatever `in_flight` says.
+    pub refused: bool,
 }
 
 impl Load {
     /// Whether it has room for another batch.
     pub fn has_room(&self) -> bool {
-        self.in_flight < capacity(self.threads)
+        self.room() > 0
     }
+
+    /// How many more batches it has room for.
+    pub fn room(&self) -> u64 {
+        if self.refused {
+            return 0;
+        }
+        capacity(self.threads).saturating_sub(self.in_flight)
+    }
+}
+
+/// Whether a worker that holds at most `max` batches at once (queued or being cast), holding
+/// `total` now over every coordinator and job it serves, takes one more of a job that holds
+/// `held` of them, while `jobs` other jobs hold at least one each: while it has room it takes
+/// any batch; when full, it still takes one of a job below its fair share (`max` over the
+/// jobs holding batches, this one counted, at least one), and refuses the rest as busy. So
+/// a job never waits for a worker that other jobs — on this coordinator or another — keep
+/// full: it is always admitted up to its share, and the others are refused until their
+/// answers bring them down to theirs. What a worker holds stays below twice `max` (plus one
+/// per job). With one coordinator, which never has more than [`capacity`] batches out on a
+/// worker, and `max` at least that, nothing is ever refused.
+pub fn admits(max: u64, total: u64, held: u64, jobs: u64) -> bool {
+    if total < max {
+        return true;
+    }
+    let sharing = jobs + 1;
+    held < (max / sharing).max(1)
 }
 
 /// The index of the candidate that casts the next batch: of those with room, the one with
@@ -100,7 +134,7 @@ mod tests {
     use super::*;
 
     fn load(in_flight: u64, threads: u32) -> Load {
-        Load { in_flight, threads }
+        Load { in_flight, threads, refused: false }
     }
 
     #[test]
@@ -127,6 +161,61 @@ mod tests {
         // 2 of 4 and 16 of 32 are both half: the first wins.
         assert_eq!(least_loaded([load(16, 16), load(2, 2)]), Some(0));
         assert_eq!(least_loaded([load(0, 2), load(0, 8)]), Some(0));
+    }
+
+    #[test]
+    fn a_worker_that_refused_a_batch_has_no_room_until_it_answers() {
+        let refused = Load { refused: true, ..load(0, 8) };
+        assert_eq!(refused.room(), 0);
+        assert!(!refused.has_room());
+        // Its replica takes the batch even though it is busier by the count.
+        assert_eq!(least_loaded([refused, load(5, 2)]), None);
+        assert_eq!(least_loaded([refused, load(3, 2)]), Some(1));
+        assert_eq!(load(3, 2).room(), 1);
+        assert_eq!(load(9, 2).room(), 0, "over capacity, no room and no underflow");
+    }
+
+    #[test]
+    fn a_full_worker_admits_a_job_below_its_share_and_refuses_the_rest() {
+        // Room: anything goes.
+        assert!(admits(8, 7, 7, 0));
+        // Full, one other job holding everything: a new job gets up to half.
+        assert!(admits(8, 8, 0, 1));
+        assert!(admits(8, 11, 3, 1));
+        assert!(!admits(8, 12, 4, 1), "at its share");
+        assert!(!admits(8, 8, 8, 0), "the job alone, at the maximum");
+        // Three jobs sharing 8: shares of 2 (8 / 3 rounded down).
+        assert!(admits(8, 9, 1, 2));
+        assert!(!admits(8, 9, 2, 2));
+        // More jobs than the maximum: each still gets one.
+        assert!(admits(4, 6, 0, 9));
+        assert!(!admits(4, 6, 1, 9));
+    }
+
+    #[test]
+    fn two_jobs_filling_one_worker_end_with_equal_shares_and_neither_starves() {
+        // Job 0 fills an 8-batch worker alone; job 1 arrives. Each step: whoever has a batch
+        // ready offers it (both always do); every other step the worker answers one batch of
+        // the job holding most. Neither is ever left without a batch on the worker.
+        let max = 8;
+        let mut held = [8u64, 0];
+        for step in 0..200 {
+            for j in 0..2 {
+                let total = held[0] + held[1];
+                let others = held.iter().enumerate().filter(|&(k, &h)| k != j && h > 0).count() as u64;
+                if admits(max, total, held[j], others) {
+                    held[j] += 1;
+                }
+            }
+            assert!(held[0] + held[1] <= 2 * max + 2, "step {step}: {held:?}");
+            assert!(held[1] > 0 && held[0] > 0, "step {step}: {held:?}");
+            if step % 2 == 1 {
+                let j = if held[0] >= held[1] { 0 } else { 1 };
+                held[j] -= 1;
+            }
+        }
+        // The last step answered one: equal halves of the worker, less that one.
+        assert!(held[0].abs_diff(held[1]) <= 1 && held[0] + held[1] == max - 1, "{held:?}");
     }
 
     #[test]

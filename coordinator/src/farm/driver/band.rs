@@ -47,8 +47,9 @@ pub(super) struct Ready {
     pub id: u64,
     pub attempt: u32,
     pub tasks: u64,
-    /// The tasks in `render::wire` form.
-    pub encoded: Vec<u8>,
+    /// The tasks in `render::wire` form (shared, not copied, with the request that carries
+    /// them, so a batch a busy worker refuses goes again as it was).
+    pub encoded: prost::bytes::Bytes,
 }
 
 /// What a band tells the job's loop.
@@ -175,7 +176,7 @@ fn step(scheduler: &mut Scheduler, band: usize, message: ToBand) -> Option<News>
                 let encoding = Instant::now();
                 seconds.dispatch += (encoding - asked).as_secs_f64();
                 let Some(batch) = next else { break };
-                let encoded = encode_tasks(&batch.tasks);
+                let encoded = encode_tasks(&batch.tasks).into();
                 seconds.encoding += encoding.elapsed().as_secs_f64();
                 let tasks = batch.tasks.len() as u64;
                 batches.push(Ready { band, id: batch.id, attempt: batch.attempt, tasks, encoded });

@@ -4,6 +4,11 @@
 //! [`trove_core::render::dispatch::least_loaded`]'s choice; this module only keeps what that
 //! choice and the answers need.
 //!
+//! A worker that refused a batch as busy (it serves other coordinators too, and this job
+//! has its share of it) has no room for this job ([`Load::refused`]) until it answers one of
+//! the job's batches, its stream is lost, or the driver's tick; the refused batch goes back
+//! to the stock as it was, its attempt unspent ([`Dispatch::refused`]).
+//!
 //! A (worker, dataset) pair whose stream was lost *rests* ([`Rest`]): for a while when the
 //! stream broke, went silent or the worker was busy, after which a worker still alive (its
 //! heartbeats kept coming) serves the job again; for the rest of the job when the worker
@@ -14,7 +19,8 @@ use std::collections::{HashMap, HashSet};
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
-use trove_core::render::dispatch::{capacity, least_loaded, Load};
+use prost::bytes::Bytes;
+use trove_core::render::dispatch::{least_loaded, Load};
 
 use super::super::registry::{Registry, WorkerHandle};
 use super::StreamKey;
@@ -28,6 +34,9 @@ pub(super) struct InFlight {
     pub attempt: u32,
     pub stream: StreamKey,
     pub tasks: u64,
+    /// The tasks as sent, kept (shared, not copied) to send again if the worker refuses them
+    /// as busy.
+    pub encoded: Bytes,
     pub sent: Instant,
 }
 
@@ -62,6 +71,9 @@ pub(super) struct Dispatch {
     /// busy or answered wrongly), and until when.
     resting: HashMap<StreamKey, Rest>,
     in_flight: HashMap<u64, InFlight>,
+    /// Workers that refused one of this job's batches as busy and have not answered one
+    /// since: no room for this job.
+    busy: HashSet<String>,
     next_wire: u64,
 }
 
@@ -74,6 +86,7 @@ impl Dispatch {
             generation: u64::MAX,
             resting: HashMap::new(),
             in_flight: HashMap::new(),
+            busy: HashSet::new(),
             next_wire: 1,
         }
     }
@@ -86,6 +99,11 @@ impl Dispatch {
             return;
         }
         self.generation = generation;
+        if always {
+            // A refusal's answer or the last batch in flight may have crossed it: at the
+            // latest on the tick, a busy worker is asked again.
+            self.busy.clear();
+        }
         let now = Instant::now();
         self.resting.retain(|_, rest| !matches!(rest, Rest::Until(t) if *t <= now));
         for (d, keys) in self.keys.iter().enumerate() {
@@ -108,18 +126,23 @@ impl Dispatch {
     /// has room.
     pub fn pick(&self, d: usize, usable: impl Fn(&WorkerHandle) -> bool) -> Option<&WorkerHandle> {
         let holders: Vec<&WorkerHandle> = self.holders[d].iter().filter(|w| usable(w)).collect();
-        let loads = holders.iter().map(|w| Load { in_flight: w.in_flight.load(Ordering::Relaxed), threads: w.threads });
-        least_loaded(loads).map(|i| holders[i])
+        least_loaded(holders.iter().map(|w| self.load(w))).map(|i| holders[i])
+    }
+
+    /// What the policy knows of `worker` for this job.
+    fn load(&self, worker: &WorkerHandle) -> Load {
+        Load {
+            in_flight: worker.in_flight.load(Ordering::Relaxed),
+            threads: worker.threads,
+            refused: self.busy.contains(&worker.id),
+        }
     }
 
     /// The batches dataset `d`'s holders have room for now, over every job they serve, and
     /// how many holders it has.
     pub fn room(&self, d: usize) -> (usize, usize) {
         let holders = &self.holders[d];
-        let room = holders
-            .iter()
-            .map(|w| capacity(w.threads).saturating_sub(w.in_flight.load(Ordering::Relaxed)) as usize)
-            .sum();
+        let room = holders.iter().map(|w| self.load(w).room() as usize).sum();
         (room, holders.len())
     }
 
@@ -157,6 +180,30 @@ impl Dispatch {
             w.in_flight.fetch_sub(1, Ordering::Relaxed);
             w.done.fetch_add(1, Ordering::Relaxed);
         }
+        // It answered: it has room for this job again as far as its count says.
+        self.busy.remove(&stream.0);
+        Ok(batch)
+    }
+
+    /// Takes back batch `wire`, which the worker of `stream` refused as busy: no longer in
+    /// flight (the worker's count given back), and the worker has no room for this job
+    /// until it answers one of its batches. The caller sends the batch again, attempt
+    /// unchanged.
+    pub fn refused(
+        &mut self,
+        wire: u64,
+        stream: &StreamKey,
+        worker: Option<&WorkerHandle>,
+    ) -> Result<InFlight, Refused> {
+        let batch = self.in_flight.get(&wire).ok_or(Refused::Unknown)?;
+        if batch.stream != *stream {
+            return Err(Refused::WrongStream);
+        }
+        let batch = self.in_flight.remove(&wire).expect("looked up above");
+        if let Some(w) = worker {
+            w.in_flight.fetch_sub(1, Ordering::Relaxed);
+        }
+        self.busy.insert(stream.0.clone());
         Ok(batch)
     }
 
@@ -169,6 +216,7 @@ impl Dispatch {
             w.in_flight.fetch_sub(lost.len() as u64, Ordering::Relaxed);
         }
         // A pair that is out for the job stays out.
+        self.busy.remove(&stream.0);
         let kept = self.resting.get(stream).copied();
         self.resting.insert(stream.clone(), if kept == Some(Rest::Job) { Rest::Job } else { rest });
         if let Some(holders) = self.holders.get_mut(stream.1) {

@@ -407,11 +407,15 @@ impl Driver {
         let Ready { band, id, attempt, tasks, encoded } = ready;
         let _span = tracing::debug_span!("batch", wire, dataset = d, attempt, worker = %worker.id, tasks).entered();
         let request = pb::CastRequest {
-            kind: Some(pb::cast_request::Kind::Batch(pb::CastBatch { batch_id: wire, attempt, tasks: encoded })),
+            kind: Some(pb::cast_request::Kind::Batch(pb::CastBatch {
+                batch_id: wire,
+                attempt,
+                tasks: encoded.clone(),
+            })),
         };
         self.tally.wire_to += request.encoded_len() as u64;
         permit.send(request);
-        let in_flight = InFlight { band, id, dataset: d, attempt, stream: key, tasks, sent: Instant::now() };
+        let in_flight = InFlight { band, id, dataset: d, attempt, stream: key, tasks, encoded, sent: Instant::now() };
         self.dispatch.sent(wire, &worker, in_flight);
         if self.tally.cast_started.is_none() {
             self.tally.cast_started = Some(Instant::now());
@@ -586,12 +590,35 @@ impl Driver {
 
     /// A worker's failure report: a batch it cannot cast, or the stream as a whole.
     fn failed(&mut self, stream: &StreamKey, failure: pb::Failure) -> Result<(), JobError> {
+        if failure.reason() == pb::Reason::Busy {
+            self.busy(stream, failure.batch_id);
+            return Ok(());
+        }
         if !failure.retryable {
             return Err(JobError::Worker { worker: stream.0.clone(), failure: Box::new(failure) });
         }
         tracing::warn!(worker = %stream.0, reason = ?failure.reason(), message = %failure.message, "worker failed a batch; retrying elsewhere");
         self.lose_stream(stream, Rest::Job);
         Ok(())
+    }
+
+    /// Batch `wire`, refused by the worker of `stream` as busy (other coordinators' or jobs'
+    /// batches fill it): back to the front of its dataset's stock as it was, attempt unspent,
+    /// for a holder with room — this worker once it has answered one of this job's batches.
+    fn busy(&mut self, stream: &StreamKey, wire: u64) {
+        let worker = self.streams.get(stream).map(|s| s.worker.clone());
+        let batch = match self.dispatch.refused(wire, stream, worker.as_ref()) {
+            Ok(batch) => batch,
+            Err(why) => {
+                tracing::debug!(wire, worker = %stream.0, ?why, "busy refusal of a batch not in flight; ignored");
+                return;
+            }
+        };
+        tracing::debug!(wire, worker = %stream.0, dataset = batch.dataset, "worker busy; the batch goes again");
+        self.tally.refused += 1;
+        let InFlight { band, id, dataset, attempt, tasks, encoded, .. } = batch;
+        self.stock[dataset].ready.push_front(Ready { band, id, attempt, tasks, encoded });
+        self.active.insert(dataset);
     }
 
     /// Stops using `stream` for this job, for `rest`: its batches go back to their bands,

@@ -24,6 +24,8 @@ pub(super) struct Tally {
     pub stats: RenderStats,
     pub store: StoreStats,
     pub batches: u64,
+    /// Batches refused as busy and sent again.
+    pub refused: u64,
     pub wire_to: u64,
     pub wire_from: u64,
     workers: BTreeMap<String, WorkerStats>,
@@ -42,6 +44,7 @@ impl Tally {
             stats: RenderStats::default(),
             store: StoreStats::default(),
             batches: 0,
+            refused: 0,
             wire_to: 0,
             wire_from: 0,
             workers: BTreeMap::new(),
@@ -91,6 +94,7 @@ impl Tally {
         let workers = std::mem::take(&mut self.workers).into_values().collect();
         let mut stats = FarmStats::new(render, self.batches, self.wire_to, self.wire_from, workers);
         stats.coordinator_seconds = self.coordinator.clone();
+        stats.batches_refused_busy = self.refused;
         stats
     }
 }
