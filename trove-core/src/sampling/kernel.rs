@@ -8,6 +8,7 @@
 
 use super::lanes::{Located, Trilinear4};
 use super::packet::{Line, Packets};
+use super::shade::Shade;
 use super::simd::SimdPath;
 use super::skip::{cell_of, Jumps, Skipper};
 use super::{corrected_opacity, PieceResult};
@@ -56,6 +57,7 @@ pub(super) trait VoxelSource: Send + Sync {
 }
 
 /// The `voxel` channel through a typed view (or the decoding reader).
+#[derive(Clone, Copy)]
 pub(super) struct Read<V>(pub V);
 
 impl<V: Voxels> VoxelSource for Read<V> {
@@ -67,6 +69,7 @@ impl<V: Voxels> VoxelSource for Read<V> {
 }
 
 /// No map reads the `voxel` channel.
+#[derive(Clone, Copy)]
 pub(super) struct NoVoxel;
 
 impl VoxelSource for NoVoxel {
@@ -78,6 +81,7 @@ impl VoxelSource for NoVoxel {
 }
 
 /// The general path: the channel if some map reads it, else 0.
+#[derive(Clone, Copy)]
 pub(super) struct MaybeVoxel<'a>(pub Option<ChannelReader<'a>>);
 
 impl VoxelSource for MaybeVoxel<'_> {
@@ -229,11 +233,13 @@ impl Maps for JointPiecewise {
     }
 }
 
-/// One combination's loop and what it needs.
-pub(super) struct Kernel<'a, I, V, M> {
+/// One combination's loop and what it needs; `S` is whether (and how) it shades, the
+/// axis of effects ([`super::shade`]).
+pub(super) struct Kernel<'a, I, V, M, S> {
     pub interp: I,
     pub voxels: V,
     pub maps: M,
+    pub shade: S,
     pub skip: Option<Skipper<'a>>,
     pub correction: bool,
     pub specialised: bool,
@@ -249,7 +255,7 @@ enum Group<'k, 'a, S, const L: usize> {
     Lanes(Located<L>, &'k Trilinear4<'a>),
 }
 
-impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
+impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Kernel<'_, I, V, M, S> {
     /// The opacity and colour of one sample, or (0, black) when it contributes nothing,
     /// computed without branching on the data: the samples of a group then overlap in the
     /// processor instead of each waiting on a mispredicted branch (opacity 0 in haze is
@@ -376,12 +382,52 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
             }
             k += m as u64;
         }
-        PieceResult { rgba: acc, samples }
+        PieceResult { rgba: acc, samples, shaded: 0 }
+    }
+
+    /// A shaded object's samples one by one, straight or not, each tested for empty space,
+    /// and each that contributes shaded ([`Shade::shade`]) before it is composited. The
+    /// samples, their values and their opacities are those of the unlit loops.
+    fn cast_shaded(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult {
+        let mut acc = Rgba::CLEAR;
+        let (mut samples, mut shaded) = (0, 0);
+        let done = |acc: &Rgba| alpha_in + (1.0 - alpha_in) * acc.alpha >= stop_at;
+        let mut cell = [u32::MAX; 3];
+        let mut empty = false;
+        let at = walk.world_points();
+        let view = -walk.ray().dir;
+        for (k, (vc, ell)) in walk.enumerate() {
+            let Some(vc) = vc else { continue };
+            let s = self.interp.locate(vc);
+            if let Some(skip) = &self.skip {
+                let c = cell_of(self.interp.base(&s));
+                if c != cell {
+                    cell = c;
+                    empty = skip.is_empty(&self.interp, Level::Fine, c);
+                }
+                if empty {
+                    continue;
+                }
+            }
+            samples += 1;
+            let (opacity, mut colour) = self.mapped(&s);
+            if opacity > 0.0 {
+                shaded += 1;
+                colour = self.shade.shade(&self.interp, vc, at.at(k as u64), view, colour);
+            }
+            if self.composite((opacity, colour), ell, &mut acc, done) {
+                break;
+            }
+        }
+        PieceResult { rgba: acc, samples, shaded }
     }
 }
 
-impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
+impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Cast for Kernel<'_, I, V, M, S> {
     fn cast(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult {
+        if S::ON {
+            return self.cast_shaded(walk, alpha_in, stop_at);
+        }
         if let Some(line) = walk.line() {
             return self.cast_line(&line, alpha_in, stop_at);
         }
@@ -410,7 +456,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
                 break;
             }
         }
-        PieceResult { rgba: acc, samples }
+        PieceResult { rgba: acc, samples, shaded: 0 }
     }
 
     fn cast_many(&self, pieces: Vec<(usize, SampleWalk<'_>, f64, f64)>, out: &mut [PieceResult]) {
