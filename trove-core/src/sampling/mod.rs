@@ -39,6 +39,15 @@
 //!   names another, and a path the processor lacks is refused ([`BindError::Simd`]), never
 //!   quietly replaced; [`ObjectCaster::on_path`] forces one in-process (tests and benchmarks
 //!   run every path the machine has), and `--stats` reports the path (`simd`).
+//! * `shade.rs` is the axis of effects (SPEC §6): each loop is compiled for `NoShade`, the
+//!   unlit loop as it was before effects existed, or for `Shaded`, which lights each sample
+//!   that contributes with Blinn–Phong from the gradient of the object's own interpolation
+//!   (central differences, taken to world space by the inverse transpose of the box's
+//!   Jacobian at the sample). Whether an object is lit is decided at bind; no loop tests it
+//!   per sample. Lit objects are cast one piece at a time in f64 (a lit loop walks its
+//!   samples one by one, testing each for empty space, as the distorted walk does); the
+//!   AVX2 lanes and the f32 packet loop serve unlit objects only, and shading inside the
+//!   packet loop is the next step.
 //! * `skip.rs` jumps over empty macrocells: walking cells, or, where cells were classified
 //!   at bind, leaping out of a cube of empty ones by each cell's distance to the nearest
 //!   non-empty cell; its margins keep every jump from passing a sample that is not empty.
