@@ -1418,6 +1418,9 @@ fn with_effects(lights: &str, shading: &str) -> String {
     ])
 }
 
+/// A refusal case: the scene's edit, the key refused, and the kind expected.
+type Case<T> = (T, &'static str, fn(&Kind) -> bool);
+
 const SUN: &str = "[[lights]]\ntype = \"directional\"\ndirection = [0.0, -3.0, -4.0]";
 
 #[test]
@@ -1451,7 +1454,7 @@ fn lights_and_shading_take_their_defaults_and_normalise_directions() {
 
 #[test]
 fn light_keys_are_refused_with_their_path() {
-    let cases: &[(String, &str, fn(&Kind) -> bool)] = &[
+    let cases: &[Case<String>] = &[
         (format!("{SUN}\ncolur = [1, 1, 1]"), "lights[0].colur", |k| matches!(k, Kind::UnknownKey { .. })),
         (
             "[[lights]]\ntype = \"spot\"\nposition = [0, 0, 0]".into(),
@@ -1505,7 +1508,7 @@ fn light_keys_are_refused_with_their_path() {
 
 #[test]
 fn shading_keys_are_refused_with_their_path() {
-    let cases: &[(&str, &str, fn(&Kind) -> bool)] = &[
+    let cases: &[Case<&str>] = &[
         ("shading = { shine = 3 }", "objects[0].shading.shine", |k| matches!(k, Kind::UnknownKey { .. })),
         (
             "shading = { ambient = -0.1 }",
