@@ -64,6 +64,15 @@ fn every_example_scene_renders_through_the_farm_as_in_local_mode() {
         {
             assert!(stats.get(key).is_some(), "{name}: stats lack `{key}`");
         }
+        // The workers count the samples they shade, object by object.
+        let shaded: u64 = stats["effects"]
+            .as_array()
+            .expect("effects")
+            .iter()
+            .map(|e| e["shading_evaluations"].as_u64().expect("counted"))
+            .sum();
+        let lit = text.contains("[[lights]]");
+        assert_eq!(shaded > 0, lit, "{name}: {shaded} samples shaded");
     }
 }
 

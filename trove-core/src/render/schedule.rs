@@ -147,7 +147,8 @@ pub struct Scheduler {
     inter: Intersections,
     dataset_of_object: Vec<u32>,
     /// Per object, how far a lit colour may exceed the opacity it is premultiplied by
-    /// ([`crate::scene::Object::colour_gain`]; 1 unlit).
+    /// ([`crate::scene::Object::colour_gain`]; 1 unlit); empty when no object is lit, so
+    /// an unlit scene's results are checked without looking their objects up.
     gain_of_object: Vec<f32>,
     termination: f64,
     batch_tasks: usize,
@@ -191,7 +192,8 @@ impl Scheduler {
             return Err(ScheduleError::TooManyTasks { tasks: n as u64 });
         }
         let dataset_of_object: Vec<u32> = scene.objects().iter().map(|o| o.dataset() as u32).collect();
-        let gain_of_object = scene.objects().iter().map(|o| o.colour_gain() as f32).collect();
+        let gains: Vec<f32> = scene.objects().iter().map(|o| o.colour_gain() as f32).collect();
+        let gain_of_object = if gains.iter().all(|&g| g == 1.0) { Vec::new() } else { gains };
         let Plan { order, queue, waves } = plan(&inter, &dataset_of_object, scene.datasets().len());
         let lanes: Vec<Lane> = waves
             .into_iter()
@@ -338,8 +340,13 @@ impl Scheduler {
         if batch.tasks.len() != results.len() {
             return Err(ScheduleError::ResultCount { id, expected: batch.tasks.len(), got: results.len() });
         }
-        let gain = |i: usize| self.gain_of_object[self.inter.tasks[batch.tasks[i] as usize].object as usize];
-        if let Some(i) = (0..results.len()).find(|&i| !plausible(&results[i], gain(i))) {
+        let bad = if self.gain_of_object.is_empty() {
+            results.iter().position(|r| !plausible(r, 1.0))
+        } else {
+            let gain = |i: usize| self.gain_of_object[self.inter.tasks[batch.tasks[i] as usize].object as usize];
+            (0..results.len()).find(|&i| !plausible(&results[i], gain(i)))
+        };
+        if let Some(i) = bad {
             return Err(ScheduleError::BadResult { id, index: i });
         }
         let batch = self.in_flight.remove(&id).expect("looked up above");

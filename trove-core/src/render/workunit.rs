@@ -225,6 +225,12 @@ impl<'a> BatchCaster<'a> {
         Ok(BatchCaster { scene, dataset, objects })
     }
 
+    /// The number of objects in the scene (the length of the counts
+    /// [`BatchCaster::cast_counting`] adds to).
+    pub fn object_count(&self) -> usize {
+        self.objects.len()
+    }
+
     /// The dataset these casters are bound to.
     pub fn dataset(&self) -> usize {
         self.dataset
