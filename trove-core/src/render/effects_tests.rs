@@ -180,3 +180,62 @@ fn without_lights_shading_is_not_computed_and_the_image_is_unlit_bit_for_bit() {
         assert!(a.stats.effects[0].ran.is_empty() && a.stats.effects[0].shading_evaluations == Some(0));
     }
 }
+
+/// A 12×12 view of an RGBA dataset (no `voxel`) whose alpha is a sphere, lit by one light,
+/// with `colour` and `opacity` maps and a `shading` table.
+fn rgba_scene(colour: &str, opacity: &str, lights: bool) -> String {
+    let light = if lights { "[[lights]]\ntype = \"directional\"\ndirection = [1.0, -1.0, -1.0]\n" } else { "" };
+    format!(
+        r#"
+[image]
+width = 12
+height = 12
+background = [0.0, 0.0, 0.0]
+[camera]
+eye = [0.5, 0.5, 3.0]
+target = [0.5, 0.5, 0.5]
+up = [0.0, 1.0, 0.0]
+fov_y = 25.0
+{light}
+[[datasets]]
+name = "rgba"
+dims = [16, 16, 16]
+[datasets.channels.red]
+generator = {{ kind = "constant", value = 200, type = "u8" }}
+[datasets.channels.green]
+generator = {{ kind = "constant", value = 150, type = "u8" }}
+[datasets.channels.blue]
+generator = {{ kind = "constant", value = 90, type = "u8" }}
+[datasets.channels.alpha]
+generator = {{ kind = "sphere", radius = 0.45, profile = "radial", value = 255, type = "u8" }}
+[[objects]]
+name = "rgba"
+dataset = "rgba"
+colour = {colour}
+opacity = {opacity}
+shading = {{ ambient = 0.1, diffuse = 0.9, specular = 0.5 }}
+"#
+    )
+}
+
+#[test]
+fn a_raw_opacity_is_lit_from_the_alpha_channel_and_a_constant_one_without_a_field_is_not() {
+    let raw = "{ type = \"raw\" }";
+    for (interpolation, colour) in [("", raw), ("\ninterpolation = \"cubic\"", raw)] {
+        let text = rgba_scene(colour, raw, true) + interpolation;
+        for algorithm in [Algorithm::PerRay, Algorithm::Grouped] {
+            let lit = rendered(&text, algorithm);
+            let unlit = rendered(&(rgba_scene(colour, raw, false) + interpolation), algorithm);
+            assert_eq!(lit.stats.effects[0].ran, ["shading"], "{algorithm:?}{interpolation}");
+            assert!(lit.stats.effects[0].shading_evaluations > Some(0));
+            assert!(max_difference(&lit, &unlit) > 0.05, "{algorithm:?}{interpolation}: the light changed nothing");
+        }
+    }
+    // Raw colour with a constant opacity reads no channel to take normals from: unlit,
+    // bit for bit.
+    let constant = "{ type = \"constant\", coefficients = [0.2] }";
+    let lit = rendered(&rgba_scene(raw, constant, true), Algorithm::PerRay);
+    let unlit = rendered(&rgba_scene(raw, constant, false), Algorithm::PerRay);
+    assert!(lit.stats.effects[0].ran.is_empty());
+    assert_eq!(lit.image.pixels(), unlit.image.pixels());
+}
