@@ -6,6 +6,8 @@
 //! deciding per sample; it serves rare combinations and is what the specialised loops are
 //! tested against.
 
+use glam::DVec3;
+
 use super::lanes::{Located, Trilinear4};
 use super::packet::{Line, Packets};
 use super::shade::Shade;
@@ -15,7 +17,7 @@ use super::{corrected_opacity, PieceResult};
 use crate::composite::Rgba;
 use crate::dataset::macrocell::Level;
 use crate::dataset::{ChannelReader, Voxels};
-use crate::geometry::{LineSamples, SampleWalk};
+use crate::geometry::{LineSamples, SampleWalk, WorldPoints};
 use crate::interp::Interp;
 use crate::mapping::{clamp1, clamp3, ColourMap, JointPiecewise, OpacityMap, Piecewise, Polynomial, RawColour};
 
@@ -297,7 +299,7 @@ impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Kernel<'_, I, V, M, S> {
             // SAFETY: lanes exist only where the processor has AVX2.
             return unsafe { self.cast_line_avx2(line, alpha_in, stop_at) };
         }
-        self.cast_line_any::<LANES>(line, alpha_in, stop_at)
+        self.cast_line_any::<LANES>(line, alpha_in, stop_at, None)
     }
 
     /// The same loop compiled for AVX2, so that the lanes' intrinsics inline into it (as
@@ -306,14 +308,23 @@ impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Kernel<'_, I, V, M, S> {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
     unsafe fn cast_line_avx2(&self, line: &LineSamples, alpha_in: f64, stop_at: f64) -> PieceResult {
-        self.cast_line_any::<AVX2_LANES>(line, alpha_in, stop_at)
+        self.cast_line_any::<AVX2_LANES>(line, alpha_in, stop_at, None)
     }
 
-    /// [`Kernel::cast_line`]'s loop, for any target.
+    /// [`Kernel::cast_line`]'s loop, for any target. A lit loop (`S::ON`) is given where
+    /// its samples are in the world and the unit vector towards the eye (`lit`), and shades
+    /// each sample that contributes just before compositing it; for an unlit one (`None`)
+    /// that step is not compiled.
     #[inline(always)]
-    fn cast_line_any<const L: usize>(&self, line: &LineSamples, alpha_in: f64, stop_at: f64) -> PieceResult {
+    fn cast_line_any<const L: usize>(
+        &self,
+        line: &LineSamples,
+        alpha_in: f64,
+        stop_at: f64,
+        lit: Option<(&WorldPoints, DVec3)>,
+    ) -> PieceResult {
         let mut acc = Rgba::CLEAR;
-        let mut samples = 0;
+        let (mut samples, mut shaded) = (0, 0);
         let done = |acc: &Rgba| alpha_in + (1.0 - alpha_in) * acc.alpha >= stop_at;
         // The macrocell of the last sample looked at, and whether it is empty.
         let mut cell = [u32::MAX; 3];
@@ -371,24 +382,38 @@ impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Kernel<'_, I, V, M, S> {
                 }
                 Group::Lanes(at, fast) => fast.classify(at),
             };
-            for (&mapped, live) in mapped.iter().zip(live) {
+            for (l, (&mapped, live)) in mapped.iter().zip(live).enumerate() {
                 if !live {
                     continue;
                 }
                 samples += 1;
+                let mut mapped = mapped;
+                if let (true, Some((at, view))) = (S::ON, lit) {
+                    if mapped.0 > 0.0 {
+                        shaded += 1;
+                        let j = k + l as u64;
+                        mapped.1 = self.shade.shade(&self.interp, line.point(j), at.at(j), view, mapped.1);
+                    }
+                }
                 if self.composite(mapped, ell, &mut acc, done) {
                     break 'groups;
                 }
             }
             k += m as u64;
         }
-        PieceResult { rgba: acc, samples, shaded: 0 }
+        PieceResult { rgba: acc, samples, shaded }
     }
 
-    /// A shaded object's samples one by one, straight or not, each tested for empty space,
-    /// and each that contributes shaded ([`Shade::shade`]) before it is composited. The
-    /// samples, their values and their opacities are those of the unlit loops.
+    /// A shaded object's samples, each that contributes shaded ([`Shade::shade`]) before it
+    /// is composited: along a straight line in groups with jumps over empty space, as the
+    /// unlit loop casts them ([`Kernel::cast_line_any`]); an exact distorted walk sample by
+    /// sample, each tested for empty space. The samples, their values and their opacities
+    /// are those of the unlit loops.
     fn cast_shaded(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult {
+        if let Some(line) = walk.line() {
+            let at = walk.world_points();
+            return self.cast_line_any::<LANES>(&line, alpha_in, stop_at, Some((&at, -walk.ray().dir)));
+        }
         let mut acc = Rgba::CLEAR;
         let (mut samples, mut shaded) = (0, 0);
         let done = |acc: &Rgba| alpha_in + (1.0 - alpha_in) * acc.alpha >= stop_at;
