@@ -44,9 +44,10 @@
 //!   that contributes with Blinn–Phong from the gradient of the object's own interpolation
 //!   (central differences, taken to world space by the inverse transpose of the box's
 //!   Jacobian at the sample). Whether an object is lit is decided at bind; no loop tests it
-//!   per sample. Lit objects are cast one piece at a time in f64 (a lit loop walks its
-//!   samples one by one, testing each for empty space, as the distorted walk does); the
-//!   AVX2 lanes and the f32 packet loop serve unlit objects only, and shading inside the
+//!   per sample. Lit objects are cast one piece at a time in f64: straight pieces by the
+//!   generic line loop (groups of four, jumps over empty space), which shades each
+//!   contributing sample before compositing it, exact distorted walks sample by sample.
+//!   The AVX2 lanes and the f32 packet loop serve unlit objects only; shading inside the
 //!   packet loop is the next step.
 //! * `skip.rs` jumps over empty macrocells: walking cells, or, where cells were classified
 //!   at bind, leaping out of a cube of empty ones by each cell's distance to the nearest
