@@ -203,6 +203,8 @@ async fn answer(answers: &Arc<Answers>, job: &Arc<SceneAnswers>, d: usize, batch
                     bytes_loaded: 0,
                     loading_nanos: 0,
                     casting_nanos: 0,
+                    // Recorded results carry no shading counts.
+                    shading_evaluations: Default::default(),
                 }),
                 Err(f) => failure(*f),
             }

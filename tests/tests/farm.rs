@@ -60,9 +60,20 @@ fn every_example_scene_renders_through_the_farm_as_in_local_mode() {
         let files = farm.render(&text, &name, false).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert!(files.png == expected, "{name}: the farm's PNG differs from local mode's");
         let stats: serde_json::Value = serde_json::from_slice(&files.stats_json).unwrap();
-        for key in ["algorithm", "samples", "pieces", "wire_bytes_to_workers", "wire_bytes_from_workers", "workers"] {
+        for key in
+            ["algorithm", "samples", "pieces", "effects", "wire_bytes_to_workers", "wire_bytes_from_workers", "workers"]
+        {
             assert!(stats.get(key).is_some(), "{name}: stats lack `{key}`");
         }
+        // The workers count the samples they shade, object by object.
+        let shaded: u64 = stats["effects"]
+            .as_array()
+            .expect("effects")
+            .iter()
+            .map(|e| e["shading_evaluations"].as_u64().expect("counted"))
+            .sum();
+        let lit = text.contains("[[lights]]");
+        assert_eq!(shaded > 0, lit, "{name}: {shaded} samples shaded");
     }
 }
 

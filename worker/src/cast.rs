@@ -420,21 +420,41 @@ impl Caster {
         self.busy.fetch_add(1, Ordering::Relaxed);
         let started = Instant::now();
         let mut out = vec![PieceRgba::default(); tasks.len()];
+        let objects = caster.object_count();
         let cast = tasks
             .par_chunks(CHUNK_TASKS)
             .zip(out.par_chunks_mut(CHUNK_TASKS))
-            .map(|(t, o)| if self.cancelled.load(Ordering::Relaxed) { Ok(0) } else { caster.cast(t, o) })
-            .try_reduce(|| 0, |a, b| Ok(a + b));
+            .map(|(t, o)| {
+                let mut shaded = Vec::new();
+                if self.cancelled.load(Ordering::Relaxed) {
+                    return Ok((0, shaded));
+                }
+                shaded.resize(objects, 0);
+                caster.cast_counting(t, o, &mut shaded).map(|samples| (samples, shaded))
+            })
+            .try_reduce(
+                || (0, Vec::new()),
+                |(a, mut shaded), (b, more)| {
+                    if shaded.len() < more.len() {
+                        shaded.resize(more.len(), 0);
+                    }
+                    for (s, m) in shaded.iter_mut().zip(more) {
+                        *s += m;
+                    }
+                    Ok((a + b, shaded))
+                },
+            );
         self.busy.fetch_sub(1, Ordering::Relaxed);
         if self.cancelled.load(Ordering::SeqCst) {
             return None;
         }
         Some(match cast {
-            Ok(samples) => pb::cast_response::Kind::Result(pb::BatchResult {
+            Ok((samples, shaded)) => pb::cast_response::Kind::Result(pb::BatchResult {
                 batch_id: batch.batch_id,
                 attempt: batch.attempt,
                 results: encode_results(&out),
                 samples,
+                shading_evaluations: (0u32..).zip(shaded).filter(|&(_, n)| n > 0).collect(),
                 bytes_loaded,
                 loading_nanos,
                 casting_nanos: started.elapsed().as_nanos() as u64,

@@ -13,6 +13,7 @@ pub(crate) use camera::PixelRect;
 pub use camera::{Camera, CameraError, CameraField, Ray};
 pub use pieces::{count_pieces, split_into_pieces, Piece, PieceScratch, Segment};
 pub use placement::{
-    sample_count, BoxOrigin, Extent, InversionPrecisionError, LineSamples, Placement, SampleWalk, Shape, VcLine,
+    sample_count, BoxOrigin, Extent, GradientToWorld, InversionPrecisionError, LineSamples, Placement, SampleWalk,
+    Shape, VcLine, WorldPoints,
 };
 pub(crate) use slab::{Crossing, Crossings, RowDirections, VectorWidth};

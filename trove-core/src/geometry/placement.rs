@@ -226,6 +226,19 @@ impl Placement {
         self.vc_from_world.transform_vector3(dir).length()
     }
 
+    /// What turns a VC gradient into a world one at a VC point (SPEC §6): the inverse
+    /// transpose of the VC → world Jacobian there.
+    pub fn gradient_to_world(&self) -> GradientToWorld<'_> {
+        match &self.shape {
+            // World → VC is linear plus an offset, so its Jacobian M is constant and the VC →
+            // world Jacobian's inverse transpose is Mᵀ.
+            Shape::Affine { .. } => GradientToWorld::Affine(DMat3::from_mat4(self.vc_from_world).transpose()),
+            Shape::Distorted { hex, .. } => {
+                GradientToWorld::Distorted { hex, vc_scale: self.vc_scale, vc_offset: self.vc_offset }
+            }
+        }
+    }
+
     /// The samples of this object over the piece [t0, t1] of `ray` (SPEC §4.2–4.3):
     /// `sampling_distance` 0 means one voxel per step.
     pub fn walk(&self, ray: &Ray, t0: f64, t1: f64, sampling_distance: f64) -> SampleWalk<'_> {
@@ -255,6 +268,39 @@ impl Placement {
         };
         let n = sample_count(len, sampling_distance, vc_len);
         SampleWalk { placement: self, ray: *ray, t0, dt: len / n as f64, n, k: 0, state }
+    }
+}
+
+/// The inverse transpose of an object's VC → world Jacobian, which takes a gradient of a
+/// field over VC to the world gradient of the same field ([`Placement::gradient_to_world`]).
+#[derive(Clone, Copy, Debug)]
+pub enum GradientToWorld<'a> {
+    /// An affine box: the constant matrix (world → VC Jacobian, transposed).
+    Affine(DMat3),
+    /// A distorted box: world = W(q), VC = scale·q + offset, so the VC → world Jacobian at a
+    /// point is J_W(q)·diag(scale)⁻¹, whose inverse transpose is J_W(q)⁻ᵀ·diag(scale).
+    Distorted {
+        /// The box's map W.
+        hex: &'a Hexahedron,
+        /// VC per unit of q, per axis.
+        vc_scale: DVec3,
+        /// VC at q = 0.
+        vc_offset: DVec3,
+    },
+}
+
+impl GradientToWorld<'_> {
+    /// The world gradient at VC point `vc` of a field whose VC gradient there is `g`.
+    /// Non-finite only where the map is singular (which a validated box is not inside).
+    #[inline]
+    pub fn apply(&self, vc: DVec3, g: DVec3) -> DVec3 {
+        match self {
+            GradientToWorld::Affine(m) => *m * g,
+            GradientToWorld::Distorted { hex, vc_scale, vc_offset } => {
+                let q = (vc - *vc_offset) / *vc_scale;
+                hex.jacobian(q).inverse().transpose() * (*vc_scale * g)
+            }
+        }
     }
 }
 
@@ -469,10 +515,37 @@ impl SampleWalk<'_> {
         }
     }
 
+    /// Where the walk's samples are in the world (what lighting needs besides their VC
+    /// points).
+    pub fn world_points(&self) -> WorldPoints {
+        WorldPoints { ray: self.ray, t0: self.t0, dt: self.dt }
+    }
+
+    /// The ray the walk samples.
+    pub fn ray(&self) -> &Ray {
+        &self.ray
+    }
+
     /// Whether every sample of the walk lies outside the box (its end points could not be
     /// inverted): the piece contributes nothing.
     pub fn is_failed(&self) -> bool {
         matches!(self.state, WalkState::Failed)
+    }
+}
+
+/// The world points of a walk's samples ([`SampleWalk::world_points`]).
+#[derive(Clone, Copy, Debug)]
+pub struct WorldPoints {
+    ray: Ray,
+    t0: f64,
+    dt: f64,
+}
+
+impl WorldPoints {
+    /// Sample k's world point, at t0 + (k + ½)·L/n along the ray (SPEC §4.2).
+    #[inline]
+    pub fn at(&self, k: u64) -> DVec3 {
+        self.ray.at(self.t0 + (k as f64 + 0.5) * self.dt)
     }
 }
 

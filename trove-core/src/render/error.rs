@@ -208,7 +208,7 @@ pub enum ScheduleError {
         got: usize,
     },
     /// A result that no cast can produce (not finite, opacity outside [0, 1], or colour
-    /// not premultiplied by it).
+    /// not premultiplied by it, allowing for what lighting adds).
     #[error("batch {id}: result {index} is not a premultiplied colour and opacity in [0, 1]")]
     BadResult {
         /// The batch.

@@ -25,7 +25,7 @@ use super::intersection::intersect;
 use super::raster::Canvas;
 use super::schedule::Scheduler;
 use super::workunit::{BatchCaster, PieceRgba};
-use super::{Progress, RenderError, RenderStats, Rendered, VolumeStore};
+use super::{ObjectEffects, Progress, RenderError, RenderStats, Rendered, VolumeStore};
 use crate::scene::Scene;
 
 /// Tasks per batch: large enough to amortise scheduling and to keep a batch's last pieces,
@@ -46,7 +46,8 @@ pub(super) fn render<C: Canvas>(
     mut canvas: C,
 ) -> Result<Rendered<C>, RenderError> {
     let h = scene.image().height;
-    let mut stats = RenderStats::default();
+    let mut stats = RenderStats { effects: ObjectEffects::listed(scene, Some(0)), ..RenderStats::default() };
+    let mut shaded = vec![0; scene.objects().len()];
     let mut bands = <Bands>::new(h, band_rows, Admission { max_bands: 1, memory_bound: band_memory });
     let mut loading = Duration::ZERO;
     let mut casting = Duration::ZERO;
@@ -74,7 +75,7 @@ pub(super) fn render<C: Canvas>(
             let volume = store.get(info)?;
             band_loading += load_started.elapsed();
             let caster = BatchCaster::for_dataset_turn(scene, dataset, &volume)?;
-            stats.samples += cast_turn(scheduler, &caster, dataset, band_progress)?;
+            stats.samples += cast_turn(scheduler, &caster, dataset, band_progress, &mut shaded)?;
             drop(caster);
             drop(volume);
             if last {
@@ -93,6 +94,7 @@ pub(super) fn render<C: Canvas>(
         bands.composited(band);
         stats.seconds.composition += started.elapsed().as_secs_f64();
     }
+    ObjectEffects::add(&mut stats.effects, &shaded);
     stats.seconds.loading = loading.as_secs_f64();
     stats.seconds.volume_rendering = casting.as_secs_f64();
     if let Some(p) = progress {
@@ -102,7 +104,7 @@ pub(super) fn render<C: Canvas>(
 }
 
 /// Casts dataset `d`'s batches until its turn is done, on as many threads as rayon has;
-/// returns the samples evaluated. Each thread takes a batch from the scheduler, casts it
+/// returns the samples evaluated, and adds the samples shaded per object to `shaded`. Each thread takes a batch from the scheduler, casts it
 /// and records it, so the scheduler's own work (the fronts it decides when it hands a
 /// batch out, recording results) overlaps the other threads' casting instead of holding
 /// all of them at the end of each wave. A thread that finds no batch ready (the wave is
@@ -112,15 +114,19 @@ fn cast_turn(
     caster: &BatchCaster<'_>,
     d: usize,
     progress: Option<(&Progress, u64, u64)>,
+    shaded: &mut [u64],
 ) -> Result<u64, RenderError> {
     struct Turn<'s> {
         scheduler: &'s mut Scheduler,
         samples: u64,
+        shaded: &'s mut [u64],
         error: Option<RenderError>,
     }
-    let turn = Mutex::new(Turn { scheduler, samples: 0, error: None });
+    let objects = shaded.len();
+    let turn = Mutex::new(Turn { scheduler, samples: 0, shaded, error: None });
     let recorded = Condvar::new();
     let work = || {
+        let mut batch_shaded = vec![0; objects];
         let mut t = turn.lock().unwrap_or_else(PoisonError::into_inner);
         loop {
             if t.error.is_some() || t.scheduler.is_dataset_done(d) {
@@ -136,13 +142,19 @@ fn cast_turn(
             };
             drop(t);
             let mut out = vec![PieceRgba::default(); batch.tasks.len()];
-            let cast = caster.cast(&batch.tasks, &mut out);
+            batch_shaded.fill(0);
+            let cast = caster.cast_counting(&batch.tasks, &mut out, &mut batch_shaded);
             t = turn.lock().unwrap_or_else(PoisonError::into_inner);
             let recorded_ok = cast
                 .map_err(RenderError::from)
                 .and_then(|samples| Ok(t.scheduler.record(batch.id, &out).map(|()| samples)?));
             match recorded_ok {
-                Ok(samples) => t.samples += samples,
+                Ok(samples) => {
+                    t.samples += samples;
+                    for (total, n) in t.shaded.iter_mut().zip(&batch_shaded) {
+                        *total += n;
+                    }
+                }
                 Err(e) => {
                     t.error.get_or_insert(e);
                 }

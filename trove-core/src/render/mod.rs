@@ -20,6 +20,8 @@
 
 pub mod bands;
 pub mod dispatch;
+#[cfg(test)]
+mod effects_tests;
 mod error;
 mod grouped;
 mod image;
@@ -39,7 +41,7 @@ pub use error::{CastError, OutputError, RenderError, ScheduleError, StoreError};
 pub use image::{encode_pfm, encode_png, quantize, Image};
 pub use raster::Raster;
 pub use schedule::{Batch, Scheduler};
-pub use stats::{RenderStats, Seconds};
+pub use stats::{ObjectEffects, RenderStats, Seconds};
 pub use store::{Pinned, StoreStats, VolumeStore};
 pub use workunit::{BatchCaster, BindTarget, PieceRgba, PieceTask};
 

@@ -11,7 +11,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::intersection::{sample_positions, segments_of, Reach};
-use super::{CastError, Image, Pinned, Progress, RenderError, RenderStats, Rendered, VolumeStore};
+use super::{CastError, Image, ObjectEffects, Pinned, Progress, RenderError, RenderStats, Rendered, VolumeStore};
 use crate::composite::Rgba;
 use crate::geometry::{split_into_pieces, Piece, PieceScratch, Ray, Segment};
 use crate::sampling::ObjectCaster;
@@ -32,11 +32,24 @@ struct Band {
     n_pieces: u64,
     samples: u64,
     samples_skipped: u64,
+    /// Samples shaded, per object (empty until one is).
+    shaded: Vec<u64>,
     intersection_nanos: u64,
     /// Casting, loading included.
     casting_nanos: u64,
     /// Time in [`VolumeStore::get`]: loading, and waiting for room under a budget.
     loading_nanos: u64,
+}
+
+/// Adds `n` shaded samples to object `o`'s count in `shaded` (a band's, empty until then).
+#[inline]
+fn count_shaded(shaded: &mut Vec<u64>, o: u32, n: u64, scene: &Scene) {
+    if n > 0 {
+        if shaded.is_empty() {
+            *shaded = vec![0; scene.objects().len()];
+        }
+        shaded[o as usize] += n;
+    }
 }
 
 /// Renders with Algorithm 1.
@@ -69,10 +82,11 @@ pub(super) fn render(scene: &Scene, store: &VolumeStore, progress: Option<&Progr
         .collect();
     let wall = started.elapsed().as_secs_f64();
 
-    let mut stats = RenderStats::default();
+    let mut stats = RenderStats { effects: ObjectEffects::listed(scene, Some(0)), ..RenderStats::default() };
     let (mut inter, mut cast, mut load) = (0u64, 0u64, 0u64);
     for band in bands {
         let band = band?;
+        ObjectEffects::add(&mut stats.effects, &band.shaded);
         stats.segments += band.n_segments;
         stats.pieces += band.n_pieces;
         stats.samples += band.samples;
@@ -122,6 +136,7 @@ fn trace(
             let volume = get(store, scene, object.dataset(), &mut band.loading_nanos)?;
             let r = bind(object, &volume, correction)?.cast(ray, piece.t0, piece.t1, acc.alpha, termination);
             band.samples += r.samples;
+            count_shaded(&mut band.shaded, *only, r.shaded, scene);
             acc.over(r.rgba);
         } else {
             band.parts.clear();
@@ -130,6 +145,7 @@ fn trace(
                 let volume = get(store, scene, object.dataset(), &mut band.loading_nanos)?;
                 let r = bind(object, &volume, correction)?.cast(ray, piece.t0, piece.t1, 0.0, f64::INFINITY);
                 band.samples += r.samples;
+                count_shaded(&mut band.shaded, o, r.shaded, scene);
                 band.parts.push(r.rgba);
             }
             acc.over(Rgba::colocated(band.parts.iter().copied()));

@@ -146,6 +146,10 @@ impl Progress {
 pub struct Scheduler {
     inter: Intersections,
     dataset_of_object: Vec<u32>,
+    /// Per object, how far a lit colour may exceed the opacity it is premultiplied by
+    /// ([`crate::scene::Object::colour_gain`]; 1 unlit); empty when no object is lit, so
+    /// an unlit scene's results are checked without looking their objects up.
+    gain_of_object: Vec<f32>,
     termination: f64,
     batch_tasks: usize,
     status: Vec<Status>,
@@ -188,6 +192,8 @@ impl Scheduler {
             return Err(ScheduleError::TooManyTasks { tasks: n as u64 });
         }
         let dataset_of_object: Vec<u32> = scene.objects().iter().map(|o| o.dataset() as u32).collect();
+        let gains: Vec<f32> = scene.objects().iter().map(|o| o.colour_gain() as f32).collect();
+        let gain_of_object = if gains.iter().all(|&g| g == 1.0) { Vec::new() } else { gains };
         let Plan { order, queue, waves } = plan(&inter, &dataset_of_object, scene.datasets().len());
         let lanes: Vec<Lane> = waves
             .into_iter()
@@ -200,6 +206,7 @@ impl Scheduler {
             progress: Progress { total: n as u64, ..Progress::default() },
             inter,
             dataset_of_object,
+            gain_of_object,
             termination: scene.render().termination,
             batch_tasks: batch_tasks.max(1),
             order,
@@ -324,7 +331,8 @@ impl Scheduler {
 
     /// Stores the results of batch `id`, in the batch's task order. Refuses an unknown (or
     /// already recorded, or abandoned) batch, a wrong count, and results that are not
-    /// premultiplied colours and opacities in [0, 1].
+    /// premultiplied colours and opacities in [0, 1] (a lit object's colour may exceed its
+    /// opacity by its [`crate::scene::Object::colour_gain`]).
     pub fn record(&mut self, id: u64, results: &[PieceRgba]) -> Result<(), ScheduleError> {
         let Some(batch) = self.in_flight.get(&id) else {
             return Err(ScheduleError::UnknownBatch { id });
@@ -332,7 +340,13 @@ impl Scheduler {
         if batch.tasks.len() != results.len() {
             return Err(ScheduleError::ResultCount { id, expected: batch.tasks.len(), got: results.len() });
         }
-        if let Some(i) = results.iter().position(|r| !plausible(r)) {
+        let bad = if self.gain_of_object.is_empty() {
+            results.iter().position(|r| !plausible(r, 1.0))
+        } else {
+            let gain = |i: usize| self.gain_of_object[self.inter.tasks[batch.tasks[i] as usize].object as usize];
+            (0..results.len()).find(|&i| !plausible(&results[i], gain(i)))
+        };
+        if let Some(i) = bad {
             return Err(ScheduleError::BadResult { id, index: i });
         }
         let batch = self.in_flight.remove(&id).expect("looked up above");
@@ -531,10 +545,10 @@ fn over_alpha(front: f64, behind: f64) -> f64 {
 }
 
 /// A result a cast can produce: finite, opacity in [0, 1], colour premultiplied by it (each
-/// component at most the opacity, up to f32 rounding).
-fn plausible(r: &PieceRgba) -> bool {
+/// component at most the opacity times the object's `gain`, up to f32 rounding).
+fn plausible(r: &PieceRgba, gain: f32) -> bool {
     let a = r.alpha;
-    (0.0..=1.0).contains(&a) && r.colour.iter().all(|&c| (0.0..=a * (1.0 + 1e-5) + 1e-7).contains(&c))
+    (0.0..=1.0).contains(&a) && r.colour.iter().all(|&c| (0.0..=a * gain * (1.0 + 1e-5) + 1e-7).contains(&c))
 }
 
 /// Every task of a region once, dataset by dataset and wave by wave, and the datasets' order:

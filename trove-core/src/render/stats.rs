@@ -3,7 +3,7 @@
 use serde::Serialize;
 
 use super::{Algorithm, StoreStats};
-use crate::sampling::SimdPath;
+use crate::sampling::{self, SimdPath};
 use crate::scene::Scene;
 
 /// Wall-clock seconds per phase. The grouped algorithm runs its phases one after another,
@@ -69,8 +69,48 @@ pub struct RenderStats {
     pub classification_hits: u64,
     /// Objects bound through the store that found none kept.
     pub classification_misses: u64,
+    /// Per object, in scene order: the effects its casts ran (SPEC §6) and how often.
+    pub effects: Vec<ObjectEffects>,
     /// Per-phase timings.
     pub seconds: Seconds,
+}
+
+/// The effects one object's casts ran (`--stats`' `effects`).
+#[derive(Clone, Debug, Default, Serialize, PartialEq)]
+pub struct ObjectEffects {
+    /// The object's name.
+    pub object: String,
+    /// The effects, by name: `shading` where the object was lit. Empty for an unlit one.
+    pub ran: Vec<&'static str>,
+    /// Samples shaded (a gradient and Blinn–Phong each): samples of the object that
+    /// contributed opacity. `null` where the render could not count them: a farm's workers
+    /// do not report them yet.
+    pub shading_evaluations: Option<u64>,
+}
+
+impl ObjectEffects {
+    /// Every object of `scene` with the effects its casts run, and `shading_evaluations`
+    /// as given (`Some(0)` for a count to be added to, `None` for one not kept).
+    pub fn listed(scene: &Scene, shading_evaluations: Option<u64>) -> Vec<ObjectEffects> {
+        scene
+            .objects()
+            .iter()
+            .map(|o| ObjectEffects {
+                object: o.name().to_string(),
+                ran: if sampling::shades(o) { vec!["shading"] } else { Vec::new() },
+                shading_evaluations,
+            })
+            .collect()
+    }
+
+    /// Adds `shaded[i]` to object i's count.
+    pub fn add(effects: &mut [ObjectEffects], shaded: &[u64]) {
+        for (e, &n) in effects.iter_mut().zip(shaded) {
+            if let Some(count) = &mut e.shading_evaluations {
+                *count += n;
+            }
+        }
+    }
 }
 
 impl RenderStats {
@@ -90,6 +130,10 @@ impl RenderStats {
         self.peak_resident_bytes = store.peak_resident_bytes;
         self.classification_hits = store.classification_hits;
         self.classification_misses = store.classification_misses;
+        if self.effects.len() != scene.objects().len() {
+            // Nobody counted (a farm's workers do not report shading counts yet).
+            self.effects = ObjectEffects::listed(scene, None);
+        }
         let s = &mut self.seconds;
         s.total = total;
         s.other = (total - s.intersection - s.volume_rendering - s.composition - s.loading).max(0.0);
@@ -107,6 +151,13 @@ impl RenderStats {
         self.peak_resident_bytes = self.peak_resident_bytes.max(other.peak_resident_bytes);
         self.classification_hits += other.classification_hits;
         self.classification_misses += other.classification_misses;
+        if self.effects.is_empty() {
+            self.effects.clone_from(&other.effects);
+        } else if self.effects.len() == other.effects.len() {
+            for (e, o) in self.effects.iter_mut().zip(&other.effects) {
+                e.shading_evaluations = e.shading_evaluations.zip(o.shading_evaluations).map(|(a, b)| a + b);
+            }
+        }
         let (s, o) = (&mut self.seconds, &other.seconds);
         s.intersection += o.intersection;
         s.volume_rendering += o.volume_rendering;

@@ -225,6 +225,12 @@ impl<'a> BatchCaster<'a> {
         Ok(BatchCaster { scene, dataset, objects })
     }
 
+    /// The number of objects in the scene (the length of the counts
+    /// [`BatchCaster::cast_counting`] adds to).
+    pub fn object_count(&self) -> usize {
+        self.objects.len()
+    }
+
     /// The dataset these casters are bound to.
     pub fn dataset(&self) -> usize {
         self.dataset
@@ -235,6 +241,17 @@ impl<'a> BatchCaster<'a> {
     /// Algorithm 1 computes it. Refuses the whole batch, before casting anything, if one
     /// task is not a piece of an object of this dataset.
     pub fn cast(&self, tasks: &[PieceTask], out: &mut [PieceRgba]) -> Result<u64, CastError> {
+        self.cast_counting(tasks, out, &mut [])
+    }
+
+    /// [`BatchCaster::cast`], adding the samples shaded for object i (SPEC §6) to
+    /// `shaded[i]` where `shaded` has that entry (pass `&mut []` to count none).
+    pub fn cast_counting(
+        &self,
+        tasks: &[PieceTask],
+        out: &mut [PieceRgba],
+        shaded: &mut [u64],
+    ) -> Result<u64, CastError> {
         if tasks.len() != out.len() {
             return Err(CastError::LengthMismatch { tasks: tasks.len(), results: out.len() });
         }
@@ -265,9 +282,14 @@ impl<'a> BatchCaster<'a> {
             results.clear();
             results.resize(pieces.len(), PieceResult::default());
             caster.cast_many(&pieces, &mut results);
+            let mut object_shaded = 0;
             for (r, out) in results.iter().zip(out) {
                 samples += r.samples;
+                object_shaded += r.shaded;
                 *out = r.rgba.into();
+            }
+            if let Some(count) = shaded.get_mut(tasks[0].object as usize) {
+                *count += object_shaded;
             }
         }
         Ok(samples)

@@ -20,13 +20,15 @@ use std::sync::Arc;
 use super::lanes::Trilinear4;
 use super::packed::Stored;
 use super::packet::Packets;
+use super::shade::{NoShade, Shaded};
 use super::simd::SimdPath;
 use super::skip::Skipper;
 use super::ClassificationCache;
 use crate::dataset::{ChannelReader, F32LeVoxels, U16LeVoxels, U8Voxels};
+use crate::geometry::GradientToWorld;
 use crate::interp::{Cubic, DynInterp, Identity, Interp, Interpolation, Linear, Nearest, NoInterp, Omega};
 use crate::mapping::{ColourMap, JointPiecewise, OpacityMap, Piecewise, RawColour};
-use crate::scene::Object;
+use crate::scene::{Light, Object, Shading};
 
 /// A bound loop.
 pub(super) type Bound<'a> = Box<dyn Cast + 'a>;
@@ -48,6 +50,27 @@ pub(super) struct Parts<'a> {
     pub cache: Option<&'a dyn ClassificationCache>,
     /// The instruction set the vector loops run in (one this processor has).
     pub path: SimdPath,
+    /// How the object is lit, when it is shaded (SPEC §6); `None`: the unlit loops.
+    pub lighting: Option<Lighting<'a>>,
+}
+
+/// What a shaded object's loop needs besides its unlit parts.
+pub(super) struct Lighting<'a> {
+    pub material: Shading,
+    pub lights: &'a [Light],
+    pub to_world: GradientToWorld<'a>,
+    /// The channel normals come from: the one the opacity map reads (`alpha` for a raw
+    /// opacity, else `voxel`).
+    pub field: GradientField<'a>,
+}
+
+/// The channel a shaded object's gradient is taken over.
+#[derive(Clone, Copy)]
+pub(super) enum GradientField<'a> {
+    /// `voxel`, which the loop's voxel source already reads.
+    Voxel,
+    /// `alpha` (a raw opacity map).
+    Alpha(ChannelReader<'a>),
 }
 
 impl<'a> Parts<'a> {
@@ -72,17 +95,23 @@ impl<'a> Parts<'a> {
         Some(skip.with_classes(classes))
     }
 
+    /// The loop over `voxels`, whose values are also the gradient's field when the object
+    /// is shaded.
     fn kernel<I, V, M>(&self, interp: I, voxels: V, maps: M, skip: Option<Skipper<'a>>) -> Bound<'a>
     where
         I: Interp + 'a,
-        V: super::kernel::VoxelSource + 'a,
+        V: super::kernel::VoxelSource + Copy + 'a,
         M: Maps + 'a,
     {
+        debug_assert!(
+            !matches!(self.lighting, Some(Lighting { field: GradientField::Alpha(_), .. })),
+            "an alpha gradient takes the raw or general loop"
+        );
         self.kernel_with_lanes(interp, voxels, maps, skip, None, None)
     }
 
     /// [`Parts::kernel`] with the AVX2 loop for its lines and the packet loop for many
-    /// pieces, where there are.
+    /// pieces, where there are (for unlit objects: shaded ones take the one-piece loop).
     fn kernel_with_lanes<I, V, M>(
         &self,
         interp: I,
@@ -94,11 +123,49 @@ impl<'a> Parts<'a> {
     ) -> Bound<'a>
     where
         I: Interp + 'a,
-        V: super::kernel::VoxelSource + 'a,
+        V: super::kernel::VoxelSource + Copy + 'a,
         M: Maps + 'a,
     {
+        self.build(interp, voxels, maps, skip, lanes, packets, voxels, true)
+    }
+
+    /// The loop, unlit or (when the object is shaded) lit with the gradient of `field`.
+    #[allow(clippy::too_many_arguments)]
+    fn build<I, V, M, F>(
+        &self,
+        interp: I,
+        voxels: V,
+        maps: M,
+        skip: Option<Skipper<'a>>,
+        lanes: Option<Trilinear4<'a>>,
+        packets: Option<Packets<'a>>,
+        field: F,
+        specialised: bool,
+    ) -> Bound<'a>
+    where
+        I: Interp + 'a,
+        V: super::kernel::VoxelSource + 'a,
+        M: Maps + 'a,
+        F: super::kernel::VoxelSource + 'a,
+    {
         let skip = self.prepared(&interp, skip);
-        Box::new(Kernel { interp, voxels, maps, skip, correction: self.correction, specialised: true, lanes, packets })
+        let correction = self.correction;
+        match &self.lighting {
+            None => {
+                Box::new(Kernel { interp, voxels, maps, shade: NoShade, skip, correction, specialised, lanes, packets })
+            }
+            Some(l) => Box::new(Kernel {
+                interp,
+                voxels,
+                maps,
+                shade: Shaded::new(field, l.material, l.lights, l.to_world),
+                skip,
+                correction,
+                specialised,
+                lanes: None,
+                packets: None,
+            }),
+        }
     }
 
     /// The general loop.
@@ -108,20 +175,15 @@ impl<'a> Parts<'a> {
             _ => None,
         };
         let interp = DynInterp::new(&self.object.interpolation(), self.dims);
-        let skip = self.prepared(&interp, skip);
-        Box::new(Kernel {
-            interp,
-            voxels: MaybeVoxel(self.voxel),
-            maps: Separate {
-                colour: GeneralColour { map: self.object.colour(), raw: self.raw_rgb, constant: constant_colour },
-                opacity: GeneralOpacity { map: self.object.opacity(), alpha: self.alpha },
-            },
-            skip,
-            correction: self.correction,
-            specialised: false,
-            lanes: None,
-            packets: None,
-        })
+        let field = match &self.lighting {
+            Some(Lighting { field: GradientField::Alpha(a), .. }) => MaybeVoxel(Some(*a)),
+            _ => MaybeVoxel(self.voxel),
+        };
+        let maps = Separate {
+            colour: GeneralColour { map: self.object.colour(), raw: self.raw_rgb, constant: constant_colour },
+            opacity: GeneralOpacity { map: self.object.opacity(), alpha: self.alpha },
+        };
+        self.build(interp, MaybeVoxel(self.voxel), maps, skip, None, None, field, false)
     }
 
     /// The specialised loop for this object, or `None` when its combination has none.
@@ -162,7 +224,8 @@ impl<'a> Parts<'a> {
                 (None, Some(v)) => Some(Stored::U16(v)),
                 (None, None) => None,
             };
-            if let Some(stored) = stored {
+            // The vector loops are unlit: a shaded object takes the one-piece loop.
+            if let Some(stored) = stored.filter(|_| self.lighting.is_none()) {
                 let avx2 = matches!(self.path, SimdPath::Avx2 | SimdPath::Avx512);
                 let lanes = if avx2 { Trilinear4::new(&interp, stored, &maps) } else { None };
                 let range = skip.as_ref().and_then(Skipper::value_range);
@@ -229,15 +292,15 @@ impl<'a> Parts<'a> {
         let colour = RawRgb { kind, channels: [r, g, b] };
         let alpha = self.alpha.and_then(U8Voxels::of);
         match (self.object.interpolation(), opacity, alpha) {
+            // A raw opacity's gradient is the alpha channel's.
             (Interpolation::Nearest, OpacityMap::Raw, Some(a)) => {
-                Ok(self.kernel(Nearest::new(self.dims), NoVoxel, Separate { colour, opacity: RawAlpha(a) }, skip))
+                let maps = Separate { colour, opacity: RawAlpha(a) };
+                Ok(self.build(Nearest::new(self.dims), NoVoxel, maps, skip, None, None, Read(a), true))
             }
-            (Interpolation::Trilinear, OpacityMap::Raw, Some(a)) => Ok(self.kernel(
-                Linear::new(self.dims, Identity),
-                NoVoxel,
-                Separate { colour, opacity: RawAlpha(a) },
-                skip,
-            )),
+            (Interpolation::Trilinear, OpacityMap::Raw, Some(a)) => {
+                let maps = Separate { colour, opacity: RawAlpha(a) };
+                Ok(self.build(Linear::new(self.dims, Identity), NoVoxel, maps, skip, None, None, Read(a), true))
+            }
             (Interpolation::Nearest, OpacityMap::Polynomial(p), None) if !opacity.reads_voxel() => {
                 Ok(self.kernel(Nearest::new(self.dims), NoVoxel, Separate { colour, opacity: p }, skip))
             }

@@ -6,15 +6,18 @@
 //! deciding per sample; it serves rare combinations and is what the specialised loops are
 //! tested against.
 
+use glam::DVec3;
+
 use super::lanes::{Located, Trilinear4};
 use super::packet::{Line, Packets};
+use super::shade::Shade;
 use super::simd::SimdPath;
 use super::skip::{cell_of, Jumps, Skipper};
 use super::{corrected_opacity, PieceResult};
 use crate::composite::Rgba;
 use crate::dataset::macrocell::Level;
 use crate::dataset::{ChannelReader, Voxels};
-use crate::geometry::{LineSamples, SampleWalk};
+use crate::geometry::{LineSamples, SampleWalk, WorldPoints};
 use crate::interp::Interp;
 use crate::mapping::{clamp1, clamp3, ColourMap, JointPiecewise, OpacityMap, Piecewise, Polynomial, RawColour};
 
@@ -56,6 +59,7 @@ pub(super) trait VoxelSource: Send + Sync {
 }
 
 /// The `voxel` channel through a typed view (or the decoding reader).
+#[derive(Clone, Copy)]
 pub(super) struct Read<V>(pub V);
 
 impl<V: Voxels> VoxelSource for Read<V> {
@@ -67,6 +71,7 @@ impl<V: Voxels> VoxelSource for Read<V> {
 }
 
 /// No map reads the `voxel` channel.
+#[derive(Clone, Copy)]
 pub(super) struct NoVoxel;
 
 impl VoxelSource for NoVoxel {
@@ -78,6 +83,7 @@ impl VoxelSource for NoVoxel {
 }
 
 /// The general path: the channel if some map reads it, else 0.
+#[derive(Clone, Copy)]
 pub(super) struct MaybeVoxel<'a>(pub Option<ChannelReader<'a>>);
 
 impl VoxelSource for MaybeVoxel<'_> {
@@ -229,11 +235,13 @@ impl Maps for JointPiecewise {
     }
 }
 
-/// One combination's loop and what it needs.
-pub(super) struct Kernel<'a, I, V, M> {
+/// One combination's loop and what it needs; `S` is whether (and how) it shades, the
+/// axis of effects ([`super::shade`]).
+pub(super) struct Kernel<'a, I, V, M, S> {
     pub interp: I,
     pub voxels: V,
     pub maps: M,
+    pub shade: S,
     pub skip: Option<Skipper<'a>>,
     pub correction: bool,
     pub specialised: bool,
@@ -249,7 +257,7 @@ enum Group<'k, 'a, S, const L: usize> {
     Lanes(Located<L>, &'k Trilinear4<'a>),
 }
 
-impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
+impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Kernel<'_, I, V, M, S> {
     /// The opacity and colour of one sample, or (0, black) when it contributes nothing,
     /// computed without branching on the data: the samples of a group then overlap in the
     /// processor instead of each waiting on a mispredicted branch (opacity 0 in haze is
@@ -291,7 +299,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
             // SAFETY: lanes exist only where the processor has AVX2.
             return unsafe { self.cast_line_avx2(line, alpha_in, stop_at) };
         }
-        self.cast_line_any::<LANES>(line, alpha_in, stop_at)
+        self.cast_line_any::<LANES>(line, alpha_in, stop_at, None)
     }
 
     /// The same loop compiled for AVX2, so that the lanes' intrinsics inline into it (as
@@ -300,14 +308,23 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
     unsafe fn cast_line_avx2(&self, line: &LineSamples, alpha_in: f64, stop_at: f64) -> PieceResult {
-        self.cast_line_any::<AVX2_LANES>(line, alpha_in, stop_at)
+        self.cast_line_any::<AVX2_LANES>(line, alpha_in, stop_at, None)
     }
 
-    /// [`Kernel::cast_line`]'s loop, for any target.
+    /// [`Kernel::cast_line`]'s loop, for any target. A lit loop (`S::ON`) is given where
+    /// its samples are in the world and the unit vector towards the eye (`lit`), and shades
+    /// each sample that contributes just before compositing it; for an unlit one (`None`)
+    /// that step is not compiled.
     #[inline(always)]
-    fn cast_line_any<const L: usize>(&self, line: &LineSamples, alpha_in: f64, stop_at: f64) -> PieceResult {
+    fn cast_line_any<const L: usize>(
+        &self,
+        line: &LineSamples,
+        alpha_in: f64,
+        stop_at: f64,
+        lit: Option<(&WorldPoints, DVec3)>,
+    ) -> PieceResult {
         let mut acc = Rgba::CLEAR;
-        let mut samples = 0;
+        let (mut samples, mut shaded) = (0, 0);
         let done = |acc: &Rgba| alpha_in + (1.0 - alpha_in) * acc.alpha >= stop_at;
         // The macrocell of the last sample looked at, and whether it is empty.
         let mut cell = [u32::MAX; 3];
@@ -365,23 +382,77 @@ impl<I: Interp, V: VoxelSource, M: Maps> Kernel<'_, I, V, M> {
                 }
                 Group::Lanes(at, fast) => fast.classify(at),
             };
-            for (&mapped, live) in mapped.iter().zip(live) {
+            for (l, (&mapped, live)) in mapped.iter().zip(live).enumerate() {
                 if !live {
                     continue;
                 }
                 samples += 1;
+                let mut mapped = mapped;
+                if let (true, Some((at, view))) = (S::ON, lit) {
+                    if mapped.0 > 0.0 {
+                        shaded += 1;
+                        let j = k + l as u64;
+                        mapped.1 = self.shade.shade(&self.interp, line.point(j), at.at(j), view, mapped.1);
+                    }
+                }
                 if self.composite(mapped, ell, &mut acc, done) {
                     break 'groups;
                 }
             }
             k += m as u64;
         }
-        PieceResult { rgba: acc, samples }
+        PieceResult { rgba: acc, samples, shaded }
+    }
+
+    /// A shaded object's samples, each that contributes shaded ([`Shade::shade`]) before it
+    /// is composited: along a straight line in groups with jumps over empty space, as the
+    /// unlit loop casts them ([`Kernel::cast_line_any`]); an exact distorted walk sample by
+    /// sample, each tested for empty space. The samples, their values and their opacities
+    /// are those of the unlit loops.
+    fn cast_shaded(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult {
+        if let Some(line) = walk.line() {
+            let at = walk.world_points();
+            return self.cast_line_any::<LANES>(&line, alpha_in, stop_at, Some((&at, -walk.ray().dir)));
+        }
+        let mut acc = Rgba::CLEAR;
+        let (mut samples, mut shaded) = (0, 0);
+        let done = |acc: &Rgba| alpha_in + (1.0 - alpha_in) * acc.alpha >= stop_at;
+        let mut cell = [u32::MAX; 3];
+        let mut empty = false;
+        let at = walk.world_points();
+        let view = -walk.ray().dir;
+        for (k, (vc, ell)) in walk.enumerate() {
+            let Some(vc) = vc else { continue };
+            let s = self.interp.locate(vc);
+            if let Some(skip) = &self.skip {
+                let c = cell_of(self.interp.base(&s));
+                if c != cell {
+                    cell = c;
+                    empty = skip.is_empty(&self.interp, Level::Fine, c);
+                }
+                if empty {
+                    continue;
+                }
+            }
+            samples += 1;
+            let (opacity, mut colour) = self.mapped(&s);
+            if opacity > 0.0 {
+                shaded += 1;
+                colour = self.shade.shade(&self.interp, vc, at.at(k as u64), view, colour);
+            }
+            if self.composite((opacity, colour), ell, &mut acc, done) {
+                break;
+            }
+        }
+        PieceResult { rgba: acc, samples, shaded }
     }
 }
 
-impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
+impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Cast for Kernel<'_, I, V, M, S> {
     fn cast(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult {
+        if S::ON {
+            return self.cast_shaded(walk, alpha_in, stop_at);
+        }
         if let Some(line) = walk.line() {
             return self.cast_line(&line, alpha_in, stop_at);
         }
@@ -410,7 +481,7 @@ impl<I: Interp, V: VoxelSource, M: Maps> Cast for Kernel<'_, I, V, M> {
                 break;
             }
         }
-        PieceResult { rgba: acc, samples }
+        PieceResult { rgba: acc, samples, shaded: 0 }
     }
 
     fn cast_many(&self, pieces: Vec<(usize, SampleWalk<'_>, f64, f64)>, out: &mut [PieceResult]) {

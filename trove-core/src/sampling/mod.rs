@@ -39,6 +39,16 @@
 //!   names another, and a path the processor lacks is refused ([`BindError::Simd`]), never
 //!   quietly replaced; [`ObjectCaster::on_path`] forces one in-process (tests and benchmarks
 //!   run every path the machine has), and `--stats` reports the path (`simd`).
+//! * `shade.rs` is the axis of effects (SPEC §6): each loop is compiled for `NoShade`, the
+//!   unlit loop as it was before effects existed, or for `Shaded`, which lights each sample
+//!   that contributes with Blinn–Phong from the gradient of the object's own interpolation
+//!   (central differences, taken to world space by the inverse transpose of the box's
+//!   Jacobian at the sample). Whether an object is lit is decided at bind; no loop tests it
+//!   per sample. Lit objects are cast one piece at a time in f64: straight pieces by the
+//!   generic line loop (groups of four, jumps over empty space), which shades each
+//!   contributing sample before compositing it, exact distorted walks sample by sample.
+//!   The AVX2 lanes and the f32 packet loop serve unlit objects only; shading inside the
+//!   packet loop is the next step.
 //! * `skip.rs` jumps over empty macrocells: walking cells, or, where cells were classified
 //!   at bind, leaping out of a cube of empty ones by each cell's distance to the nearest
 //!   non-empty cell; its margins keep every jump from passing a sample that is not empty.
@@ -54,6 +64,7 @@ mod kernel;
 mod lanes;
 mod packed;
 mod packet;
+mod shade;
 pub mod simd;
 mod skip;
 
@@ -101,6 +112,9 @@ pub struct PieceResult {
     pub rgba: Rgba,
     /// Samples evaluated (interpolated and mapped).
     pub samples: u64,
+    /// Of those, the samples shaded (SPEC §6: lit, a gradient computed): 0 for an unlit
+    /// object.
+    pub shaded: u64,
 }
 
 /// One piece for [`ObjectCaster::cast_many`]: the arguments of [`ObjectCaster::cast`].
@@ -159,6 +173,8 @@ pub struct ObjectCaster<'a> {
     /// The opacity map is the constant 0: nothing to cast.
     transparent: bool,
     kernel: Box<dyn kernel::Cast + 'a>,
+    /// Its loop shades ([`ObjectCaster::is_shaded`]).
+    shaded: bool,
 }
 
 impl<'a> ObjectCaster<'a> {
@@ -245,6 +261,21 @@ impl<'a> ObjectCaster<'a> {
             }
             _ => None,
         };
+        // SPEC §6: the gradient is taken over the channel the opacity map reads; a constant
+        // opacity borrows `voxel` from the colour map, and with neither the object is unlit.
+        let lighting = match (object.lighting(), gradient_channel(object)) {
+            (Some((material, lights)), Some(channel)) => Some(bind::Lighting {
+                material: *material,
+                lights,
+                to_world: object.placement().gradient_to_world(),
+                field: match channel {
+                    ChannelName::Alpha => bind::GradientField::Alpha(reader(ChannelName::Alpha)?),
+                    _ => bind::GradientField::Voxel,
+                },
+            }),
+            _ => None,
+        };
+        let shaded = lighting.is_some();
         let parts = bind::Parts {
             object,
             dims: volume.dims(),
@@ -255,6 +286,7 @@ impl<'a> ObjectCaster<'a> {
             classify_upfront: options.classify_upfront,
             cache,
             path,
+            lighting,
         };
         let skip = if options.skip_empty_space { skipper(object, volume) } else { None };
         let kernel = if options.specialise {
@@ -262,7 +294,13 @@ impl<'a> ObjectCaster<'a> {
         } else {
             parts.general(skip)
         };
-        Ok(ObjectCaster { object, transparent: object.opacity().constant() == Some(0.0), kernel })
+        Ok(ObjectCaster { object, transparent: object.opacity().constant() == Some(0.0), kernel, shaded })
+    }
+
+    /// Whether the object's samples are shaded (SPEC §6): it has `shading`, the scene has
+    /// lights, and its opacity (or colour) map reads a channel to take normals from.
+    pub fn is_shaded(&self) -> bool {
+        self.shaded
     }
 
     /// Whether the object's combination has a specialised loop and it was chosen.
@@ -328,6 +366,23 @@ impl<'a> ObjectCaster<'a> {
         }
         self.kernel.cast_many(walks, out);
     }
+}
+
+/// The channel a shaded object's normals come from (SPEC §6): the one its opacity map reads
+/// (`alpha` for a raw opacity, else `voxel`); for a constant opacity `voxel` if the colour
+/// map reads it; else none, and the object is unlit.
+fn gradient_channel(object: &Object) -> Option<ChannelName> {
+    match object.opacity() {
+        OpacityMap::Raw => Some(ChannelName::Alpha),
+        o if o.reads_voxel() || object.colour().reads_voxel() => Some(ChannelName::Voxel),
+        _ => None,
+    }
+}
+
+/// Whether `object`'s samples are shaded when it is cast: it has `shading`, its scene has
+/// lights, and it has a channel to take normals from ([`ObjectCaster::is_shaded`] once bound).
+pub fn shades(object: &Object) -> bool {
+    object.lighting().is_some() && gradient_channel(object).is_some()
 }
 
 /// The object's empty-space classification over `volume`, if its opacity map reads a

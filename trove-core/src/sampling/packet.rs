@@ -516,6 +516,7 @@ impl Cast<'_, '_, '_> {
                                 alpha: f64::from(acc[3][l]),
                             },
                             samples: lanes.samples[l] as u64,
+                            shaded: 0,
                         };
                     }
                     active &= !ended;

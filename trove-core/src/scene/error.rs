@@ -13,6 +13,7 @@ use std::path::PathBuf;
 
 use thiserror::Error;
 
+use super::effects::LightError;
 use super::limits::{
     INTERPOLATIONS, MAX_IMAGE_SIDE, MAX_POLYNOMIAL_TERMS, MAX_SAMPLES_PER_PIECE, MAX_SAMPLES_PER_RENDER,
     MAX_TABLE_ENTRIES,
@@ -50,6 +51,7 @@ impl SceneError {
             SceneErrorKind::Generator(e) => Some(e),
             SceneErrorKind::Hexahedron(e) => Some(e),
             SceneErrorKind::Inversion(e) => Some(e),
+            SceneErrorKind::Light(e) => Some(e),
             _ => None,
         }
     }
@@ -492,6 +494,45 @@ pub enum SceneErrorKind {
     /// `"nonlinear"` without its coefficients.
     #[error("nonlinear interpolation needs its coefficients: {{ type = \"nonlinear\", omega = [w0, w1, w2] }}")]
     NonlinearNeedsOmega,
+
+    // ----------------------------------------------------------------- effects (SPEC §6)
+    /// A light type other than `directional` or `point`.
+    #[error("unknown light type \"{got}\"; expected \"directional\" or \"point\"")]
+    UnknownLightType {
+        /// The type given.
+        got: String,
+    },
+    /// A key the light's type does not take (`position` on a directional light,
+    /// `direction` on a point light).
+    #[error("a {ty} light does not take this key; it takes {takes}")]
+    LightKeyNotForType {
+        /// The light's type.
+        ty: &'static str,
+        /// The key it takes instead.
+        takes: &'static str,
+    },
+    /// A light direction that is zero or not finite.
+    #[error("expected a finite, non-zero direction, got {got:?}")]
+    LightDirection {
+        /// The value given.
+        got: [f64; 3],
+    },
+    /// A light's colour, intensity or position refused.
+    #[error(transparent)]
+    Light(LightError),
+    /// A shading coefficient that is negative or not finite.
+    #[error("expected a finite number ≥ 0, got {got}")]
+    ShadingCoefficient {
+        /// The value given.
+        got: f64,
+    },
+    /// An effect SPEC §6 defines that this build does not render yet: refused, never
+    /// rendered as if it had not been asked for.
+    #[error("{what} are not supported yet: remove the key or set it to false")]
+    NotSupportedYet {
+        /// The effect.
+        what: &'static str,
+    },
 }
 
 /// ` at line L, column C`, or nothing.

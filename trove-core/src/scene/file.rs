@@ -19,6 +19,32 @@ pub(super) struct SceneFile {
     pub datasets: Vec<DatasetFile>,
     #[serde(default)]
     pub objects: Vec<ObjectFile>,
+    /// SPEC §6: the scene's lights (none: nothing is lit).
+    #[serde(default)]
+    pub lights: Vec<LightFile>,
+}
+
+/// `[[lights]]` (SPEC §6); which keys a type takes is checked in `load`.
+#[derive(Deserialize, Debug)]
+#[serde(deny_unknown_fields)]
+pub(super) struct LightFile {
+    #[serde(rename = "type")]
+    pub ty: String,
+    pub direction: Option<[f64; 3]>,
+    pub position: Option<[f64; 3]>,
+    pub colour: Option<[f64; 3]>,
+    pub intensity: Option<f64>,
+    pub shadows: Option<bool>,
+}
+
+/// An object's `shading = { ... }` (SPEC §6): every coefficient optional.
+#[derive(Deserialize, Debug)]
+#[serde(deny_unknown_fields)]
+pub(super) struct ShadingFile {
+    pub ambient: Option<f64>,
+    pub diffuse: Option<f64>,
+    pub specular: Option<f64>,
+    pub shininess: Option<f64>,
 }
 
 #[derive(Deserialize, Debug)]
@@ -88,6 +114,7 @@ pub(super) struct ObjectFile {
     pub sampling_distance: Option<f64>,
     pub transform: Option<TransformFile>,
     pub extent: Option<ExtentFile>,
+    pub shading: Option<ShadingFile>,
 }
 
 #[derive(Deserialize, Debug)]

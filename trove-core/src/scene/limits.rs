@@ -6,6 +6,8 @@
 pub const MAX_IMAGE_SIDE: u32 = 16_384;
 /// Largest number of objects (and of datasets) in one scene.
 pub const MAX_OBJECTS: usize = 4_096;
+/// Largest number of lights in one scene: a shaded sample's cost grows with each.
+pub const MAX_LIGHTS: usize = 64;
 /// Largest number of samples one object may take over one piece of one ray; a scene whose
 /// sampling distance could exceed it is refused at load rather than rendering for hours.
 pub const MAX_SAMPLES_PER_PIECE: f64 = (1u64 << 24) as f64;

@@ -5,12 +5,14 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
+use std::sync::Arc;
 
 use glam::{DMat3, DMat4, DVec3, DVec4};
 
+use super::effects::{Light, LightSource, Shading, ShadingField, UnitVector};
 use super::error::{SceneError, SceneErrorKind as Kind};
-use super::file::{ChannelFile, DatasetFile, ObjectFile, SceneFile, TransformFile};
-use super::limits::{MAX_IMAGE_SIDE, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE, MAX_SAMPLES_PER_RENDER};
+use super::file::{ChannelFile, DatasetFile, LightFile, ObjectFile, SceneFile, ShadingFile, TransformFile};
+use super::limits::{MAX_IMAGE_SIDE, MAX_LIGHTS, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE, MAX_SAMPLES_PER_RENDER};
 use super::mappings::{self, KeyError};
 use super::{ImageSettings, Object, RenderSettings, Scene};
 use crate::dataset::generator::{Generator, GeneratorError};
@@ -60,6 +62,19 @@ pub(super) fn scene(text: &str, path: &Path, catalog: &dyn Catalog) -> Result<Sc
         datasets.push(dataset(d, &key, catalog).map_err(fail)?);
     }
 
+    if file.lights.len() > MAX_LIGHTS {
+        let kind = Kind::TooMany { what: "lights", max: MAX_LIGHTS, got: file.lights.len() };
+        return Err(fail(KeyError::new("lights", kind)));
+    }
+    let lights: Vec<Light> = file
+        .lights
+        .iter()
+        .enumerate()
+        .map(|(i, l)| light(l, &format!("lights[{i}]")))
+        .collect::<Result<_, _>>()
+        .map_err(fail)?;
+    // Objects that are shaded share the scene's lights.
+    let shared: Option<Arc<[Light]>> = (!lights.is_empty()).then(|| lights.clone().into());
     let mut objects = Vec::with_capacity(file.objects.len());
     let mut object_names = HashMap::new();
     for (i, o) in file.objects.iter().enumerate() {
@@ -73,10 +88,75 @@ pub(super) fn scene(text: &str, path: &Path, catalog: &dyn Catalog) -> Result<Sc
             let kind = Kind::UnknownDataset { name: o.dataset.clone(), known };
             return Err(fail(KeyError::new(format!("{key}.dataset"), kind)));
         };
-        objects.push(object(o, &key, ds, &datasets[ds], straight).map_err(fail)?);
+        let mut object = object(o, &key, ds, &datasets[ds], straight).map_err(fail)?;
+        if object.shading.is_some() {
+            object.lights.clone_from(&shared);
+        }
+        objects.push(object);
     }
     render_budget(&image, &camera, &objects, &datasets).map_err(fail)?;
-    Ok(Scene { path: path.to_path_buf(), image, camera, render, datasets, objects })
+    Ok(Scene { path: path.to_path_buf(), image, camera, render, datasets, objects, lights })
+}
+
+/// One `[[lights]]` entry (SPEC §6): its type's keys only, each in range. Shadows are not
+/// built yet: a light that asks for them is refused, never rendered without them.
+fn light(l: &LightFile, key: &str) -> Result<Light, KeyError> {
+    let not_for = |field: &str, ty: &'static str, takes: &'static str| {
+        err(format!("{key}.{field}"), Kind::LightKeyNotForType { ty, takes })
+    };
+    let missing = |field: &str| err(format!("{key}.{field}"), Kind::MissingKey { field: field.to_string() });
+    let source = match l.ty.as_str() {
+        "directional" => {
+            if l.position.is_some() {
+                return not_for("position", "directional", "`direction`");
+            }
+            let Some(d) = l.direction else { return missing("direction") };
+            let direction = UnitVector::new(DVec3::from(d))
+                .ok_or_else(|| KeyError::new(format!("{key}.direction"), Kind::LightDirection { got: d }))?;
+            LightSource::Directional { direction }
+        }
+        "point" => {
+            if l.direction.is_some() {
+                return not_for("direction", "point", "`position`");
+            }
+            let Some(p) = l.position else { return missing("position") };
+            LightSource::Point { position: DVec3::from(p) }
+        }
+        other => return err(format!("{key}.type"), Kind::UnknownLightType { got: other.to_string() }),
+    };
+    if l.shadows == Some(true) {
+        return err(format!("{key}.shadows"), Kind::NotSupportedYet { what: "shadows (SPEC §6)" });
+    }
+    let colour = l.colour.unwrap_or([1.0; 3]);
+    let intensity = l.intensity.unwrap_or(1.0);
+    Light::new(source, colour, intensity).map_err(|e| {
+        let field = match e {
+            super::effects::LightError::Colour { .. } => "colour",
+            super::effects::LightError::Intensity { .. } => "intensity",
+            super::effects::LightError::Position { .. } => "position",
+        };
+        KeyError::new(format!("{key}.{field}"), Kind::Light(e))
+    })
+}
+
+/// An object's `shading` table (SPEC §6), its omitted coefficients at their defaults.
+fn shading(s: &ShadingFile, key: &str) -> Result<Shading, KeyError> {
+    let d = Shading::DEFAULT;
+    let (a, di, sp, sh) = (
+        s.ambient.unwrap_or(d.ambient()),
+        s.diffuse.unwrap_or(d.diffuse()),
+        s.specular.unwrap_or(d.specular()),
+        s.shininess.unwrap_or(d.shininess()),
+    );
+    Shading::new(a, di, sp, sh).map_err(|field| {
+        let got = match field {
+            ShadingField::Ambient => a,
+            ShadingField::Diffuse => di,
+            ShadingField::Specular => sp,
+            ShadingField::Shininess => sh,
+        };
+        KeyError::new(format!("{key}.{}", field.name()), Kind::ShadingCoefficient { got })
+    })
 }
 
 /// `[camera]`; the camera's error says which field it is about, which gives the key.
@@ -215,9 +295,12 @@ fn tables_where_expected(top: &toml::Table) -> Result<(), KeyError> {
             }
         }
     }
+    if let Some(v) = top.get("lights") {
+        array_of_tables(v, "lights")?;
+    }
     if let Some(v) = top.get("objects") {
         for (i, o) in array_of_tables(v, "objects")?.into_iter().enumerate() {
-            for key in ["transform", "extent"] {
+            for key in ["transform", "extent", "shading"] {
                 if let Some(v) = o.get(key) {
                     table(v, &format!("objects[{i}].{key}"))?;
                 }
@@ -533,7 +616,18 @@ fn object(o: &ObjectFile, key: &str, ds: usize, info: &DatasetInfo, straight: bo
             Kind::TooManySamplesPerRay { distance: sampling_distance, diagonal, samples },
         );
     }
-    Ok(Object { name: o.name.clone(), dataset: ds, colour, opacity, interpolation, sampling_distance, placement })
+    let shading = o.shading.as_ref().map(|s| shading(s, &format!("{key}.shading"))).transpose()?;
+    Ok(Object {
+        name: o.name.clone(),
+        dataset: ds,
+        colour,
+        opacity,
+        interpolation,
+        sampling_distance,
+        placement,
+        shading,
+        lights: None,
+    })
 }
 
 fn extent(o: &ObjectFile, key: &str) -> Result<Extent, KeyError> {

@@ -6,6 +6,7 @@
 //! invariant holds: a [`Scene`] is never half-valid, so renderers do not re-check.
 
 mod data_root;
+mod effects;
 mod error;
 mod file;
 mod limits;
@@ -15,6 +16,7 @@ mod mappings;
 mod tests;
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use crate::dataset::{Catalog, DatasetInfo};
 use crate::geometry::{Camera, Placement};
@@ -22,8 +24,9 @@ use crate::interp::Interpolation;
 use crate::mapping::{ColourMap, OpacityMap};
 
 pub use data_root::{DataRoot, DATA_ROOT_ENV};
+pub use effects::{Light, LightError, LightSource, Shading, ShadingField, UnitVector};
 pub use error::{SceneError, SceneErrorKind};
-pub use limits::{MAX_IMAGE_SIDE, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE, MAX_SAMPLES_PER_RENDER};
+pub use limits::{MAX_IMAGE_SIDE, MAX_LIGHTS, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE, MAX_SAMPLES_PER_RENDER};
 
 /// `[image]`: the output raster.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -58,6 +61,10 @@ pub struct Object {
     interpolation: Interpolation,
     sampling_distance: f64,
     placement: Placement,
+    /// Its Blinn–Phong material, when the scene asks for one (SPEC §6).
+    shading: Option<Shading>,
+    /// The scene's lights, when it has some and this object is shaded.
+    lights: Option<Arc<[Light]>>,
 }
 
 /// Objects built without a scene, for unit tests of the sampler, which construct the maps and
@@ -71,7 +78,17 @@ impl Object {
         sampling_distance: f64,
         placement: Placement,
     ) -> Object {
-        Object { name: "o".into(), dataset: 0, colour, opacity, interpolation, sampling_distance, placement }
+        Object {
+            name: "o".into(),
+            dataset: 0,
+            colour,
+            opacity,
+            interpolation,
+            sampling_distance,
+            placement,
+            shading: None,
+            lights: None,
+        }
     }
 }
 
@@ -110,6 +127,30 @@ impl Object {
     pub fn placement(&self) -> &Placement {
         &self.placement
     }
+
+    /// Its Blinn–Phong material (`shading = { ... }`), if the scene gives one. Whether it is
+    /// shaded also depends on the scene having lights: [`Object::lighting`].
+    pub fn shading(&self) -> Option<&Shading> {
+        self.shading.as_ref()
+    }
+
+    /// Its material and the scene's lights, when it is shaded: it has `shading` and the
+    /// scene has lights. A scene without lights renders as SPEC §4 says (§6: effects are
+    /// opt-in), so its objects are unlit whatever their `shading` says.
+    pub fn lighting(&self) -> Option<(&Shading, &[Light])> {
+        Some((self.shading.as_ref()?, self.lights.as_deref()?))
+    }
+
+    /// The most a sample's colour channel can be, mapped colours being at most 1: 1 unlit;
+    /// lit, SPEC §6's c' ≤ ambient + Σ (diffuse + specular)·E per channel, which can exceed
+    /// 1 (c' is not clamped before the final image). A piece's premultiplied colour is at
+    /// most this times its opacity, which is how a scheduler checks a result it is handed.
+    pub fn colour_gain(&self) -> f64 {
+        let Some((m, lights)) = self.lighting() else { return 1.0 };
+        (0..3)
+            .map(|i| m.ambient() + lights.iter().map(|l| (m.diffuse() + m.specular()) * l.radiance()[i]).sum::<f64>())
+            .fold(1.0, f64::max)
+    }
 }
 
 /// A validated scene: every rule of SPEC §1–4.5 holds (checked once, in `load.rs` and
@@ -124,6 +165,8 @@ pub struct Scene {
     render: RenderSettings,
     datasets: Vec<DatasetInfo>,
     objects: Vec<Object>,
+    /// `[[lights]]` (SPEC §6).
+    lights: Vec<Light>,
 }
 
 impl Scene {
@@ -197,6 +240,11 @@ impl Scene {
     /// The object level.
     pub fn objects(&self) -> &[Object] {
         &self.objects
+    }
+
+    /// The lights (SPEC §6); none in a scene that asks for no lighting.
+    pub fn lights(&self) -> &[Light] {
+        &self.lights
     }
 
     /// The same scene rendered at `width` × `height` pixels (tests and benchmarks shrink

@@ -9,6 +9,8 @@
 
 use std::path::{Path, PathBuf};
 
+use glam::DVec3;
+
 use super::{DataRoot, Scene, SceneError, SceneErrorKind as Kind, MAX_IMAGE_SIDE, MAX_OBJECTS};
 use crate::dataset::generator::GeneratorError;
 use crate::dataset::{
@@ -1402,4 +1404,128 @@ fn a_scene_can_be_resized_within_the_limits() {
     assert_eq!(e.key.as_deref(), Some("objects[0].sampling_distance"));
     assert!(matches!(e.kind, Kind::RenderTooCostly { width: 16384, height: 16384, .. }), "{e:?}");
     assert_eq!(fine.with_image_size(16, 12).unwrap().image().width, 16);
+}
+
+// ---------------------------------------------------------------------------------------
+// Effects (SPEC §6): `[[lights]]` and an object's `shading`.
+
+/// The base scene with `lights` (whole `[[lights]]` tables) before its datasets and
+/// `shading` on the first object.
+fn with_effects(lights: &str, shading: &str) -> String {
+    with(&[
+        ("\n[[datasets]]\nname = \"ball\"", &format!("\n{lights}\n[[datasets]]\nname = \"ball\"")),
+        ("name = \"skull\"", &format!("name = \"skull\"\n{shading}")),
+    ])
+}
+
+/// A refusal case: the scene's edit, the key refused, and the kind expected.
+type Case<T> = (T, &'static str, fn(&Kind) -> bool);
+
+const SUN: &str = "[[lights]]\ntype = \"directional\"\ndirection = [0.0, -3.0, -4.0]";
+
+#[test]
+fn lights_and_shading_take_their_defaults_and_normalise_directions() {
+    let s = accepted(&with_effects(&format!("{SUN}\n[[lights]]\ntype = \"point\"\nposition = [1, 2, 3]"), ""));
+    assert_eq!(s.lights().len(), 2);
+    match s.lights()[0].source() {
+        crate::scene::LightSource::Directional { direction } => {
+            assert!((direction.get() - DVec3::new(0.0, -0.6, -0.8)).length() < 1e-15, "{direction:?}")
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(s.lights()[0].radiance(), [1.0; 3], "white, intensity 1 by default");
+    assert_eq!(s.lights()[1].source(), crate::scene::LightSource::Point { position: DVec3::new(1.0, 2.0, 3.0) });
+    // No `shading`: the object is unlit even with lights.
+    assert!(s.objects()[0].lighting().is_none());
+
+    let s = accepted(&with_effects(SUN, "shading = { ambient = 0.25 }"));
+    let (material, lights) = s.objects()[0].lighting().expect("shaded");
+    assert_eq!(*material, crate::scene::Shading::new(0.25, 0.7, 0.2, 10.0).unwrap());
+    assert_eq!(lights.len(), 1);
+    assert!(s.objects()[1].lighting().is_none());
+    let s = accepted(&with_effects(&format!("{SUN}\ncolour = [1, 0.5, 0]\nintensity = 2\nshadows = false"), ""));
+    assert_eq!(s.lights()[0].radiance(), [2.0, 1.0, 0.0]);
+
+    // Without lights a scene renders as SPEC §4 says, whatever `shading` says.
+    let s = accepted(&with_effects("", "shading = {}"));
+    assert_eq!(s.objects()[0].shading(), Some(&crate::scene::Shading::DEFAULT));
+    assert!(s.objects()[0].lighting().is_none());
+}
+
+#[test]
+fn light_keys_are_refused_with_their_path() {
+    let cases: &[Case<String>] = &[
+        (format!("{SUN}\ncolur = [1, 1, 1]"), "lights[0].colur", |k| matches!(k, Kind::UnknownKey { .. })),
+        (
+            "[[lights]]\ntype = \"spot\"\nposition = [0, 0, 0]".into(),
+            "lights[0].type",
+            |k| matches!(k, Kind::UnknownLightType { got } if got == "spot"),
+        ),
+        ("[[lights]]\ndirection = [0, 0, -1]".into(), "lights[0].type", |k| matches!(k, Kind::MissingKey { .. })),
+        (
+            "[[lights]]\ntype = \"directional\"".into(),
+            "lights[0].direction",
+            |k| matches!(k, Kind::MissingKey { field } if field == "direction"),
+        ),
+        ("[[lights]]\ntype = \"point\"".into(), "lights[0].position", |k| matches!(k, Kind::MissingKey { .. })),
+        ("[[lights]]\ntype = \"directional\"\ndirection = [0, 0, 0]".into(), "lights[0].direction", |k| {
+            matches!(k, Kind::LightDirection { .. })
+        }),
+        ("[[lights]]\ntype = \"directional\"\ndirection = [0, nan, 1]".into(), "lights[0].direction", |k| {
+            matches!(k, Kind::LightDirection { .. })
+        }),
+        (format!("{SUN}\nposition = [0, 0, 0]"), "lights[0].position", |k| {
+            matches!(k, Kind::LightKeyNotForType { ty: "directional", .. })
+        }),
+        (
+            "[[lights]]\ntype = \"point\"\nposition = [0, 0, 0]\ndirection = [0, 0, -1]".into(),
+            "lights[0].direction",
+            |k| matches!(k, Kind::LightKeyNotForType { ty: "point", .. }),
+        ),
+        (format!("{SUN}\nintensity = -1"), "lights[0].intensity", |k| matches!(k, Kind::Light(_))),
+        (format!("{SUN}\ncolour = [1, -0.5, 1]"), "lights[0].colour", |k| matches!(k, Kind::Light(_))),
+        (format!("{SUN}\ncolour = [1, 1]"), "lights[0].colour", |k| matches!(k, Kind::WrongLength { .. })),
+        ("[[lights]]\ntype = \"point\"\nposition = [0, inf, 0]".into(), "lights[0].position", |k| {
+            matches!(k, Kind::Light(_))
+        }),
+        (format!("{SUN}\nshadows = \"yes\""), "lights[0].shadows", |k| matches!(k, Kind::WrongType { .. })),
+        // Shadows are not built yet: refused by name, never rendered without them.
+        (format!("{SUN}\nshadows = true"), "lights[0].shadows", |k| matches!(k, Kind::NotSupportedYet { .. })),
+        (format!("{SUN}\n{SUN}\nintensity = -2"), "lights[1].intensity", |k| matches!(k, Kind::Light(_))),
+    ];
+    for (lights, key, is) in cases {
+        refusal(&nowhere(), &with_effects(lights, ""), Some(key), is);
+    }
+    // Positional values where tables are expected.
+    let text = with_effects("", "").replacen("\n[image]", "\nlights = [1, 2]\n[image]", 1);
+    refused!(text, "lights[0]", Kind::WrongType { .. });
+    let text = with_effects("", "").replacen("\n[image]", "\nlights = 3\n[image]", 1);
+    refused!(text, "lights", Kind::NotAnArrayOfTables { .. });
+    let e =
+        refusal(&nowhere(), &with_effects(&format!("{SUN}\nshadows = true"), ""), Some("lights[0].shadows"), |_| true);
+    assert!(shown(&e).contains("not supported yet"), "{}", shown(&e));
+}
+
+#[test]
+fn shading_keys_are_refused_with_their_path() {
+    let cases: &[Case<&str>] = &[
+        ("shading = { shine = 3 }", "objects[0].shading.shine", |k| matches!(k, Kind::UnknownKey { .. })),
+        (
+            "shading = { ambient = -0.1 }",
+            "objects[0].shading.ambient",
+            |k| matches!(k, Kind::ShadingCoefficient { got } if *got == -0.1),
+        ),
+        ("shading = { diffuse = nan }", "objects[0].shading.diffuse", |k| matches!(k, Kind::ShadingCoefficient { .. })),
+        ("shading = { specular = -1 }", "objects[0].shading.specular", |k| {
+            matches!(k, Kind::ShadingCoefficient { .. })
+        }),
+        ("shading = { shininess = -inf }", "objects[0].shading.shininess", |k| {
+            matches!(k, Kind::ShadingCoefficient { .. })
+        }),
+        ("shading = { ambient = \"lots\" }", "objects[0].shading.ambient", |k| matches!(k, Kind::WrongType { .. })),
+        ("shading = 0.5", "objects[0].shading", |k| matches!(k, Kind::WrongType { .. })),
+    ];
+    for (shading, key, is) in cases {
+        refusal(&nowhere(), &with_effects(SUN, shading), Some(key), is);
+    }
 }

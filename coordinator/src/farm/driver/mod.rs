@@ -56,7 +56,7 @@ use tonic::Status;
 use trove_core::render::bands::{Bands, Casting};
 use trove_core::render::dispatch::{batches_to_ask, Admission};
 use trove_core::render::schedule::Progress;
-use trove_core::render::{Algorithm, Raster};
+use trove_core::render::{Algorithm, ObjectEffects, Raster};
 use trove_core::scene::Scene;
 use trove_proto::convert;
 use trove_proto::v1 as pb;
@@ -693,6 +693,8 @@ impl Driver {
         let png = encoded.0.map_err(JobError::Encode)?;
         let pfm = encoded.1;
         let mut stats = std::mem::take(&mut tally.stats);
+        stats.effects = ObjectEffects::listed(&plan.scene, Some(0));
+        ObjectEffects::add(&mut stats.effects, &tally.shaded);
         stats.finish(&plan.scene, Algorithm::Grouped, &tally.store, None, started.elapsed().as_secs_f64());
         let stats_json = tally.into_stats(stats).to_json();
         job.set_output(JobOutput { png, pfm, stats_json });

@@ -22,6 +22,8 @@ use super::super::stats::{CoordinatorSeconds, FarmStats, WorkerStats};
 /// A job's counters.
 pub(super) struct Tally {
     pub stats: RenderStats,
+    /// Samples shaded per object (scene index), as the workers report them.
+    pub shaded: Vec<u64>,
     pub store: StoreStats,
     pub batches: u64,
     /// Batches refused as busy and sent again.
@@ -42,6 +44,7 @@ impl Tally {
     pub fn new(metrics: Arc<FarmMetrics>) -> Tally {
         Tally {
             stats: RenderStats::default(),
+            shaded: Vec::new(),
             store: StoreStats::default(),
             batches: 0,
             refused: 0,
@@ -60,6 +63,16 @@ impl Tally {
         self.metrics.answered(tasks, latency.as_secs_f64());
         self.batches += 1;
         self.stats.samples += result.samples;
+        for (&object, &n) in &result.shading_evaluations {
+            // A scene has at most 4096 objects; an index beyond that is a bad answer's.
+            let object = object as usize;
+            if object < trove_core::scene::MAX_OBJECTS {
+                if self.shaded.len() <= object {
+                    self.shaded.resize(object + 1, 0);
+                }
+                self.shaded[object] += n;
+            }
+        }
         if result.bytes_loaded > 0 {
             self.store.loads += 1;
             self.store.bytes_loaded += result.bytes_loaded;

@@ -8,6 +8,10 @@ fn scene(objects: &[(&str, f64)]) -> Scene {
 }
 
 fn scene_with(objects: &[(&str, f64)], termination: f64) -> Scene {
+    Scene::parse(&scene_text(objects, termination), "plan.toml").unwrap()
+}
+
+fn scene_text(objects: &[(&str, f64)], termination: f64) -> String {
     let mut text = format!(
         "[image]\nwidth = 4\nheight = 4\nbackground = [0, 0, 0]\n\
          [camera]\neye = [0.5, 0.5, 5.0]\ntarget = [0.5, 0.5, 0.0]\nup = [0, 1, 0]\nfov_y = 5.0\n\
@@ -27,7 +31,7 @@ fn scene_with(objects: &[(&str, f64)], termination: f64) -> Scene {
              transform = {{ matrix = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0.5, {z}], [0, 0, 0, 1]] }}\n"
         );
     }
-    Scene::parse(&text, "plan.toml").unwrap()
+    text
 }
 
 /// One ray of three pieces: [task 0, object 0], [tasks 1 and 2, objects 1 and 2, shared],
@@ -177,6 +181,34 @@ fn results_of_the_wrong_count_or_impossible_values_are_refused() {
         assert_eq!(s.record(b.id, &[bad]), Err(ScheduleError::BadResult { id: b.id, index: 0 }));
     }
     s.record(b.id, &[rgba(0.25)]).unwrap();
+}
+
+#[test]
+fn a_lit_object_s_colour_may_exceed_its_opacity_by_its_gain_and_no_more() {
+    // Object 0 lit by one light of intensity 2: c' ≤ 0.2 + (0.7 + 0.2)·2 = 2 per channel.
+    let objects = [("near", 0.0), ("near", 0.0), ("far", 0.0), ("near", 0.0)];
+    let text = scene_text(&objects, 0.999)
+        .replacen(
+            "[[datasets]]",
+            "[[lights]]\ntype = \"directional\"\ndirection = [0, 0, -1]\nintensity = 2\n[[datasets]]",
+            1,
+        )
+        .replacen("name = \"o0\"\n", "name = \"o0\"\nshading = { ambient = 0.2 }\n", 1);
+    let lit = Scene::parse(&text, "lit.toml").unwrap();
+    assert!((lit.objects()[0].colour_gain() - 2.0).abs() < 1e-12);
+    assert_eq!(lit.objects()[1].colour_gain(), 1.0);
+    let (_, inter) = one_ray(0.999);
+    let mut s = Scheduler::new(&lit, inter, 16).unwrap();
+    let b = drain(&mut s, 0).remove(0);
+    assert_eq!(b.tasks[0].object, 0);
+    let over = |c: f32| PieceRgba { colour: [c, 0.0, 0.0], alpha: 0.1 };
+    assert_eq!(s.record(b.id, &[over(0.25)]), Err(ScheduleError::BadResult { id: b.id, index: 0 }));
+    s.record(b.id, &[over(0.15)]).unwrap();
+    // Object 1, unlit, is held to its opacity.
+    let b = drain(&mut s, 0).remove(0);
+    assert_eq!(b.tasks[0].object, 1);
+    assert_eq!(s.record(b.id, &[over(0.15)]), Err(ScheduleError::BadResult { id: b.id, index: 0 }));
+    s.record(b.id, &[over(0.1)]).unwrap();
 }
 
 #[test]

@@ -1,0 +1,287 @@
+//! Lighting as one more axis of the sampler's specialisation (SPEC §6): a loop is compiled
+//! for [`NoShade`], which computes nothing and whose loop is the unlit one, or for
+//! [`Shaded`], which shades every sample that contributes. Whether an object is shaded is
+//! decided once, when it is bound ([`super::bind`]); no loop tests it per sample.
+//!
+//! A shaded sample's normal is the gradient of the object's own interpolation function over
+//! the channel its opacity map reads, by central differences one voxel either side along
+//! each VC axis (points outside the dataset clamped as interpolation clamps them), taken to
+//! world space by the inverse transpose of the VC → world Jacobian at the sample
+//! ([`GradientToWorld`]) and turned to face the viewer. Blinn–Phong then gives the colour
+//! that replaces the mapped one; opacity is unchanged.
+
+use glam::DVec3;
+
+use super::kernel::VoxelSource;
+use crate::geometry::GradientToWorld;
+use crate::interp::Interp;
+use crate::scene::{Light, LightSource, Shading};
+
+/// What a loop does to a contributing sample's colour.
+pub(super) trait Shade: Send + Sync {
+    /// Whether the loop shades at all: a constant, so the unlit loop keeps no trace of it.
+    const ON: bool;
+
+    /// The colour of the sample at VC point `vc` and world point `x`, seen along `view` (the
+    /// unit vector from the sample towards the eye), whose mapped colour is `c`.
+    fn shade<I: Interp>(&self, interp: &I, vc: [f64; 3], x: DVec3, view: DVec3, c: [f64; 3]) -> [f64; 3];
+}
+
+/// No lighting: the colour is the mapped one (SPEC §4).
+pub(super) struct NoShade;
+
+impl Shade for NoShade {
+    const ON: bool = false;
+
+    #[inline(always)]
+    fn shade<I: Interp>(&self, _: &I, _: [f64; 3], _: DVec3, _: DVec3, c: [f64; 3]) -> [f64; 3] {
+        c
+    }
+}
+
+/// A light as a sample uses it.
+#[derive(Clone, Copy, Debug)]
+enum LightAt {
+    /// A directional light: L, the unit vector towards it, the same everywhere.
+    Towards { l: DVec3, radiance: DVec3 },
+    /// A point light at a world position.
+    At { position: DVec3, radiance: DVec3 },
+}
+
+/// Blinn–Phong with the gradient of `field` (SPEC §6).
+pub(super) struct Shaded<'a, F> {
+    /// The channel the opacity map reads, through the object's interpolation.
+    field: F,
+    material: Shading,
+    lights: Vec<LightAt>,
+    to_world: GradientToWorld<'a>,
+}
+
+impl<'a, F: VoxelSource> Shaded<'a, F> {
+    /// Shading of `field` with `material` under `lights`, normals taken to world space by
+    /// `to_world`.
+    pub(super) fn new(field: F, material: Shading, lights: &[Light], to_world: GradientToWorld<'a>) -> Self {
+        let lights = lights
+            .iter()
+            .map(|l| {
+                let radiance = DVec3::from(l.radiance());
+                match l.source() {
+                    LightSource::Directional { direction } => LightAt::Towards { l: -direction.get(), radiance },
+                    LightSource::Point { position } => LightAt::At { position, radiance },
+                }
+            })
+            .collect();
+        Shaded { field, material, lights, to_world }
+    }
+
+    /// I at VC point `p`.
+    #[inline(always)]
+    fn value<I: Interp>(&self, interp: &I, p: [f64; 3]) -> f64 {
+        self.field.value(interp, &interp.locate(p))
+    }
+
+    /// The VC gradient of I at `p` by central differences over one voxel.
+    #[inline]
+    fn gradient<I: Interp>(&self, interp: &I, p: [f64; 3]) -> DVec3 {
+        let mut g = [0.0; 3];
+        for (axis, g) in g.iter_mut().enumerate() {
+            let (mut hi, mut lo) = (p, p);
+            hi[axis] += 1.0;
+            lo[axis] -= 1.0;
+            *g = (self.value(interp, hi) - self.value(interp, lo)) / 2.0;
+        }
+        DVec3::from(g)
+    }
+}
+
+impl<F: VoxelSource> Shade for Shaded<'_, F> {
+    const ON: bool = true;
+
+    #[inline]
+    fn shade<I: Interp>(&self, interp: &I, vc: [f64; 3], x: DVec3, view: DVec3, c: [f64; 3]) -> [f64; 3] {
+        let g = self.to_world.apply(DVec3::from(vc), self.gradient(interp, vc));
+        let len = g.length();
+        // No surface to light (or a gradient that is not a number): the sample keeps its colour.
+        if !(len > 0.0 && len.is_finite()) {
+            return c;
+        }
+        let n = -g / len;
+        let n = if n.dot(view) < 0.0 { -n } else { n };
+        let m = &self.material;
+        let (mut diffuse, mut specular) = (DVec3::ZERO, DVec3::ZERO);
+        for light in &self.lights {
+            let (l, radiance) = match *light {
+                LightAt::Towards { l, radiance } => (l, radiance),
+                // A sample at the light's own position is not lit by it (L is undefined).
+                LightAt::At { position, radiance } => ((position - x).normalize_or_zero(), radiance),
+            };
+            let n_dot_l = n.dot(l);
+            // Only where N·L > 0: max(0, N·L) is 0 elsewhere, and so is the specular term.
+            if n_dot_l > 0.0 {
+                diffuse += m.diffuse() * n_dot_l * radiance;
+                // L + V ≠ 0 here: N·V ≥ 0 and N·L > 0 rule out L = −V.
+                let h = (l + view).normalize();
+                specular += m.specular() * n.dot(h).max(0.0).powf(m.shininess()) * radiance;
+            }
+        }
+        let lit = DVec3::from(c) * (DVec3::splat(m.ambient()) + diffuse) + specular;
+        lit.to_array()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeMap;
+    use std::sync::Arc;
+
+    use glam::{DMat3, DMat4, DVec3};
+
+    use super::*;
+    use crate::dataset::{Channel, ChannelName, Dims, Endian, F32LeVoxels, Volume, VoxelBytes, VoxelType};
+    use crate::geometry::hexahedron::Hexahedron;
+    use crate::geometry::{Extent, Placement, Shape};
+    use crate::interp::{Cubic, Identity, Linear, Nearest};
+    use crate::sampling::kernel::Read;
+
+    /// A dataset of `dims` whose f32 `voxel` channel holds f(i, j, k).
+    fn field_volume(dims: [u64; 3], f: impl Fn(f64, f64, f64) -> f64) -> Volume {
+        let d = Dims::new(dims).unwrap();
+        let mut bytes = Vec::new();
+        for k in 0..dims[2] {
+            for j in 0..dims[1] {
+                for i in 0..dims[0] {
+                    bytes.extend((f(i as f64, j as f64, k as f64) as f32).to_le_bytes());
+                }
+            }
+        }
+        let ch = Channel::new(VoxelType::F32, Endian::Little, VoxelBytes::Owned(Arc::new(bytes)), d).unwrap();
+        Volume::new(d, BTreeMap::from([(ChannelName::Voxel, ch)]))
+    }
+
+    /// Points spread through the interior, where neither trilinear's nor the cubic's stencil
+    /// one voxel either side is clamped; some on voxel and cell boundaries.
+    fn interior_points(dims: [u64; 3]) -> Vec<[f64; 3]> {
+        let mut out = vec![[2.0, 2.0, 2.0], [3.5, 4.0, 2.25]];
+        for i in 0..40 {
+            let f = i as f64 / 40.0;
+            out.push(std::array::from_fn(|a| {
+                let span = dims[a] as f64 - 5.0;
+                2.0 + span * ((f * (a as f64 + 1.7) * 3.1).sin() * 0.5 + 0.5)
+            }));
+        }
+        out
+    }
+
+    #[test]
+    fn the_gradient_of_a_linear_field_is_exact_under_trilinear_cubic_and_nearest() {
+        let dims = [12, 10, 9];
+        let (a, b, c) = (3.0, -5.0, 7.0);
+        let volume = field_volume(dims, |i, j, k| a * i + b * j + c * k + 100.0);
+        let voxels = F32LeVoxels::of(volume.channel(ChannelName::Voxel).unwrap().reader()).unwrap();
+        let shaded = Shaded::new(Read(voxels), Shading::DEFAULT, &[], GradientToWorld::Affine(DMat3::IDENTITY));
+        let d = Dims::new(dims).unwrap();
+        let want = DVec3::new(a, b, c);
+        for p in interior_points(dims) {
+            let linear = shaded.gradient(&Linear::new(d, Identity), p);
+            let cubic = shaded.gradient(&Cubic::new(d), p);
+            assert!((linear - want).abs().max_element() < 1e-9, "trilinear at {p:?}: {linear}");
+            assert!((cubic - want).abs().max_element() < 1e-9, "cubic at {p:?}: {cubic}");
+            // Nearest: p ± 1 reads the neighbours of p's voxel, one voxel either side.
+            let nearest = shaded.gradient(&Nearest::new(d), p);
+            assert!((nearest - want).abs().max_element() < 1e-9, "nearest at {p:?}: {nearest}");
+        }
+        // A field that is not linear has a gradient that these differences do not hit
+        // exactly, so the test can tell.
+        let curved = field_volume(dims, |i, j, k| i * i + j * k);
+        let voxels = F32LeVoxels::of(curved.channel(ChannelName::Voxel).unwrap().reader()).unwrap();
+        let shaded = Shaded::new(Read(voxels), Shading::DEFAULT, &[], GradientToWorld::Affine(DMat3::IDENTITY));
+        let g = shaded.gradient(&Linear::new(d, Identity), [4.5, 4.0, 4.0]);
+        assert!((g - DVec3::new(9.0, 4.0, 4.0)).abs().max_element() < 1e-9, "{g}");
+    }
+
+    /// A truly distorted box (no parallelepiped) well away from folding.
+    fn distorted() -> Hexahedron {
+        let mut c: [DVec3; 8] = std::array::from_fn(|i| {
+            DVec3::new((i & 1) as f64 * 2.0, ((i >> 1) & 1) as f64 * 1.5, ((i >> 2) & 1) as f64)
+        });
+        c[7] += DVec3::new(0.3, -0.2, 0.25);
+        c[2] += DVec3::new(-0.2, 0.1, 0.05);
+        c[4] += DVec3::new(0.1, 0.15, -0.1);
+        Hexahedron::new(c).unwrap()
+    }
+
+    /// World → VC by inverting the placement's map.
+    fn vc_of_world(p: &Placement, x: DVec3) -> DVec3 {
+        let Shape::Distorted { hex, .. } = p.shape() else { panic!("distorted") };
+        p.vc_of_box(hex.invert(x, None, 1e-14).expect("inside"))
+    }
+
+    #[test]
+    fn gradients_reach_world_space_through_the_jacobian_at_the_sample() {
+        // f(VC) = g·VC: its world gradient is what finite differences of f(VC(world)) give.
+        let g = DVec3::new(0.7, -1.3, 2.1);
+        let extent = Extent { min: DVec3::new(0.1, 0.0, 0.2), max: DVec3::new(0.9, 1.0, 0.7) };
+        let dims = Dims::new([8, 6, 5]).unwrap();
+        let distorted = Placement::new(Shape::Distorted { hex: Box::new(distorted()), straight: false }, extent, dims);
+        let m = DMat4::from_rotation_y(0.4) * DMat4::from_scale(DVec3::new(2.0, 0.5, 1.5));
+        let affine = Placement::new(Shape::Affine { world_from_box: m, box_from_world: m.inverse() }, extent, dims);
+        for q in [DVec3::splat(0.5), DVec3::new(0.2, 0.8, 0.3), DVec3::new(0.9, 0.1, 0.75)] {
+            for p in [&distorted, &affine] {
+                let (x, vc) = match p.shape() {
+                    Shape::Distorted { hex, .. } => (hex.world(q), p.vc_of_box(q)),
+                    Shape::Affine { world_from_box, .. } => (world_from_box.transform_point3(q), p.vc_of_box(q)),
+                };
+                let vc_of = |x: DVec3| match p.shape() {
+                    Shape::Distorted { .. } => vc_of_world(p, x),
+                    Shape::Affine { box_from_world, .. } => p.vc_of_box(box_from_world.transform_point3(x)),
+                };
+                let h = 1e-5;
+                let numeric = DVec3::from(std::array::from_fn::<f64, 3, _>(|a| {
+                    let e = DVec3::from(std::array::from_fn::<f64, 3, _>(|b| if a == b { h } else { 0.0 }));
+                    (g.dot(vc_of(x + e)) - g.dot(vc_of(x - e))) / (2.0 * h)
+                }));
+                let exact = p.gradient_to_world().apply(vc, g);
+                assert!((exact - numeric).length() < 1e-6 * numeric.length(), "at q {q}: {exact} vs {numeric}");
+            }
+        }
+    }
+
+    #[test]
+    fn blinn_phong_is_as_the_spec_writes_it() {
+        // A field rising along −z in VC (so N = +z), lit from +x+z: N·L = cos 45°.
+        let volume = field_volume([5, 5, 5], |_, _, k| -2.0 * k);
+        let voxels = F32LeVoxels::of(volume.channel(ChannelName::Voxel).unwrap().reader()).unwrap();
+        let material = Shading::new(0.1, 0.6, 0.3, 8.0).unwrap();
+        let towards = DVec3::new(1.0, 0.0, 1.0).normalize();
+        let direction = crate::scene::UnitVector::new(-towards).unwrap();
+        let lights = [
+            Light::new(LightSource::Directional { direction }, [1.0, 0.5, 0.25], 2.0).unwrap(),
+            // Behind the surface: N·L < 0, no diffuse and no specular.
+            Light::new(LightSource::Point { position: DVec3::new(2.0, 2.0, -50.0) }, [1.0; 3], 1.0).unwrap(),
+        ];
+        let shaded = Shaded::new(Read(voxels), material, &lights, GradientToWorld::Affine(DMat3::IDENTITY));
+        let interp = Linear::new(Dims::new([5, 5, 5]).unwrap(), Identity);
+        let view = DVec3::Z;
+        let c = [0.5, 0.4, 0.2];
+        let got = shaded.shade(&interp, [2.0, 2.0, 2.0], DVec3::new(2.0, 2.0, 2.0), view, c);
+        let e = [2.0, 1.0, 0.5];
+        let n_dot_l = std::f64::consts::FRAC_1_SQRT_2;
+        let h = (towards + view).normalize();
+        let spec = 0.3 * h.z.powf(8.0);
+        for i in 0..3 {
+            let want = c[i] * (0.1 + 0.6 * n_dot_l * e[i]) + spec * e[i];
+            assert!((got[i] - want).abs() < 1e-12, "channel {i}: {} vs {want}", got[i]);
+        }
+        // Seen from behind, the normal turns to face the viewer: lit by the point light only.
+        let back = shaded.shade(&interp, [2.0, 2.0, 2.0], DVec3::new(2.0, 2.0, 2.0), -view, c);
+        let to_light = (DVec3::new(2.0, 2.0, -50.0) - DVec3::new(2.0, 2.0, 2.0)).normalize();
+        let n_dot_l = -to_light.z;
+        let want = c[0] * (0.1 + 0.6 * n_dot_l) + 0.3 * (-(to_light - view).normalize().z).powf(8.0);
+        assert!((back[0] - want).abs() < 1e-12, "{} vs {want}", back[0]);
+        // A flat field has no normal: the sample keeps its colour.
+        let flat = field_volume([5, 5, 5], |_, _, _| 3.0);
+        let voxels = F32LeVoxels::of(flat.channel(ChannelName::Voxel).unwrap().reader()).unwrap();
+        let shaded = Shaded::new(Read(voxels), material, &lights, GradientToWorld::Affine(DMat3::IDENTITY));
+        assert_eq!(shaded.shade(&interp, [2.0, 2.0, 2.0], DVec3::ZERO, view, c), c);
+    }
+}
