@@ -21,9 +21,9 @@ use super::camera::PixelRays;
 use super::placement::BoxOrigin;
 use super::Ray;
 
-/// How wide the loops below may run: which instructions they are compiled for. Every width
-/// gives the same bits.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// How wide the loops below may run: which instructions they are compiled for, narrowest
+/// first. Every width gives the same bits.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub(crate) enum VectorWidth {
     /// The target's baseline (two f64 lanes on x86-64's SSE2).
     Baseline,
@@ -172,22 +172,6 @@ impl VectorWidth {
             VectorWidth::Baseline
         }
     }
-
-    fn rank(self) -> u8 {
-        match self {
-            VectorWidth::Baseline => 0,
-            VectorWidth::Avx2 => 1,
-            VectorWidth::Avx512 => 2,
-        }
-    }
-
-    fn min(self, other: VectorWidth) -> VectorWidth {
-        if self.rank() <= other.rank() {
-            self
-        } else {
-            other
-        }
-    }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -266,7 +250,7 @@ mod tests {
     fn widths() -> Vec<VectorWidth> {
         [VectorWidth::Baseline, VectorWidth::Avx2, VectorWidth::Avx512]
             .into_iter()
-            .filter(|w| VectorWidth::detect(VectorWidth::Avx512).rank() >= w.rank())
+            .filter(|&w| w <= VectorWidth::detect(VectorWidth::Avx512))
             .collect()
     }
 

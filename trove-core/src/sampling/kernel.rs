@@ -403,24 +403,28 @@ impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Kernel<'_, I, V, M, S> {
         }
         PieceResult { rgba: acc, samples, shaded }
     }
+}
 
-    /// A shaded object's samples, each that contributes shaded ([`Shade::shade`]) before it
-    /// is composited: along a straight line in groups with jumps over empty space, as the
-    /// unlit loop casts them ([`Kernel::cast_line_any`]); an exact distorted walk sample by
-    /// sample, each tested for empty space. The samples, their values and their opacities
-    /// are those of the unlit loops.
-    fn cast_shaded(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult {
+impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Cast for Kernel<'_, I, V, M, S> {
+    fn cast(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult {
         if let Some(line) = walk.line() {
-            let at = walk.world_points();
-            return self.cast_line_any::<LANES>(&line, alpha_in, stop_at, Some((&at, -walk.ray().dir)));
+            if S::ON {
+                // A lit line: in groups with jumps over empty space, as the unlit loop casts
+                // it ([`Kernel::cast_line_any`]), each contributing sample shaded.
+                let at = walk.world_points();
+                return self.cast_line_any::<LANES>(&line, alpha_in, stop_at, Some((&at, -walk.ray().dir)));
+            }
+            return self.cast_line(&line, alpha_in, stop_at);
         }
+        // An exact distorted walk: samples one by one, each tested for empty space, and in
+        // a lit loop (`S::ON`, a constant) each that contributes shaded before compositing.
         let mut acc = Rgba::CLEAR;
         let (mut samples, mut shaded) = (0, 0);
         let done = |acc: &Rgba| alpha_in + (1.0 - alpha_in) * acc.alpha >= stop_at;
+        // The macrocell of the last sample looked at, and whether it is empty.
         let mut cell = [u32::MAX; 3];
         let mut empty = false;
-        let at = walk.world_points();
-        let view = -walk.ray().dir;
+        let (at, view) = (walk.world_points(), -walk.ray().dir);
         for (k, (vc, ell)) in walk.enumerate() {
             let Some(vc) = vc else { continue };
             let s = self.interp.locate(vc);
@@ -436,7 +440,7 @@ impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Kernel<'_, I, V, M, S> {
             }
             samples += 1;
             let (opacity, mut colour) = self.mapped(&s);
-            if opacity > 0.0 {
+            if S::ON && opacity > 0.0 {
                 shaded += 1;
                 colour = self.shade.shade(&self.interp, vc, at.at(k as u64), view, colour);
             }
@@ -445,43 +449,6 @@ impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Kernel<'_, I, V, M, S> {
             }
         }
         PieceResult { rgba: acc, samples, shaded }
-    }
-}
-
-impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Cast for Kernel<'_, I, V, M, S> {
-    fn cast(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult {
-        if S::ON {
-            return self.cast_shaded(walk, alpha_in, stop_at);
-        }
-        if let Some(line) = walk.line() {
-            return self.cast_line(&line, alpha_in, stop_at);
-        }
-        // An exact distorted walk: samples one by one, each tested for empty space.
-        let mut acc = Rgba::CLEAR;
-        let mut samples = 0;
-        let done = |acc: &Rgba| alpha_in + (1.0 - alpha_in) * acc.alpha >= stop_at;
-        // The macrocell of the last sample looked at, and whether it is empty.
-        let mut cell = [u32::MAX; 3];
-        let mut empty = false;
-        for (vc, ell) in walk {
-            let Some(vc) = vc else { continue };
-            let s = self.interp.locate(vc);
-            if let Some(skip) = &self.skip {
-                let c = cell_of(self.interp.base(&s));
-                if c != cell {
-                    cell = c;
-                    empty = skip.is_empty(&self.interp, Level::Fine, c);
-                }
-                if empty {
-                    continue;
-                }
-            }
-            samples += 1;
-            if self.composite(self.mapped(&s), ell, &mut acc, done) {
-                break;
-            }
-        }
-        PieceResult { rgba: acc, samples, shaded: 0 }
     }
 
     fn cast_many(&self, pieces: Vec<(usize, SampleWalk<'_>, f64, f64)>, out: &mut [PieceResult]) {

@@ -168,14 +168,7 @@ impl Dispatch {
         stream: &StreamKey,
         worker: Option<&WorkerHandle>,
     ) -> Result<InFlight, Refused> {
-        let batch = self.in_flight.get(&wire).ok_or(Refused::Unknown)?;
-        if batch.stream != *stream {
-            return Err(Refused::WrongStream);
-        }
-        if batch.attempt != attempt {
-            return Err(Refused::WrongAttempt { sent: batch.attempt, answered: attempt });
-        }
-        let batch = self.in_flight.remove(&wire).expect("looked up above");
+        let batch = self.take(wire, stream, Some(attempt))?;
         if let Some(w) = worker {
             w.in_flight.fetch_sub(1, Ordering::Relaxed);
             w.done.fetch_add(1, Ordering::Relaxed);
@@ -195,16 +188,25 @@ impl Dispatch {
         stream: &StreamKey,
         worker: Option<&WorkerHandle>,
     ) -> Result<InFlight, Refused> {
-        let batch = self.in_flight.get(&wire).ok_or(Refused::Unknown)?;
-        if batch.stream != *stream {
-            return Err(Refused::WrongStream);
-        }
-        let batch = self.in_flight.remove(&wire).expect("looked up above");
+        let batch = self.take(wire, stream, None)?;
         if let Some(w) = worker {
             w.in_flight.fetch_sub(1, Ordering::Relaxed);
         }
         self.busy.insert(stream.0.clone());
         Ok(batch)
+    }
+
+    /// Takes batch `wire` out of flight if it was sent on `stream` (and, given `attempt`,
+    /// as that attempt); otherwise leaves it in flight and says why.
+    fn take(&mut self, wire: u64, stream: &StreamKey, attempt: Option<u32>) -> Result<InFlight, Refused> {
+        let batch = self.in_flight.get(&wire).ok_or(Refused::Unknown)?;
+        if batch.stream != *stream {
+            return Err(Refused::WrongStream);
+        }
+        if let Some(attempt) = attempt.filter(|&a| a != batch.attempt) {
+            return Err(Refused::WrongAttempt { sent: batch.attempt, answered: attempt });
+        }
+        Ok(self.in_flight.remove(&wire).expect("looked up above"))
     }
 
     /// Stops using `stream` for this job, for `rest`; returns its batches in flight, with the
