@@ -92,11 +92,15 @@ fn two_coordinators_sharing_three_workers_render_their_jobs_at_once_as_in_local_
             assert!(files.png == expected[c], "round {round}, coordinator {c}: the PNG differs from local mode's");
         }
     }
-    // Each coordinator knows all three workers, and each sent batches to every one of them.
+    // Each coordinator knows all three workers alive, and cast its jobs on them. Which of
+    // them took batches depends on timing here (with answers back before the next send, the
+    // least-loaded choice's tie goes to the first holder every time), so that every worker
+    // is used is held by the contended test below, where a full worker forces it.
     for c in 0..2 {
         let workers = farm.workers(c).unwrap();
         assert_eq!(workers.len(), 3, "coordinator {c}: {workers:?}");
-        assert!(workers.iter().all(|w| w.alive && w.batches_done > 0), "coordinator {c}: {workers:?}");
+        assert!(workers.iter().all(|w| w.alive), "coordinator {c}: {workers:?}");
+        assert!(workers.iter().map(|w| w.batches_done).sum::<u64>() > 0, "coordinator {c}: {workers:?}");
     }
 }
 
