@@ -102,6 +102,14 @@ fn two_coordinators_sharing_three_workers_render_their_jobs_at_once_as_in_local_
         assert!(workers.iter().all(|w| w.alive), "coordinator {c}: {workers:?}");
         assert!(workers.iter().map(|w| w.batches_done).sum::<u64>() > 0, "coordinator {c}: {workers:?}");
     }
+    // Each worker parsed each of the two scenes at most once, over both rounds, both
+    // coordinators and every dataset's stream: the others found it parsed.
+    for (w, m) in farm.worker_metrics.iter().enumerate() {
+        assert!(m.scenes_parsed() <= 2, "worker {w} parsed {} scenes", m.scenes_parsed());
+    }
+    let parsed: u64 = farm.worker_metrics.iter().map(|m| m.scenes_parsed()).sum();
+    let reused: u64 = farm.worker_metrics.iter().map(|m| m.scenes_reused()).sum();
+    assert!(parsed >= 2 && reused > parsed, "parsed {parsed}, reused {reused}");
 }
 
 #[test]

@@ -42,6 +42,7 @@ use trove_proto::convert::{self, JOB_HEADER};
 use trove_proto::v1 as pb;
 
 use crate::files::DataFiles;
+use crate::scenes::JobScenes;
 
 /// Tasks per rayon work item within a batch, and the granularity of cancellation.
 const CHUNK_TASKS: usize = 256;
@@ -127,6 +128,7 @@ pub struct CastService {
     max_streams: usize,
     slots: Arc<BatchSlots>,
     draining: watch::Sender<bool>,
+    scenes: Arc<JobScenes>,
 }
 
 /// Starts a worker's drain ([`CastService::drain`]); it outlives the service, which the
@@ -163,7 +165,13 @@ impl CastService {
             max_streams,
             slots: BatchSlots::new(max_batches),
             draining: watch::channel(false).0,
+            scenes: Arc::default(),
         }
+    }
+
+    /// The scenes its streams parsed, shared by them (read by the worker's metrics).
+    pub fn scenes(&self) -> Arc<JobScenes> {
+        self.scenes.clone()
     }
 
     /// What starts this service's drain.
@@ -220,10 +228,10 @@ pub fn parse_job_scene(files: &DataFiles, open: &pb::CastOpen) -> Result<Scene, 
         .map_err(|e| convert::failure_status(convert::scene_failure(&e)))
 }
 
-/// Validates the job's scene and checks that this worker can cast `open.dataset`;
-/// a refusal is a `Status` carrying the typed failure.
-fn open_job(files: &DataFiles, open: &pb::CastOpen) -> Result<(Arc<Scene>, usize), Status> {
-    let scene = parse_job_scene(files, open)?;
+/// Validates the job's scene (parsed once for all its streams: `scenes`) and checks that
+/// this worker can cast `open.dataset`; a refusal is a `Status` carrying the typed failure.
+fn open_job(files: &DataFiles, scenes: &JobScenes, open: &pb::CastOpen) -> Result<(Arc<Scene>, usize), Status> {
+    let scene = scenes.get_or_parse(open, || parse_job_scene(files, open))?;
     let d = open.dataset as usize;
     let Some(info) = scene.datasets().get(d) else {
         return Err(convert::failure_status(convert::failure(
@@ -241,7 +249,7 @@ fn open_job(files: &DataFiles, open: &pb::CastOpen) -> Result<(Arc<Scene>, usize
         f.dataset = info.name().to_string();
         return Err(convert::failure_status(f));
     }
-    Ok((Arc::new(scene), d))
+    Ok((scene, d))
 }
 
 #[tonic::async_trait]
@@ -259,8 +267,8 @@ impl pb::worker_server::Worker for CastService {
         };
         let span = tracing::info_span!("cast", job = %job, dataset = open.dataset);
         let job: Arc<str> = if open.job_id.is_empty() { job.into() } else { open.job_id.as_str().into() };
-        let files = self.files.clone();
-        let opened = tokio::task::spawn_blocking(move || open_job(&files, &open))
+        let (files, scenes) = (self.files.clone(), self.scenes.clone());
+        let opened = tokio::task::spawn_blocking(move || open_job(&files, &scenes, &open))
             .await
             .map_err(|e| Status::internal(format!("opening the job failed: {e}")))?;
         let (scene, dataset) = opened?;

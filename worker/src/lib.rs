@@ -10,6 +10,8 @@
 //!   once, then batches cast on rayon threads with `trove-core`'s `BatchCaster` over the
 //!   worker's one budgeted `VolumeStore` (datasets are memory-mapped when first needed and
 //!   shared by every job).
+//! * [`scenes`] keeps the scenes those streams parse, so a job's scene is parsed once per
+//!   worker, not once per dataset.
 //! * [`metrics`] counts what the `Cast` streams answer, for Prometheus.
 //! * [`server::run`] ties them together over a bound listener and a shutdown signal, so a
 //!   test runs workers in-process on `127.0.0.1:0`; the `trove-worker` binary stays thin.
@@ -18,6 +20,7 @@ pub mod cast;
 pub mod files;
 pub mod membership;
 pub mod metrics;
+pub mod scenes;
 pub mod server;
 
 pub use server::{run, WorkerConfig, WorkerError, WorkerSecurity};

@@ -14,6 +14,8 @@
 //! | `trove_worker_resident_bytes` | gauge | voxel bytes resident in the store (kept classifications included) |
 //! | `trove_worker_streams_open` | gauge | `Cast` streams open now |
 //! | `trove_worker_batches_refused_total` | counter | batches refused as busy (`--max-batches`; several coordinators) |
+//! | `trove_worker_scenes_parsed_total` | counter | job scenes parsed (once per distinct scene kept, not per stream) |
+//! | `trove_worker_scenes_reused_total` | counter | streams whose scene was already parsed |
 
 use std::future::Future;
 use std::pin::Pin;
@@ -30,6 +32,8 @@ use trove_core::render::VolumeStore;
 use trove_proto::v1 as pb;
 use trove_proto::v1::worker_server::Worker;
 
+use crate::scenes::JobScenes;
+
 /// One worker's metrics, served by [`serve`].
 pub struct WorkerMetrics {
     registry: Registry,
@@ -39,7 +43,10 @@ pub struct WorkerMetrics {
     resident_bytes: Gauge,
     streams_open: Gauge,
     refused: Counter,
+    scenes_parsed: Counter,
+    scenes_reused: Counter,
     store: Mutex<Option<VolumeStore>>,
+    scenes: Mutex<Option<Arc<JobScenes>>>,
 }
 
 impl std::fmt::Debug for WorkerMetrics {
@@ -84,6 +91,14 @@ impl WorkerMetrics {
             "Batches refused as busy: the worker held --max-batches and the job had its share",
             refused.clone(),
         );
+        let scenes_parsed = Counter::default();
+        registry.register(
+            "scenes_parsed",
+            "Job scenes parsed: once per distinct scene while it is kept, not once per stream",
+            scenes_parsed.clone(),
+        );
+        let scenes_reused = Counter::default();
+        registry.register("scenes_reused", "Cast streams whose scene was already parsed", scenes_reused.clone());
         WorkerMetrics {
             registry,
             batches,
@@ -92,8 +107,38 @@ impl WorkerMetrics {
             resident_bytes,
             streams_open,
             refused,
+            scenes_parsed,
+            scenes_reused,
             store: Mutex::new(None),
+            scenes: Mutex::new(None),
         }
+    }
+
+    /// Reads the scenes parsed and reused from `scenes` on every scrape (a worker calls this
+    /// as it starts).
+    pub fn observe_scenes(&self, scenes: Arc<JobScenes>) {
+        *self.scenes.lock().unwrap_or_else(|e| e.into_inner()) = Some(scenes);
+    }
+
+    /// Brings the scene counters up to what the observed [`JobScenes`] counted.
+    fn read_scenes(&self) {
+        if let Some(scenes) = self.scenes.lock().unwrap_or_else(|e| e.into_inner()).as_ref() {
+            // Counters only go up: add what was counted since the last read.
+            self.scenes_parsed.inc_by(scenes.parsed().saturating_sub(self.scenes_parsed.get()));
+            self.scenes_reused.inc_by(scenes.reused().saturating_sub(self.scenes_reused.get()));
+        }
+    }
+
+    /// Job scenes parsed so far.
+    pub fn scenes_parsed(&self) -> u64 {
+        self.read_scenes();
+        self.scenes_parsed.get()
+    }
+
+    /// Cast streams that found their scene parsed so far.
+    pub fn scenes_reused(&self) -> u64 {
+        self.read_scenes();
+        self.scenes_reused.get()
     }
 
     /// Reads resident bytes from `store` on every scrape (a worker calls this as it starts).
@@ -134,6 +179,7 @@ impl WorkerMetrics {
         if let Some(store) = self.store.lock().unwrap_or_else(|e| e.into_inner()).as_ref() {
             self.resident_bytes.set(store.resident_bytes().min(i64::MAX as u64) as i64);
         }
+        self.read_scenes();
         let mut page = String::new();
         // Writing to a String cannot fail.
         let _ = encode(&mut page, &self.registry);

@@ -185,6 +185,7 @@ pub async fn run(
     };
     config.metrics.observe(&store);
     let service = CastService::new(files, store, busy, config.max_streams, config.max_batches);
+    config.metrics.observe_scenes(service.scenes());
     let drain = service.drain();
     let worker = InterceptedService::new(
         WorkerServer::new(Metered::new(service, config.metrics.clone()))
