@@ -19,6 +19,24 @@ use crate::v1 as pb;
 /// across the coordinator's and the workers' logs.
 pub const JOB_HEADER: &str = "x-trove-job";
 
+/// What names a job's scene on a cast stream that does not carry it (`CastOpen.scene_digest`):
+/// SHA-256 of the scene's text, its name and the headers of its files, each length-prefixed,
+/// so that the coordinator and every worker compute the same 32 bytes from the same fields,
+/// and two different scenes never share them.
+pub fn scene_digest(scene_toml: &str, scene_name: &str, headers: &[pb::DatasetFile]) -> [u8; 32] {
+    use sha2::{Digest, Sha256};
+    let mut h = Sha256::new();
+    for part in [scene_toml.as_bytes(), scene_name.as_bytes()] {
+        h.update((part.len() as u64).to_le_bytes());
+        h.update(part);
+    }
+    h.update((headers.len() as u64).to_le_bytes());
+    for header in headers {
+        h.update(header.encode_length_delimited_to_vec());
+    }
+    h.finalize().into()
+}
+
 /// A failure for a person and a program: `reason` and `retryable` for the program, the
 /// message for the person.
 pub fn failure(reason: pb::Reason, retryable: bool, message: String) -> pb::Failure {
@@ -34,6 +52,7 @@ pub fn failure_status(f: pb::Failure) -> Status {
         pb::Reason::Cancelled => Code::Cancelled,
         pb::Reason::WorkerLost | pb::Reason::Unavailable => Code::Unavailable,
         pb::Reason::LimitExceeded | pb::Reason::Busy => Code::ResourceExhausted,
+        pb::Reason::SceneUnknown => Code::FailedPrecondition,
         pb::Reason::NotFound => Code::NotFound,
         pb::Reason::DeadlineExceeded => Code::DeadlineExceeded,
         pb::Reason::Internal | pb::Reason::Unspecified => Code::Internal,

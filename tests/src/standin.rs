@@ -23,7 +23,7 @@
 use std::collections::HashMap;
 use std::future::Future;
 use std::path::Path;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::Duration;
 
@@ -67,8 +67,12 @@ pub struct Answers {
     files: Arc<DataFiles>,
     store: VolumeStore,
     pool: Arc<rayon::ThreadPool>,
-    /// By scene name and text.
-    scenes: Mutex<HashMap<(String, String), Arc<SceneAnswers>>>,
+    /// By digest (`convert::scene_digest`), as a worker keeps them.
+    scenes: Mutex<HashMap<[u8; 32], Arc<SceneAnswers>>>,
+    /// Scenes are let go as soon as a stream opened on them ([`Answers::forget_scenes`]).
+    forgetful: AtomicBool,
+    /// Opens refused because they named by digest a scene not held.
+    unknown: AtomicU64,
     answered: AtomicU64,
     cast: AtomicU64,
     /// Batches answered after a batch of their stream that was sent later.
@@ -87,6 +91,8 @@ impl Answers {
             answered: AtomicU64::new(0),
             cast: AtomicU64::new(0),
             overtaken: AtomicU64::new(0),
+            forgetful: AtomicBool::new(false),
+            unknown: AtomicU64::new(0),
         })
     }
 
@@ -101,17 +107,44 @@ impl Answers {
         self.overtaken.load(Ordering::Relaxed)
     }
 
+    /// From now on, lets each scene go as soon as a stream opened on it, as a worker that
+    /// restarts (or evicts the scene) between two streams of a job would: every open that
+    /// names a scene by digest alone is then refused as unknown, and the coordinator must
+    /// send the scene again.
+    pub fn forget_scenes(&self) {
+        let mut scenes = self.scenes.lock().unwrap_or_else(|e| e.into_inner());
+        self.forgetful.store(true, Ordering::Relaxed);
+        scenes.clear();
+    }
+
+    /// Opens refused so far because they named a scene not held.
+    pub fn scenes_unknown(&self) -> u64 {
+        self.unknown.load(Ordering::Relaxed)
+    }
+
     /// The job's scene and its tables, parsed on the first stream that names it.
     fn open(&self, open: &pb::CastOpen) -> Result<(Arc<SceneAnswers>, usize), Status> {
         let mut scenes = self.scenes.lock().unwrap_or_else(|e| e.into_inner());
-        let id = (open.scene_name.clone(), open.scene_toml.clone());
+        // As a worker keeps them: by digest, which streams after the first name alone.
+        let id: [u8; 32] = if open.scene_toml.is_empty() {
+            open.scene_digest.as_slice().try_into().unwrap_or_default()
+        } else {
+            convert::scene_digest(&open.scene_toml, &open.scene_name, &open.headers)
+        };
         let answers = match scenes.get(&id) {
             Some(a) => a.clone(),
+            None if open.scene_toml.is_empty() => {
+                self.unknown.fetch_add(1, Ordering::Relaxed);
+                let message = "the stand-in holds no scene of that digest".to_string();
+                return Err(convert::failure_status(convert::failure(pb::Reason::SceneUnknown, true, message)));
+            }
             None => {
                 let scene = trove_worker::cast::parse_job_scene(&self.files, open)?;
                 let tables = scene.datasets().iter().map(|_| RwLock::new(HashMap::new())).collect();
                 let a = Arc::new(SceneAnswers { scene: Arc::new(scene), tables });
-                scenes.insert(id, a.clone());
+                if !self.forgetful.load(Ordering::Relaxed) {
+                    scenes.insert(id, a.clone());
+                }
                 a
             }
         };

@@ -264,6 +264,13 @@ fn random_scenes_of_many_datasets_render_as_in_local_mode_on_any_number_of_worke
                 files.png == expected,
                 "seed {seed}, {workers} workers, bands of {band_rows} rows, batches of {batch_tasks}: the farm's PNG differs"
             );
+            // The scene goes once to each worker; its other streams name it by digest.
+            let stats: serde_json::Value = serde_json::from_slice(&files.stats_json).unwrap();
+            let (opened, sent) = (stats["streams_opened"].as_u64().unwrap(), stats["scenes_sent"].as_u64().unwrap());
+            assert!(
+                (1..=workers as u64).contains(&sent) && sent < opened,
+                "seed {seed}, {workers} workers: the scene was sent {sent} times on {opened} streams"
+            );
         }
     }
 }

@@ -81,6 +81,7 @@ fn open_stream(scene: &str) -> (mpsc::Sender<pb::CastRequest>, ReceiverStream<pb
         scene_name: "scene.toml".into(),
         dataset: 0,
         headers: Vec::new(),
+        scene_digest: Vec::new(),
     };
     tx.try_send(pb::CastRequest { kind: Some(pb::cast_request::Kind::Open(open)) }).unwrap();
     (tx, ReceiverStream::new(rx))

@@ -185,3 +185,31 @@ fn jobs_sharing_one_worker_take_the_room_each_other_frees_without_waiting_for_a_
         let _ = stop.send(());
     }
 }
+
+#[test]
+fn a_worker_that_no_longer_holds_the_scene_is_sent_it_again_and_the_image_is_unchanged() {
+    let dir = scratch("standin-forgetful");
+    let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
+    let answers = Arc::new(Answers::new(&dir, pool).unwrap());
+    let farm = TestFarm::start(&[]);
+    let stops = stand_ins(&farm, &answers, 1, 2, Order::AsReceived);
+    let (name, text) = ("forgetful.toml", scene(32));
+    let options = pb::JobOptions { band_rows: 6, batch_tasks: 40, ..Default::default() };
+    // Remembered: the scene goes on the first stream only, the second names it by digest.
+    let files = farm.render_with(&text, name, options).unwrap();
+    assert!(files.png == local_png(&text, name), "the farm's PNG differs from local mode's");
+    let stats: serde_json::Value = serde_json::from_slice(&files.stats_json).unwrap();
+    assert_eq!((stats["streams_opened"].as_u64(), stats["scenes_sent"].as_u64()), (Some(2), Some(1)), "{stats}");
+    assert_eq!(answers.scenes_unknown(), 0);
+    // Forgotten as soon as opened (a worker restarted between streams): the stream that
+    // names the scene by digest is refused as unknown, and opens again carrying it.
+    answers.forget_scenes();
+    let files = farm.render_with(&text, name, options).unwrap();
+    assert!(files.png == local_png(&text, name), "the farm's PNG differs from local mode's");
+    let stats: serde_json::Value = serde_json::from_slice(&files.stats_json).unwrap();
+    assert_eq!(answers.scenes_unknown(), 1, "{stats}");
+    assert_eq!((stats["streams_opened"].as_u64(), stats["scenes_sent"].as_u64()), (Some(3), Some(2)), "{stats}");
+    for stop in stops {
+        let _ = stop.send(());
+    }
+}

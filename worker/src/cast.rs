@@ -42,7 +42,7 @@ use trove_proto::convert::{self, JOB_HEADER};
 use trove_proto::v1 as pb;
 
 use crate::files::DataFiles;
-use crate::scenes::JobScenes;
+use crate::scenes::{JobScenes, SceneRefusal};
 
 /// Tasks per rayon work item within a batch, and the granularity of cancellation.
 const CHUNK_TASKS: usize = 256;
@@ -231,7 +231,19 @@ pub fn parse_job_scene(files: &DataFiles, open: &pb::CastOpen) -> Result<Scene, 
 /// Validates the job's scene (parsed once for all its streams: `scenes`) and checks that
 /// this worker can cast `open.dataset`; a refusal is a `Status` carrying the typed failure.
 fn open_job(files: &DataFiles, scenes: &JobScenes, open: &pb::CastOpen) -> Result<(Arc<Scene>, usize), Status> {
-    let scene = scenes.get_or_parse(open, || parse_job_scene(files, open))?;
+    let scene = scenes.get_or_parse(open, || parse_job_scene(files, open)).map_err(|refusal| match refusal {
+        SceneRefusal::Parse(status) => status,
+        SceneRefusal::Unknown => convert::failure_status(convert::failure(
+            pb::Reason::SceneUnknown,
+            true,
+            "this worker does not hold the scene this stream names by digest; open it again with the scene".into(),
+        )),
+        SceneRefusal::Mismatch => convert::failure_status(convert::failure(
+            pb::Reason::BadBatch,
+            false,
+            "the stream's scene digest is not its scene's: coordinator and worker name scenes differently".into(),
+        )),
+    })?;
     let d = open.dataset as usize;
     let Some(info) = scene.datasets().get(d) else {
         return Err(convert::failure_status(convert::failure(

@@ -48,10 +48,16 @@ pub struct FarmStats {
     /// Batches a worker refused as busy (it serves other coordinators or jobs too, and this
     /// job had its share), each sent again without spending an attempt.
     pub batches_refused_busy: u64,
-    /// Payload bytes of every message to the workers (scenes once per stream, then tasks).
+    /// Payload bytes of every message to the workers (the scene on the first stream to each
+    /// worker, a digest on the others, then tasks).
     pub wire_bytes_to_workers: u64,
     /// Payload bytes of every answer from the workers.
     pub wire_bytes_from_workers: u64,
+    /// Cast streams opened (one per dataset and worker casting it, more where one was lost).
+    pub streams_opened: u64,
+    /// Of those, the ones whose open carried the scene: the first to each worker, and any
+    /// opened before that one was accepted or after the worker had let the scene go.
+    pub scenes_sent: u64,
     /// Each worker's share.
     pub workers: Vec<WorkerStats>,
     /// Where the coordinator's own time went, by stage.
@@ -96,6 +102,8 @@ impl FarmStats {
             batches_refused_busy: 0,
             wire_bytes_to_workers: to,
             wire_bytes_from_workers: from,
+            streams_opened: 0,
+            scenes_sent: 0,
             workers,
             coordinator_seconds: CoordinatorSeconds::default(),
         }

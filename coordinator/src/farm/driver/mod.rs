@@ -45,7 +45,7 @@ mod raster;
 mod streams;
 mod tally;
 
-use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet, VecDeque};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::Arc;
 use std::time::Instant;
@@ -118,6 +118,8 @@ enum Event {
 struct Stream {
     tx: mpsc::Sender<pb::CastRequest>,
     worker: WorkerHandle,
+    /// Its open carried the scene (the worker did not hold it yet, as far as the job knew).
+    carries_scene: bool,
     /// Which opening of its (worker, dataset) pair this is: events of an earlier stream of
     /// the same pair, lost before, are not this one's.
     serial: u64,
@@ -155,6 +157,12 @@ struct Driver {
     /// Streams opened and not accepted yet, since when (few: only while streams open).
     opening: Vec<(StreamKey, Instant)>,
     next_serial: u64,
+    /// The scene's SHA-256 (`convert::scene_digest`): what names it on streams that do not
+    /// carry it.
+    scene_digest: Vec<u8>,
+    /// Workers that accepted a stream of this job carrying the scene: they hold it, and the
+    /// job's other streams to them name it by digest alone.
+    scene_on: HashSet<String>,
     /// Per dataset: the batches bands handed out that wait for a worker with room, and how
     /// many more are asked for and not yet produced.
     stock: Vec<Stock>,
@@ -216,6 +224,8 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         streams: Default::default(),
         opening: Vec::new(),
         next_serial: 0,
+        scene_digest: Vec::new(),
+        scene_on: HashSet::new(),
         stock: (0..datasets).map(|_| Stock::default()).collect(),
         active: BTreeSet::new(),
         tally: {
@@ -341,6 +351,11 @@ impl Driver {
                 let accepted = |w: &WorkerHandle| !opening.iter().any(|((id, od), _)| *od == d && *id == w.id);
                 let Some(worker) = self.dispatch.pick(d, accepted).cloned() else { break };
                 if !self.streams.contains_key(&(worker.id.clone(), d)) {
+                    if !self.scene_on.contains(&worker.id) && self.scene_on_its_way(&worker.id) {
+                        // The scene is on its way to this worker on another stream: this one
+                        // opens once that one is accepted, naming the scene by digest alone.
+                        break;
+                    }
                     // Its batches wait until the worker accepts the stream.
                     self.open(&worker, d);
                     continue;
@@ -445,6 +460,9 @@ impl Driver {
             Event::Opened { stream, serial } => {
                 if self.is_current(&stream, serial) {
                     self.opening.retain(|(k, _)| *k != stream);
+                    if self.streams.get(&stream).is_some_and(|s| s.carries_scene) {
+                        self.scene_on.insert(stream.0.clone());
+                    }
                     // Batches of its dataset may go on it now.
                     self.active.insert(stream.1);
                 }
@@ -472,6 +490,14 @@ impl Driver {
                 if let Some(failure) = status.as_ref().and_then(convert::status_failure) {
                     if !failure.retryable {
                         return Err(JobError::Worker { worker: stream.0.clone(), failure: Box::new(failure) });
+                    }
+                    if failure.reason() == pb::Reason::SceneUnknown {
+                        // The worker no longer holds the scene (it restarted, or let it go):
+                        // the stream opens again at once, carrying it.
+                        tracing::debug!(worker = %stream.0, dataset = stream.1, "scene unknown; sending it again");
+                        self.scene_on.remove(&stream.0);
+                        self.lose_stream(&stream, Rest::Until(Instant::now()));
+                        return Ok(());
                     }
                 }
                 let code = status.as_ref().map(|s| s.code());

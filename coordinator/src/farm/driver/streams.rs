@@ -7,7 +7,7 @@ use std::time::Instant;
 use prost::Message;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
-use trove_proto::convert::JOB_HEADER;
+use trove_proto::convert::{scene_digest, JOB_HEADER};
 use trove_proto::v1 as pb;
 use trove_proto::v1::worker_client::WorkerClient;
 
@@ -15,19 +15,37 @@ use super::super::registry::WorkerHandle;
 use super::{Driver, Event, Stream};
 
 impl Driver {
-    /// Opens the `Cast` stream to `worker` for dataset `d`: the scene first, then batches.
+    /// Whether a stream carrying the scene to worker `id` is opening (not accepted yet).
+    pub(super) fn scene_on_its_way(&self, id: &str) -> bool {
+        self.opening.iter().any(|(k, _)| k.0 == id && self.streams.get(k).is_some_and(|s| s.carries_scene))
+    }
+
+    /// Opens the `Cast` stream to `worker` for dataset `d`: the scene first (by digest alone
+    /// where the worker accepted it on another stream of the job), then batches.
     pub(super) fn open(&mut self, worker: &WorkerHandle, d: usize) {
         let (tx, rx) = mpsc::channel(256);
+        if self.scene_digest.is_empty() {
+            self.scene_digest = scene_digest(&self.plan.scene_toml, &self.plan.scene_name, &self.plan.headers).to_vec();
+        }
+        let carries_scene = !self.scene_on.contains(&worker.id);
+        let (scene_toml, scene_name, headers) = if carries_scene {
+            (self.plan.scene_toml.clone(), self.plan.scene_name.clone(), self.plan.headers.clone())
+        } else {
+            Default::default()
+        };
         let open = pb::CastRequest {
             kind: Some(pb::cast_request::Kind::Open(pb::CastOpen {
                 job_id: self.job.id.clone(),
-                scene_toml: self.plan.scene_toml.clone(),
-                scene_name: self.plan.scene_name.clone(),
+                scene_toml,
+                scene_name,
                 dataset: d as u32,
-                headers: self.plan.headers.clone(),
+                headers,
+                scene_digest: self.scene_digest.clone(),
             })),
         };
         self.tally.wire_to += open.encoded_len() as u64;
+        self.tally.streams_opened += 1;
+        self.tally.scenes_sent += u64::from(carries_scene);
         let _ = tx.try_send(open);
         let key = (worker.id.clone(), d);
         let mut client = WorkerClient::new(worker.channel.clone())
@@ -67,6 +85,6 @@ impl Driver {
             let _ = events.send(Event::StreamEnded { stream: stream_key, serial, status }).await;
         });
         self.opening.push((key.clone(), Instant::now()));
-        self.streams.insert(key, Stream { tx, worker: worker.clone(), serial });
+        self.streams.insert(key, Stream { tx, worker: worker.clone(), carries_scene, serial });
     }
 }

@@ -30,6 +30,9 @@ pub(super) struct Tally {
     pub refused: u64,
     pub wire_to: u64,
     pub wire_from: u64,
+    /// Cast streams opened, and how many of their opens carried the scene.
+    pub streams_opened: u64,
+    pub scenes_sent: u64,
     workers: BTreeMap<String, WorkerStats>,
     pub cast_started: Option<Instant>,
     /// The coordinator's own time by stage.
@@ -50,6 +53,8 @@ impl Tally {
             refused: 0,
             wire_to: 0,
             wire_from: 0,
+            streams_opened: 0,
+            scenes_sent: 0,
             workers: BTreeMap::new(),
             cast_started: None,
             coordinator: CoordinatorSeconds::default(),
@@ -108,6 +113,8 @@ impl Tally {
         let mut stats = FarmStats::new(render, self.batches, self.wire_to, self.wire_from, workers);
         stats.coordinator_seconds = self.coordinator.clone();
         stats.batches_refused_busy = self.refused;
+        stats.streams_opened = self.streams_opened;
+        stats.scenes_sent = self.scenes_sent;
         stats
     }
 }
