@@ -277,6 +277,33 @@ impl Packed {
     }
 }
 
+impl Grid<'_> {
+    /// The gradient of the trilinear field at positions `u` by central differences over one
+    /// voxel, (I(u + eₐ) − I(u − eₐ))/2 per axis a, each point located as [`Packed::cells`]
+    /// locates a sample (clamped to the grid as `Axis::cell` clamps it): what the f64
+    /// loop's `Shaded::gradient` computes, in f32, its six values six more trilinear
+    /// gathers.
+    #[inline(always)]
+    pub(super) fn gradient<S: Simd>(&self, s: S, packed: &Packed, u: [S::F; 3]) -> [S::F; 3] {
+        let (one, half) = (s.splat(1.0), s.splat(0.5));
+        let mut g = [one; 3];
+        for (a, g) in g.iter_mut().enumerate() {
+            let (mut hi, mut lo) = (u, u);
+            hi[a] = s.add(u[a], one);
+            lo[a] = s.sub(u[a], one);
+            *g = s.mul(s.sub(self.value_at(s, packed, hi), self.value_at(s, packed, lo)), half);
+        }
+        g
+    }
+
+    /// The trilinear value at positions `u`, located as a sample is.
+    #[inline(always)]
+    fn value_at<S: Simd>(&self, s: S, packed: &Packed, u: [S::F; 3]) -> S::F {
+        let (x0, h) = packed.cells(s, u);
+        self.trilinear(s, packed.index(s, x0, self.nx, self.ny), h)
+    }
+}
+
 /// v0 − h·(v0 − v1), `Linear::apply`'s lerp.
 #[inline(always)]
 fn lerp<S: Simd>(s: S, v0: S::F, v1: S::F, h: S::F) -> S::F {
@@ -405,12 +432,26 @@ fn ln<S: Simd>(s: S, u: S::F) -> S::F {
 const LN2_HIGH: f32 = 0.693_359_4;
 const LN2_LOW: f32 = -2.121_944_4e-4;
 
-/// −expm1(y) = 1 − eʸ for y in [−30, 0]: y = k·ln 2 + r with |r| ≤ ½ ln 2, expm1(r) as
-/// r + r²·P(r) (Cephes' `expf` polynomial, without its 1 +, so that it keeps its relative
-/// precision for small r), then 1 − 2ᵏ·(1 + expm1(r)) as (1 − 2ᵏ) − 2ᵏ·expm1(r), both
-/// parts exact but the last rounding.
+/// −expm1(y) = 1 − eʸ for y in [−30, 0] ([`exp_parts`]): 1 − 2ᵏ·(1 + expm1(r)) as
+/// (1 − 2ᵏ) − 2ᵏ·expm1(r), both parts exact but the last rounding.
 #[inline(always)]
 fn neg_expm1<S: Simd>(s: S, y: S::F) -> S::F {
+    let (two_k, em1) = exp_parts(s, y);
+    s.neg_mul_add(two_k, em1, s.sub(s.splat(1.0), two_k))
+}
+
+/// eʸ for y in [−87, 1] ([`exp_parts`]): 2ᵏ + 2ᵏ·expm1(r), a few f32 roundings off.
+#[inline(always)]
+fn exp<S: Simd>(s: S, y: S::F) -> S::F {
+    let (two_k, em1) = exp_parts(s, y);
+    s.mul_add(two_k, em1, two_k)
+}
+
+/// y = k·ln 2 + r with |r| ≤ ½ ln 2, as (2ᵏ, expm1(r)), for y ≥ −87 (so that 2ᵏ, k ≥ −126,
+/// is a normal f32 made from its exponent field): expm1(r) as r + r²·P(r) (Cephes' `expf`
+/// polynomial, without its 1 +, so that it keeps its relative precision for small r).
+#[inline(always)]
+fn exp_parts<S: Simd>(s: S, y: S::F) -> (S::F, S::F) {
     let k = s.floor(s.mul_add(y, s.splat(std::f32::consts::LOG2_E), s.splat(0.5)));
     let r = s.neg_mul_add(k, s.splat(LN2_LOW), s.neg_mul_add(k, s.splat(LN2_HIGH), y));
     let mut p = s.splat(1.987_569_1e-4);
@@ -418,9 +459,20 @@ fn neg_expm1<S: Simd>(s: S, y: S::F) -> S::F {
         p = s.mul_add(p, r, s.splat(c));
     }
     let em1 = s.mul_add(s.mul(r, r), p, r);
-    // 2ᵏ, k ≥ −44: its exponent field.
     let two_k = s.bits_to_f32(s.shl_i(s.add_i(s.to_i32(k), s.splat_i(127)), 23));
-    s.neg_mul_add(two_k, em1, s.sub(s.splat(1.0), two_k))
+    (two_k, em1)
+}
+
+/// xᵉ per lane for x ≥ 0 and a constant e ≥ 0, as `f64::powf` gives it to f32's rounding
+/// (Blinn–Phong's specular term, [`super::shade`]): e^(e·ln x), the exponent held at −87
+/// and above (where the power is below 10⁻³⁷ anyway). Where x is 0 (or below f32's smallest
+/// normal, which `ln` does not take) it is 0ᵉ: 0, or 1 when e is 0, as `powf` has it.
+#[inline(always)]
+pub(super) fn pow<S: Simd>(s: S, x: S::F, e: f32) -> S::F {
+    let normal = s.ge(x, s.splat(f32::MIN_POSITIVE));
+    let safe = s.select(normal, x, s.splat(1.0));
+    let y = s.max(s.mul(s.splat(e), ln(s, safe)), s.splat(-87.0));
+    s.select(normal, exp(s, y), s.splat(if e == 0.0 { 1.0 } else { 0.0 }))
 }
 
 #[cfg(test)]

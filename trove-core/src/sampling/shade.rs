@@ -9,10 +9,18 @@
 //! world space by the inverse transpose of the VC → world Jacobian at the sample
 //! ([`GradientToWorld`]) and turned to face the viewer. Blinn–Phong then gives the colour
 //! that replaces the mapped one; opacity is unchanged.
+//!
+//! The f32 packet loop ([`super::packet`]) has the same axis, as a constant parameter of its
+//! loop: [`LaneShading`] is `Shaded`'s computation in f32 lanes, for the objects that loop
+//! casts (trilinear, u8 or u16 voxels, a small joint map) in an affine box, whose normals
+//! all go to world space through one constant matrix. A distorted box's Jacobian changes
+//! from sample to sample; such an object keeps the f64 loops.
 
 use glam::DVec3;
 
 use super::kernel::VoxelSource;
+use super::packed::pow;
+use super::simd::Simd;
 use crate::geometry::GradientToWorld;
 use crate::interp::Interp;
 use crate::scene::{Light, LightSource, Shading};
@@ -126,6 +134,146 @@ impl<F: VoxelSource> Shade for Shaded<'_, F> {
         }
         let lit = DVec3::from(c) * (DVec3::splat(m.ambient()) + diffuse) + specular;
         lit.to_array()
+    }
+}
+
+/// A light as a lane uses it: [`LightAt`] in f32.
+#[derive(Clone, Copy, Debug)]
+enum LaneLight {
+    Towards { l: [f32; 3], radiance: [f32; 3] },
+    At { position: [f32; 3], radiance: [f32; 3] },
+}
+
+/// [`Shaded`] for the f32 packet loop: an affine box's normal matrix, the material and the
+/// lights, rounded to f32, and the same operations on a register of samples at a time
+/// ([`LaneShading::shade`]).
+#[derive(Clone, Debug)]
+pub(super) struct LaneShading {
+    /// The box's [`GradientToWorld::Affine`] matrix row by row, scaled by a power of two (so
+    /// exactly) to put its largest entry in [1, 2): a normal does not depend on the
+    /// gradient's scale, and so scaled the world gradient of u8 or u16 values, and its
+    /// square, stay far inside f32's range whatever the box's size in the world.
+    to_world: [[f32; 3]; 3],
+    ambient: f32,
+    diffuse: f32,
+    specular: f32,
+    shininess: f32,
+    lights: Vec<LaneLight>,
+}
+
+/// Bound on a lit colour and on light positions: far inside f32's range, so that no lane,
+/// live or idle, overflows to a value that would turn a sum into NaN.
+const LANE_LIMIT: f64 = 1e18;
+
+impl LaneShading {
+    /// `material` under `lights` for an object whose normals go to world space by
+    /// `to_world`; `None` for a distorted box (its Jacobian is not one matrix) and where a
+    /// number could leave f32's range: those objects keep the f64 loops.
+    pub(super) fn new(material: Shading, lights: &[Light], to_world: GradientToWorld<'_>) -> Option<LaneShading> {
+        let GradientToWorld::Affine(m) = to_world else { return None };
+        let largest = m.to_cols_array().iter().fold(0.0f64, |a, x| a.max(x.abs()));
+        if !(largest > 0.0 && largest.is_finite()) {
+            return None;
+        }
+        let scale = 2f64.powi(-(largest.log2().floor() as i32));
+        let to_world = std::array::from_fn(|r| std::array::from_fn(|c| (m.col(c)[r] * scale) as f32));
+        // A lit colour is at most ambient + Σ (diffuse + specular)·E per channel (c ≤ 1,
+        // N·L ≤ 1, (N·H)^shininess ≤ 1).
+        let mut brightest = material.ambient();
+        let mut lane_lights = Vec::with_capacity(lights.len());
+        for light in lights {
+            let radiance = light.radiance();
+            brightest += (material.diffuse() + material.specular()) * radiance.iter().fold(0.0f64, |a, &e| a.max(e));
+            let radiance = radiance.map(|e| e as f32);
+            lane_lights.push(match light.source() {
+                LightSource::Directional { direction } => {
+                    LaneLight::Towards { l: (-direction.get()).to_array().map(|x| x as f32), radiance }
+                }
+                LightSource::Point { position } => {
+                    if position.abs().max_element() >= LANE_LIMIT {
+                        return None;
+                    }
+                    LaneLight::At { position: position.to_array().map(|x| x as f32), radiance }
+                }
+            });
+        }
+        if !(brightest < LANE_LIMIT && material.shininess() < LANE_LIMIT) {
+            return None;
+        }
+        Some(LaneShading {
+            to_world,
+            ambient: material.ambient() as f32,
+            diffuse: material.diffuse() as f32,
+            specular: material.specular() as f32,
+            shininess: material.shininess() as f32,
+            lights: lane_lights,
+        })
+    }
+
+    /// The colours `c` of a register of samples lit (SPEC §6), [`Shaded::shade`]'s
+    /// operations in f32 lanes: `g` is their VC gradient ([`super::packed::Grid::gradient`]),
+    /// `x` their world points, `view` the unit vectors from them towards the eye. Lanes
+    /// whose world gradient is zero or not finite keep `c`; every lane's result is finite
+    /// (idle lanes' included, which the loop weighs by +0).
+    #[inline(always)]
+    pub(super) fn shade<S: Simd>(&self, s: S, g: [S::F; 3], x: [S::F; 3], view: [S::F; 3], c: [S::F; 3]) -> [S::F; 3] {
+        let (zero, one) = (s.splat(0.0), s.splat(1.0));
+        let dot = |a: [S::F; 3], b: [S::F; 3]| s.mul_add(a[2], b[2], s.mul_add(a[1], b[1], s.mul(a[0], b[0])));
+        let m = &self.to_world;
+        let mut world = [zero; 3];
+        for (r, w) in world.iter_mut().enumerate() {
+            *w = dot([s.splat(m[r][0]), s.splat(m[r][1]), s.splat(m[r][2])], g);
+        }
+        let len = s.sqrt(dot(world, world));
+        // No surface to light (or a gradient that is not a number): false for NaN.
+        let lit = s.and_m(s.gt(len, zero), s.lt(len, s.splat(f32::INFINITY)));
+        let minus_inv = s.div(s.splat(-1.0), len);
+        let mut n = [zero; 3];
+        for (n, &w) in n.iter_mut().zip(&world) {
+            *n = s.mul(w, minus_inv);
+        }
+        let back = s.lt(dot(n, view), zero);
+        for n in &mut n {
+            *n = s.select(back, s.sub(zero, *n), *n);
+        }
+        let (mut diffuse, mut specular) = ([zero; 3], [zero; 3]);
+        for light in &self.lights {
+            let (l, radiance) = match *light {
+                LaneLight::Towards { l, radiance } => ([s.splat(l[0]), s.splat(l[1]), s.splat(l[2])], radiance),
+                LaneLight::At { position, radiance } => {
+                    let mut d = [zero; 3];
+                    for (a, d) in d.iter_mut().enumerate() {
+                        *d = s.sub(s.splat(position[a]), x[a]);
+                    }
+                    // At the light's own position d = 0, so L is NaN (0·∞) and N·L > 0 fails:
+                    // not lit by it, as the f64 loop's L = 0 gives.
+                    let inv = s.div(one, s.sqrt(dot(d, d)));
+                    ([s.mul(d[0], inv), s.mul(d[1], inv), s.mul(d[2], inv)], radiance)
+                }
+            };
+            let n_dot_l = dot(n, l);
+            // Only where N·L > 0: elsewhere neither term counts.
+            let on = s.gt(n_dot_l, zero);
+            let mut half = [zero; 3];
+            for (a, h) in half.iter_mut().enumerate() {
+                *h = s.add(l[a], view[a]);
+            }
+            let inv = s.div(one, s.sqrt(dot(half, half)));
+            let n_dot_h = s.max(s.mul(dot(n, half), inv), zero);
+            let kd = s.select(on, s.mul(s.splat(self.diffuse), n_dot_l), zero);
+            let ks = s.select(on, s.mul(s.splat(self.specular), pow(s, n_dot_h, self.shininess)), zero);
+            for i in 0..3 {
+                let e = s.splat(radiance[i]);
+                diffuse[i] = s.mul_add(kd, e, diffuse[i]);
+                specular[i] = s.mul_add(ks, e, specular[i]);
+            }
+        }
+        let ambient = s.splat(self.ambient);
+        let mut out = c;
+        for (i, out) in out.iter_mut().enumerate() {
+            *out = s.select(lit, s.mul_add(c[i], s.add(ambient, diffuse[i]), specular[i]), c[i]);
+        }
+        out
     }
 }
 
