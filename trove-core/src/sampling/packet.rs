@@ -595,7 +595,7 @@ impl Cast<'_, '_, '_> {
             x[a] = s.mul_add(load(s, &lanes.world_step[a], h), r.k, load(s, &lanes.world[a], h));
             view[a] = load(s, &lanes.view[a], h);
         }
-        let g = packets.grid.gradient(s, &packets.packed, u);
+        let g = packets.grid.gradient(s, &packets.packed, u, lit);
         shading.shade(s, g, x, view, colour)
     }
 
