@@ -290,8 +290,10 @@ impl Grid<'_> {
     /// difference of the two values is the trilinear interpolation, with the sample's own
     /// weights, of the voxels' differences V(c + eₐ) − V(c − eₐ) at its cell's eight
     /// corners. Those are twelve gathers of neighbouring voxels (sixteen for u16) instead of
-    /// six trilinear values' twenty-four. A register with a lit lane nearer a face takes the
-    /// six values ([`Grid::gradient_at_points`]), whose points clamp.
+    /// six trilinear values' twenty-four. A lit lane nearer a face takes the six values
+    /// ([`Grid::gradient_at_points`]), whose points clamp. Which way a lane takes depends on
+    /// that lane alone, so that every width gives the same bits: a register with lit lanes
+    /// on both sides computes both ways and selects.
     #[inline(always)]
     pub(super) fn gradient<S: Simd>(&self, s: S, packed: &Packed, u: [S::F; 3], lit: u32) -> [S::F; 3] {
         let one = s.splat(1.0);
@@ -301,12 +303,13 @@ impl Grid<'_> {
             let inner = s.and_m(s.ge(x0, one), s.le(x0, s.splat(packed.rule[a][0] - 2.0)));
             inside = s.and_m(inside, inner);
         }
-        if lit & !s.bits(inside) != 0 {
+        if lit & s.bits(inside) == 0 {
             return self.gradient_at_points(s, packed, u);
         }
-        // Lanes nearer a face (none of them lit) read the corner (1, 1, 1) instead, so that
-        // every gather stays inside the channel: some lit lane is inside, so the grid has
-        // at least four voxels along every axis.
+        let near = (lit & !s.bits(inside) != 0).then(|| self.gradient_at_points(s, packed, u));
+        // Lanes nearer a face (whose gradient, where lit, is `near`'s) read the corner
+        // (1, 1, 1) here instead, so that every gather stays inside the channel: some lit
+        // lane is inside, so the grid has at least four voxels along every axis.
         let x0 = [s.select(inside, x0[0], one), s.select(inside, x0[1], one), s.select(inside, x0[2], one)];
         let index = packed.index(s, x0, self.nx, self.ny);
         let [_, oy, oz] = self.offsets;
@@ -341,7 +344,10 @@ impl Grid<'_> {
             d[r1] = [s.sub(above[0], corner[r0][0]), s.sub(above[1], corner[r0][1])];
         }
         let gz = self.halved(s, d, h);
-        [gx, gy, gz]
+        match near {
+            Some([nx, ny, nz]) => [s.select(inside, gx, nx), s.select(inside, gy, ny), s.select(inside, gz, nz)],
+            None => [gx, gy, gz],
+        }
     }
 
     /// Half the trilinear interpolation, with weights `h`, of values at a cell's corners
