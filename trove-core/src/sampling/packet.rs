@@ -25,7 +25,7 @@
 //! no result.
 
 use super::packed::{corrected, Grid, Packed, Stored};
-use super::shade::LaneShading;
+use super::shade::{LaneShading, HALF_VECTORS};
 use super::simd::avx2::Avx2;
 use super::simd::avx512::Avx512;
 use super::simd::neon::Neon;
@@ -212,6 +212,8 @@ struct Lanes {
     world: [[f32; MAX_W]; 3],
     world_step: [[f32; MAX_W]; 3],
     view: [[f32; MAX_W]; 3],
+    /// H of the directional lights whose H is kept per piece ([`LaneShading::half_vector`]).
+    half_vector: [[[f32; MAX_W]; 3]; HALF_VECTORS],
     shaded: [f32; MAX_W],
 }
 
@@ -235,6 +237,7 @@ impl Lanes {
             world: [[0.0; MAX_W]; 3],
             world_step: [[0.0; MAX_W]; 3],
             view: [[0.0; MAX_W]; 3],
+            half_vector: [[[0.0; MAX_W]; 3]; HALF_VECTORS],
             shaded: [0.0; MAX_W],
         }
     }
@@ -596,7 +599,8 @@ impl Cast<'_, '_, '_> {
             view[a] = load(s, &lanes.view[a], h);
         }
         let g = packets.grid.gradient(s, &packets.packed, u, lit);
-        shading.shade(s, g, x, view, colour)
+        let half = |j: usize| -> [S::F; 3] { std::array::from_fn(|a| load(s, &lanes.half_vector[j][a], h)) };
+        shading.shade(s, g, x, view, half, colour)
     }
 
     /// The samples at `k` (per half) of the lanes `active`: located
@@ -773,13 +777,18 @@ impl Cast<'_, '_, '_> {
             acc[l] = 0.0;
         }
         lanes.samples[l] = 0.0;
-        if self.packets.shading.is_some() {
+        if let Some(shading) = &self.packets.shading {
             // `WorldPoints::at` as first + step·k, and V = −(ray direction).
             let (first, step, dir) = piece.world.parts();
             for a in 0..3 {
                 lanes.world[a][l] = first[a] as f32;
                 lanes.world_step[a][l] = step[a] as f32;
                 lanes.view[a][l] = -dir[a] as f32;
+            }
+            for j in 0..shading.half_vectors() {
+                for (a, &h) in shading.half_vector(j, -dir).iter().enumerate() {
+                    lanes.half_vector[j][a][l] = h;
+                }
             }
             lanes.shaded[l] = 0.0;
         }

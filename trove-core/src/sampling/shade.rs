@@ -137,12 +137,17 @@ impl<F: VoxelSource> Shade for Shaded<'_, F> {
     }
 }
 
-/// A light as a lane uses it: [`LightAt`] in f32.
+/// A light as a lane uses it: [`LightAt`] in f32. A directional light's H depends on the
+/// ray only (V is the same along it): the first [`HALF_VECTORS`] are worked out once per
+/// piece, in f64, and `slot` says which ([`LaneShading::half_vector`]).
 #[derive(Clone, Copy, Debug)]
 enum LaneLight {
-    Towards { l: [f32; 3], radiance: [f32; 3] },
+    Towards { l: [f32; 3], radiance: [f32; 3], slot: Option<usize> },
     At { position: [f32; 3], radiance: [f32; 3] },
 }
+
+/// Directional lights whose H a lane keeps per piece; further ones compute it per sample.
+pub(super) const HALF_VECTORS: usize = 4;
 
 /// [`Shaded`] for the f32 packet loop: an affine box's normal matrix, the material and the
 /// lights, rounded to f32, and the same operations on a register of samples at a time
@@ -159,6 +164,8 @@ pub(super) struct LaneShading {
     specular: f32,
     shininess: f32,
     lights: Vec<LaneLight>,
+    /// L of the directional lights whose H lanes keep, in slot order.
+    towards: Vec<DVec3>,
 }
 
 /// Bound on a lit colour and on light positions: far inside f32's range, so that no lane,
@@ -181,13 +188,18 @@ impl LaneShading {
         // N·L ≤ 1, (N·H)^shininess ≤ 1).
         let mut brightest = material.ambient();
         let mut lane_lights = Vec::with_capacity(lights.len());
+        let mut towards = Vec::new();
         for light in lights {
             let radiance = light.radiance();
             brightest += (material.diffuse() + material.specular()) * radiance.iter().fold(0.0f64, |a, &e| a.max(e));
             let radiance = radiance.map(|e| e as f32);
             lane_lights.push(match light.source() {
                 LightSource::Directional { direction } => {
-                    LaneLight::Towards { l: (-direction.get()).to_array().map(|x| x as f32), radiance }
+                    let slot = (towards.len() < HALF_VECTORS).then_some(towards.len());
+                    if slot.is_some() {
+                        towards.push(-direction.get());
+                    }
+                    LaneLight::Towards { l: (-direction.get()).to_array().map(|x| x as f32), radiance, slot }
                 }
                 LightSource::Point { position } => {
                     if position.abs().max_element() >= LANE_LIMIT {
@@ -207,16 +219,39 @@ impl LaneShading {
             specular: material.specular() as f32,
             shininess: material.shininess() as f32,
             lights: lane_lights,
+            towards,
         })
+    }
+
+    /// How many directional lights have their H kept per piece ([`LaneShading::half_vector`]).
+    pub(super) fn half_vectors(&self) -> usize {
+        self.towards.len()
+    }
+
+    /// H = normalise(L + V) of the directional light in `slot`, for a ray whose unit vector
+    /// towards the eye is `view`, as `Shaded::shade` computes it (in f64; NaN where L = −V,
+    /// where N·L > 0 cannot hold and H is not used).
+    pub(super) fn half_vector(&self, slot: usize, view: DVec3) -> [f32; 3] {
+        (self.towards[slot] + view).normalize().to_array().map(|x| x as f32)
     }
 
     /// The colours `c` of a register of samples lit (SPEC §6), [`Shaded::shade`]'s
     /// operations in f32 lanes: `g` is their VC gradient ([`super::packed::Grid::gradient`]),
-    /// `x` their world points, `view` the unit vectors from them towards the eye. Lanes
+    /// `x` their world points, `view` the unit vectors from them towards the eye, `half(j)`
+    /// the H kept per piece of the directional light in slot `j`
+    /// ([`LaneShading::half_vector`]), read only where a light uses it. Lanes
     /// whose world gradient is zero or not finite keep `c`; every lane's result is finite
     /// (idle lanes' included, which the loop weighs by +0).
     #[inline(always)]
-    pub(super) fn shade<S: Simd>(&self, s: S, g: [S::F; 3], x: [S::F; 3], view: [S::F; 3], c: [S::F; 3]) -> [S::F; 3] {
+    pub(super) fn shade<S: Simd>(
+        &self,
+        s: S,
+        g: [S::F; 3],
+        x: [S::F; 3],
+        view: [S::F; 3],
+        half: impl Fn(usize) -> [S::F; 3],
+        c: [S::F; 3],
+    ) -> [S::F; 3] {
         let (zero, one) = (s.splat(0.0), s.splat(1.0));
         let dot = |a: [S::F; 3], b: [S::F; 3]| s.mul_add(a[2], b[2], s.mul_add(a[1], b[1], s.mul(a[0], b[0])));
         let m = &self.to_world;
@@ -238,8 +273,10 @@ impl LaneShading {
         }
         let (mut diffuse, mut specular) = ([zero; 3], [zero; 3]);
         for light in &self.lights {
-            let (l, radiance) = match *light {
-                LaneLight::Towards { l, radiance } => ([s.splat(l[0]), s.splat(l[1]), s.splat(l[2])], radiance),
+            let (l, radiance, kept) = match *light {
+                LaneLight::Towards { l, radiance, slot } => {
+                    ([s.splat(l[0]), s.splat(l[1]), s.splat(l[2])], radiance, slot.map(&half))
+                }
                 LaneLight::At { position, radiance } => {
                     let mut d = [zero; 3];
                     for (a, d) in d.iter_mut().enumerate() {
@@ -248,18 +285,23 @@ impl LaneShading {
                     // At the light's own position d = 0, so L is NaN (0·∞) and N·L > 0 fails:
                     // not lit by it, as the f64 loop's L = 0 gives.
                     let inv = s.div(one, s.sqrt(dot(d, d)));
-                    ([s.mul(d[0], inv), s.mul(d[1], inv), s.mul(d[2], inv)], radiance)
+                    ([s.mul(d[0], inv), s.mul(d[1], inv), s.mul(d[2], inv)], radiance, None)
                 }
             };
             let n_dot_l = dot(n, l);
             // Only where N·L > 0: elsewhere neither term counts.
             let on = s.gt(n_dot_l, zero);
-            let mut half = [zero; 3];
-            for (a, h) in half.iter_mut().enumerate() {
-                *h = s.add(l[a], view[a]);
-            }
-            let inv = s.div(one, s.sqrt(dot(half, half)));
-            let n_dot_h = s.max(s.mul(dot(n, half), inv), zero);
+            let n_dot_h = match kept {
+                Some(h) => dot(n, h),
+                None => {
+                    let mut half = [zero; 3];
+                    for (a, h) in half.iter_mut().enumerate() {
+                        *h = s.add(l[a], view[a]);
+                    }
+                    s.mul(dot(n, half), s.div(one, s.sqrt(dot(half, half))))
+                }
+            };
+            let n_dot_h = s.max(n_dot_h, zero);
             let kd = s.select(on, s.mul(s.splat(self.diffuse), n_dot_l), zero);
             let ks = s.select(on, s.mul(s.splat(self.specular), pow(s, n_dot_h, self.shininess)), zero);
             for i in 0..3 {

@@ -362,7 +362,8 @@ fn smooth_ball(dims: Dims) -> Vec<f32> {
 /// f64 one-piece loop (the generic line loop, shading each contributing sample) to 1e-5
 /// per piece on every path: u8 and u16, with and without opacity correction, a LUT and a
 /// ramp, a box turned and scaled unevenly (so that normals need the inverse transpose), a
-/// directional light and point lights outside and inside the box.
+/// directional light and point lights outside and inside the box; a whole and a fractional
+/// shininess; and more directional lights than lanes keep H for.
 #[test]
 fn lit_pieces_cast_in_packets_hold_the_f64_lit_loop_on_every_path() {
     use crate::scene::{Light, LightSource, Shading, UnitVector};
@@ -375,6 +376,12 @@ fn lit_pieces_cast_in_packets_hold_the_f64_lit_loop_on_every_path() {
         * DMat4::from_translation(DVec3::splat(-0.5));
     let shape = Shape::Affine { world_from_box: m, box_from_world: m.inverse() };
     let material = Shading::new(0.15, 0.7, 0.4, 12.0).unwrap();
+    let fractional = Shading::new(0.1, 0.6, 0.5, 7.3).unwrap();
+    let directional = |d: [f64; 3], e: f64| {
+        Light::new(LightSource::Directional { direction: UnitVector::new(DVec3::from(d)).unwrap() }, [1.0; 3], e)
+            .unwrap()
+    };
+    let many: Vec<Light> = (0..6).map(|i| directional([(i as f64).sin(), -0.5, -1.0 + 0.2 * i as f64], 0.3)).collect();
     let lights = [
         Light::new(
             LightSource::Directional { direction: UnitVector::new(DVec3::new(-0.3, -0.5, -1.0)).unwrap() },
@@ -391,16 +398,16 @@ fn lit_pieces_cast_in_packets_hold_the_f64_lit_loop_on_every_path() {
     let colour_lut =
         ColourMap::Lut(Lut::new(breaks, (0..7).map(|i| [i as f64 / 6.0, 0.5, 1.0 - i as f64 / 8.0]).collect()));
     let cases = [
-        (VoxelType::U8, false, colour_ramp(), opacity_ramp()),
-        (VoxelType::U16, true, colour_ramp(), opacity_ramp()),
-        (VoxelType::U8, true, colour_lut, opacity_lut),
+        (VoxelType::U8, false, colour_ramp(), opacity_ramp(), material, &lights[..]),
+        (VoxelType::U16, true, colour_ramp(), opacity_ramp(), fractional, &lights[..]),
+        (VoxelType::U8, true, colour_lut, opacity_lut, material, &many[..]),
     ];
     let rays = rays(size, at, 120);
     let values = smooth_ball(dims);
-    for (ty, correction, colour, opacity) in cases {
+    for (ty, correction, colour, opacity, material, lights) in cases {
         let vol = volume(dims, vec![(ChannelName::Voxel, channel(ty, Endian::Little, &values, dims))]);
         let unlit = object(colour, opacity, Interpolation::Trilinear, shape.clone(), Extent::FULL, dims);
-        let lit = respecified(&unlit, Interpolation::Trilinear, 0.0).lit_for_tests(material, &lights);
+        let lit = respecified(&unlit, Interpolation::Trilinear, 0.0).lit_for_tests(material, lights);
         let mut shaded = 0;
         for path in SimdPath::available() {
             let options = CastOptions::default();
