@@ -163,9 +163,30 @@ pub(super) struct LaneShading {
     diffuse: f32,
     specular: f32,
     shininess: f32,
+    /// The shininess where it is a whole number up to 64, and the least base whose power
+    /// that is stays a normal f32: the power is then a few multiplications
+    /// ([`LaneShading::power`]).
+    whole_shininess: Option<(u32, f32)>,
     lights: Vec<LaneLight>,
     /// L of the directional lights whose H lanes keep, in slot order.
     towards: Vec<DVec3>,
+}
+
+/// For a whole-number shininess n up to 64, n and the least f32 x at or above which xⁿ
+/// (and so every power of x up to n) is a normal f32, with a factor of two to spare for
+/// the roundings on the way (0 for n = 0: x⁰ = 1); `None` for any other shininess.
+fn whole_power(shininess: f64) -> Option<(u32, f32)> {
+    if !(shininess.fract() == 0.0 && (0.0..=64.0).contains(&shininess)) {
+        return None;
+    }
+    let n = shininess as u32;
+    if n == 0 {
+        return Some((0, 0.0));
+    }
+    let least = (2.0 * f64::from(f32::MIN_POSITIVE)).powf(1.0 / f64::from(n));
+    // Rounded up, so that every f32 at or above it keeps the bound.
+    let floor = least as f32;
+    Some((n, if f64::from(floor) < least { floor.next_up() } else { floor }))
 }
 
 /// Bound on a lit colour and on light positions: far inside f32's range, so that no lane,
@@ -218,6 +239,7 @@ impl LaneShading {
             diffuse: material.diffuse() as f32,
             specular: material.specular() as f32,
             shininess: material.shininess() as f32,
+            whole_shininess: whole_power(material.shininess()),
             lights: lane_lights,
             towards,
         })
@@ -233,6 +255,27 @@ impl LaneShading {
     /// where N·L > 0 cannot hold and H is not used).
     pub(super) fn half_vector(&self, slot: usize, view: DVec3) -> [f32; 3] {
         (self.towards[slot] + view).normalize().to_array().map(|x| x as f32)
+    }
+
+    /// xˢ for x ≥ 0 and the shininess s: by repeated squaring where s is a whole number
+    /// (exact to a few roundings, and 0⁰ = 1 as `powf` has it), else [`pow`]. Below the
+    /// floor that [`whole_power`] sets, where xˢ is under twice f32's smallest normal, it is
+    /// 0 (as `pow` is near 0 there): no product is subnormal, which x86 computes slowly.
+    #[inline(always)]
+    fn power<S: Simd>(&self, s: S, x: S::F) -> S::F {
+        let Some((mut n, floor)) = self.whole_shininess else { return pow(s, x, self.shininess) };
+        let x = s.select(s.ge(x, s.splat(floor)), x, s.splat(0.0));
+        let (mut result, mut base) = (s.splat(1.0), x);
+        while n > 0 {
+            if n & 1 == 1 {
+                result = s.mul(result, base);
+            }
+            n >>= 1;
+            if n > 0 {
+                base = s.mul(base, base);
+            }
+        }
+        result
     }
 
     /// The colours `c` of a register of samples lit (SPEC §6), [`Shaded::shade`]'s
@@ -303,7 +346,7 @@ impl LaneShading {
             };
             let n_dot_h = s.max(n_dot_h, zero);
             let kd = s.select(on, s.mul(s.splat(self.diffuse), n_dot_l), zero);
-            let ks = s.select(on, s.mul(s.splat(self.specular), pow(s, n_dot_h, self.shininess)), zero);
+            let ks = s.select(on, s.mul(s.splat(self.specular), self.power(s, n_dot_h)), zero);
             for i in 0..3 {
                 let e = s.splat(radiance[i]);
                 diffuse[i] = s.mul_add(kd, e, diffuse[i]);
@@ -434,6 +477,71 @@ mod tests {
                 assert!((exact - numeric).length() < 1e-6 * numeric.length(), "at q {q}: {exact} vs {numeric}");
             }
         }
+    }
+
+    /// [`LaneShading::power`] of `xs` with shininess `e`, a register at a time.
+    fn powers<S: Simd>(s: S, e: f64, xs: &[f32]) -> Vec<f32> {
+        let material = Shading::new(0.1, 0.6, 0.3, e).unwrap();
+        let lanes = LaneShading::new(material, &[], GradientToWorld::Affine(DMat3::IDENTITY)).unwrap();
+        let mut out = Vec::new();
+        for chunk in xs.chunks(S::LANES) {
+            let (mut x, mut y) = ([0.0f32; 16], [0.0f32; 16]);
+            x[..chunk.len()].copy_from_slice(chunk);
+            s.store(&mut y, lanes.power(s, s.load(&x)));
+            out.extend_from_slice(&y[..chunk.len()]);
+        }
+        out
+    }
+
+    /// The lanes' specular power holds `powf` on every path this processor has: by repeated
+    /// squaring for whole shininesses (0 and 1 among them), through `pow` otherwise (for
+    /// normal x and 0). For a whole shininess the result is 0 or a normal f32 (no product on
+    /// the way is subnormal), and 0 only where `powf` gives under twice the smallest normal.
+    #[test]
+    fn lane_powers_hold_powf_and_never_go_subnormal() {
+        #[cfg(target_arch = "aarch64")]
+        use super::super::simd::neon::Neon;
+        use super::super::simd::scalar::Scalar;
+        use super::super::simd::SimdPath;
+        #[cfg(target_arch = "x86_64")]
+        use super::super::simd::{avx2::Avx2, avx512::Avx512};
+        let mut xs: Vec<f32> = vec![0.0, 1e-45, 1e-40, f32::MIN_POSITIVE, 1e-30, 1e-12, 1e-6, 1e-3, 0.05, 0.2];
+        xs.extend((0..=1000).map(|i| i as f32 / 1000.0));
+        xs.extend([1.0 - f32::EPSILON, 1.0, 1.0 + f32::EPSILON]);
+        for e in [0.0, 1.0, 2.0, 3.0, 7.0, 10.0, 12.0, 24.0, 40.0, 63.0, 64.0, 0.5, 7.3] {
+            let mut xs = xs.clone();
+            if let Some((_, floor)) = whole_power(e) {
+                xs.extend([floor.next_down(), floor, floor.next_up()]);
+            }
+            for path in SimdPath::available() {
+                let got = match path {
+                    #[cfg(target_arch = "x86_64")]
+                    SimdPath::Avx512 => powers(Avx512::detect().unwrap(), e, &xs),
+                    #[cfg(target_arch = "x86_64")]
+                    SimdPath::Avx2 => powers(Avx2::detect().unwrap(), e, &xs),
+                    #[cfg(target_arch = "aarch64")]
+                    SimdPath::Neon => powers(Neon::detect().unwrap(), e, &xs),
+                    SimdPath::Scalar => powers(Scalar, e, &xs),
+                    #[allow(unreachable_patterns)]
+                    other => unreachable!("{other} is not available on this architecture"),
+                };
+                for (&x, &y) in xs.iter().zip(&got) {
+                    if whole_power(e).is_none() && x != 0.0 && !x.is_normal() {
+                        continue; // `pow` takes a subnormal x as 0, as it documents
+                    }
+                    let want = f64::from(x).powf(e);
+                    let error = (f64::from(y) - want).abs();
+                    assert!(error <= 8e-6 * want || error <= 4e-38, "{path}: {x:e}^{e}: {y:e} against {want:e}");
+                    if whole_power(e).is_some() {
+                        assert!(y == 0.0 || y.is_normal(), "{path}: {x:e}^{e} = {y:e} is subnormal");
+                        assert!(y != 0.0 || want < 2.0 * f64::from(f32::MIN_POSITIVE), "{path}: {x:e}^{e} = 0");
+                    }
+                }
+            }
+        }
+        assert_eq!(whole_power(12.0).map(|(n, _)| n), Some(12));
+        assert_eq!(whole_power(64.5), None);
+        assert_eq!(whole_power(65.0), None);
     }
 
     #[test]
