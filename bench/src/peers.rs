@@ -9,6 +9,12 @@
 //! converged TROVE image (the same scene at a quarter of its step). VTK runs through
 //! `vtk_raycast.py`; without Python's `vtk` module, or without a scene's data, that part is
 //! skipped with a message.
+//!
+//! With `--shade`, both shade (SPEC §6 on TROVE's side, `--shade on` on VTK's) with VTK's
+//! defaults: its headlight as one directional light travelling from the eye to the target,
+//! ambient 0.1, diffuse 0.7, specular 0.2, power 10. What still differs (VTK's quantised
+//! normals, shading interpolated from the voxels', one view direction) is in the
+//! benchmarks' notes; the table then also gives the PSNR between the two images.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -43,7 +49,14 @@ pub struct Args {
     /// Where the images go.
     #[arg(long, default_value = "/tmp/trove-peers")]
     out: PathBuf,
+    /// Shade on both sides (VTK's `--shade on` and its Phong defaults under a headlight).
+    #[arg(long)]
+    shade: bool,
 }
+
+/// VTK's shading defaults (`vtkVolumeProperty`, `../shared/peers/README.md` item 11), as a
+/// TROVE `shading` table.
+const VTK_SHADING: [(&str, f64); 4] = [("ambient", 0.1), ("diffuse", 0.7), ("specular", 0.2), ("shininess", 10.0)];
 
 /// One benchmark volume: its TROVE scene and the VTK arguments that describe the same view.
 struct Peer {
@@ -112,9 +125,10 @@ const PEERS: [Peer; 2] = [
     },
 ];
 
-/// Arguments both VTK runs share (the scenes' image size, field of view and step).
-const VTK_COMMON: [&str; 11] =
-    ["--size", "512", "512", "--fov", "30", "--sample-distance", "0.5", "--interp", "linear", "--shade", "off"];
+/// Arguments both VTK runs share (the scenes' image size, field of view and step; then
+/// `--shade on` or `off`).
+const VTK_COMMON: [&str; 10] =
+    ["--size", "512", "512", "--fov", "30", "--sample-distance", "0.5", "--interp", "linear", "--shade"];
 
 /// One round's timings, seconds.
 #[derive(Clone, Copy, Debug, Default)]
@@ -133,12 +147,22 @@ pub fn run(args: Args) -> Result<()> {
     }
     let pool = rayon::ThreadPoolBuilder::new().num_threads(args.threads).build()?;
     println!("{}, {} threads\n", crate::machine::describe()?, args.threads);
+    println!("shading: {}\n", if args.shade { "on (both sides)" } else { "off" });
     println!(
-        "| scene | VTK re-render | TROVE volume rendering | VTK/TROVE (median of rounds) | VTK load + first | TROVE total | TROVE samples/s | RMSE VTK | RMSE TROVE |"
+        "| scene | VTK re-render | TROVE volume rendering | VTK/TROVE (median of rounds) | VTK load + first | TROVE total | TROVE samples/s | RMSE VTK | RMSE TROVE | PSNR VTK–TROVE |"
     );
-    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for peer in &PEERS {
-        let path = args.scenes.join(peer.scene);
+        let mut path = args.scenes.join(peer.scene);
+        if args.shade {
+            path = match lit_copy(&path, &args.out) {
+                Ok(p) => p,
+                Err(e) => {
+                    println!("| {} | skipped: {e:#} |", peer.name);
+                    continue;
+                }
+            };
+        }
         let scene = match Scene::load_in(&path, &DataRoot::Given(data_root(&args, peer))) {
             Ok(s) => s,
             Err(e) => {
@@ -153,7 +177,7 @@ pub fn run(args: Args) -> Result<()> {
 
 /// Alternating rounds over one scene, then its row of the table.
 fn bench_one(args: &Args, peer: &Peer, scene: &Scene, vtk: bool) -> Result<()> {
-    let stem = peer.scene.trim_end_matches(".toml");
+    let stem = format!("{}{}", peer.scene.trim_end_matches(".toml"), if args.shade { "-shaded" } else { "" });
     let (vtk_png, trove_png) = (args.out.join(format!("{stem}-vtk.png")), args.out.join(format!("{stem}-trove.png")));
     let mut rounds = Vec::new();
     let mut last: Option<Rendered> = None;
@@ -175,11 +199,46 @@ fn bench_one(args: &Args, peer: &Peer, scene: &Scene, vtk: bool) -> Result<()> {
     reference.save(&args.out.join(format!("{stem}-reference.png")))?;
     let rmse_vtk = if vtk { Some(rmse_levels(&read_png(&vtk_png)?, &reference.to_rgb8())?) } else { None };
     let rmse_trove = rmse_levels(&rendered.image.to_rgb8(), &reference.to_rgb8())?;
-    print_row(peer.name, &rounds, rendered.stats.samples, rmse_vtk, rmse_trove);
+    let between = if vtk { Some(psnr(rmse_levels(&read_png(&vtk_png)?, &rendered.image.to_rgb8())?)) } else { None };
+    print_row(peer.name, &rounds, rendered.stats.samples, rmse_vtk, rmse_trove, between);
     Ok(())
 }
 
-fn print_row(name: &str, rounds: &[Round], samples: u64, rmse_vtk: Option<f64>, rmse_trove: f64) {
+/// Peak signal-to-noise ratio, dB, of an RMSE in levels of 255.
+fn psnr(rmse: f64) -> f64 {
+    20.0 * (255.0 / rmse).log10()
+}
+
+/// The scene at `path` shaded as VTK shades (one directional light along the view, VTK's
+/// Phong defaults on every object), written into `out`; returns its path. (Its data keys
+/// are under the same data root.)
+fn lit_copy(path: &Path, out: &Path) -> Result<PathBuf> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut table: toml::Table = text.parse().context("the scene's TOML")?;
+    let camera = table.get("camera").and_then(|c| c.as_table()).context("the scene's camera")?;
+    let point = |key: &str| -> Result<[f64; 3]> {
+        let v = camera.get(key).and_then(|v| v.as_array()).with_context(|| format!("camera.{key}"))?;
+        let x: Vec<f64> = v.iter().filter_map(|x| x.as_float().or_else(|| x.as_integer().map(|i| i as f64))).collect();
+        x.try_into().map_err(|_| anyhow!("camera.{key} is not three numbers"))
+    };
+    let (eye, target) = (point("eye")?, point("target")?);
+    let direction: Vec<toml::Value> = (0..3).map(|i| toml::Value::Float(target[i] - eye[i])).collect();
+    let mut light = toml::Table::new();
+    light.insert("type".into(), "directional".into());
+    light.insert("direction".into(), toml::Value::Array(direction));
+    table.insert("lights".into(), toml::Value::Array(vec![toml::Value::Table(light)]));
+    let shading: toml::Table = VTK_SHADING.iter().map(|&(k, v)| (k.to_string(), toml::Value::Float(v))).collect();
+    let objects = table.get_mut("objects").and_then(|o| o.as_array_mut()).context("the scene's objects")?;
+    for object in objects {
+        object.as_table_mut().context("an object")?.insert("shading".into(), toml::Value::Table(shading.clone()));
+    }
+    let name = path.file_stem().context("a scene file name")?.to_string_lossy().into_owned();
+    let lit = out.join(format!("{name}-shaded.toml"));
+    std::fs::write(&lit, toml::to_string(&table)?).with_context(|| format!("writing {}", lit.display()))?;
+    Ok(lit)
+}
+
+fn print_row(name: &str, rounds: &[Round], samples: u64, rmse_vtk: Option<f64>, rmse_trove: f64, between: Option<f64>) {
     let vtk_rerender = median(rounds.iter().filter_map(|r| r.vtk_rerender));
     let vtk_first = median(rounds.iter().filter_map(|r| r.vtk_first));
     let rendering = median(rounds.iter().map(|r| r.trove_rendering)).unwrap_or(f64::NAN);
@@ -190,11 +249,12 @@ fn print_row(name: &str, rounds: &[Round], samples: u64, rmse_vtk: Option<f64>, 
     let ratio = median(rounds.iter().filter_map(|r| r.vtk_rerender.map(|v| v / r.trove_rendering)));
     let ratio = ratio.map_or("–".to_string(), |r| format!("{r:.2}"));
     println!(
-        "| {name} | {} | {rendering:.3} | {ratio} | {} | {total:.3} | {:.1} M | {} | {rmse_trove:.2} |",
+        "| {name} | {} | {rendering:.3} | {ratio} | {} | {total:.3} | {:.1} M | {} | {rmse_trove:.2} | {} |",
         seconds(vtk_rerender),
         seconds(vtk_first),
         samples as f64 / rendering / 1e6,
         rmse_vtk.map_or("–".to_string(), |e| format!("{e:.2}")),
+        between.map_or("–".to_string(), |p| format!("{p:.1} dB")),
     );
 }
 
@@ -220,6 +280,7 @@ fn run_vtk(args: &Args, peer: &Peer, out: &Path) -> Result<(f64, f64)> {
         .arg(args.peers.join("vtk_raycast.py"))
         .args(peer.vtk.iter().map(|a| fill(a)))
         .args(VTK_COMMON)
+        .arg(if args.shade { "on" } else { "off" })
         .args(["--threads", &args.threads.to_string(), "--repeat", &args.vtk_repeat.to_string()])
         .arg("--out")
         .arg(out)
@@ -293,6 +354,30 @@ mod tests {
         assert_eq!(rmse_levels(&[1, 2, 3], &[1, 2, 3]).unwrap(), 0.0);
         assert_eq!(rmse_levels(&[1, 2, 3], &[2, 3, 4]).unwrap(), 1.0);
         assert!(rmse_levels(&[1], &[1, 2]).is_err());
+    }
+
+    #[test]
+    fn the_shaded_copy_lights_every_object_as_vtk_does_and_keeps_the_rest() {
+        let dir = trove_tests::scratch("peers-shaded");
+        let text = trove_tests::Header::new(4, [0.0, 1.0, 3.0], [0.0, 0.0, 1.0], 30.0).to_string()
+            + "[[datasets]]\nname = \"d\"\ndims = [4, 4, 4]\n[datasets.channels.voxel]\n\
+               generator = { kind = \"ramp\", axis = \"x\", from = 0.0, to = 1.0 }\n\
+               [[objects]]\nname = \"o\"\ndataset = \"d\"\n\
+               colour = { type = \"ramp\", points = [[0, 1, 1, 1], [1, 1, 1, 1]] }\n\
+               opacity = { type = \"ramp\", points = [[0, 0], [1, 0.5]] }\n";
+        let path = dir.join("scene.toml");
+        std::fs::write(&path, text).unwrap();
+        let lit = Scene::load(lit_copy(&path, &dir).unwrap()).unwrap();
+        let plain = Scene::load(&path).unwrap();
+        let [light] = lit.lights() else { panic!("one light: {:?}", lit.lights()) };
+        let trove_core::scene::LightSource::Directional { direction } = light.source() else { panic!("directional") };
+        let want = [0.0, -1.0, -2.0].map(|x: f64| x / 5f64.sqrt());
+        assert!(direction.get().to_array().iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-12), "{direction:?}");
+        let (material, _) = lit.objects()[0].lighting().expect("the object is shaded");
+        let got = [material.ambient(), material.diffuse(), material.specular(), material.shininess()];
+        assert_eq!(got, VTK_SHADING.map(|(_, v)| v));
+        assert_eq!(lit.image(), plain.image());
+        assert_eq!(lit.objects()[0].opacity(), plain.objects()[0].opacity());
     }
 
     #[test]

@@ -547,6 +547,12 @@ impl WorldPoints {
     pub fn at(&self, k: u64) -> DVec3 {
         self.ray.at(self.t0 + (k as f64 + 0.5) * self.dt)
     }
+
+    /// [`WorldPoints::at`] as `first + step·k` (for samplers that compute several points at
+    /// once), and the ray's unit direction.
+    pub(crate) fn parts(&self) -> (DVec3, DVec3, DVec3) {
+        (self.ray.at(self.t0 + 0.5 * self.dt), self.dt * self.ray.dir, self.ray.dir)
+    }
 }
 
 /// One sample: VC point (None when outside the box) and ℓ in voxels.

@@ -20,7 +20,7 @@ use std::sync::Arc;
 use super::lanes::Trilinear4;
 use super::packed::Stored;
 use super::packet::Packets;
-use super::shade::{NoShade, Shaded};
+use super::shade::{LaneShading, NoShade, Shaded};
 use super::simd::SimdPath;
 use super::skip::Skipper;
 use super::ClassificationCache;
@@ -111,7 +111,8 @@ impl<'a> Parts<'a> {
     }
 
     /// [`Parts::kernel`] with the AVX2 loop for its lines and the packet loop for many
-    /// pieces, where there are (for unlit objects: shaded ones take the one-piece loop).
+    /// pieces, where there are (the AVX2 lines are unlit: a shaded object has none, and
+    /// casts single pieces in the generic loop, many in the lit packet loop).
     fn kernel_with_lanes<I, V, M>(
         &self,
         interp: I,
@@ -154,17 +155,20 @@ impl<'a> Parts<'a> {
             None => {
                 Box::new(Kernel { interp, voxels, maps, shade: NoShade, skip, correction, specialised, lanes, packets })
             }
-            Some(l) => Box::new(Kernel {
-                interp,
-                voxels,
-                maps,
-                shade: Shaded::new(field, l.material, l.lights, l.to_world),
-                skip,
-                correction,
-                specialised,
-                lanes: None,
-                packets: None,
-            }),
+            Some(l) => {
+                debug_assert!(lanes.is_none(), "the AVX2 lines are unlit");
+                Box::new(Kernel {
+                    interp,
+                    voxels,
+                    maps,
+                    shade: Shaded::new(field, l.material, l.lights, l.to_world),
+                    skip,
+                    correction,
+                    specialised,
+                    lanes: None,
+                    packets,
+                })
+            }
         }
     }
 
@@ -224,12 +228,27 @@ impl<'a> Parts<'a> {
                 (None, Some(v)) => Some(Stored::U16(v)),
                 (None, None) => None,
             };
-            // The vector loops are unlit: a shaded object takes the one-piece loop.
-            if let Some(stored) = stored.filter(|_| self.lighting.is_none()) {
-                let avx2 = matches!(self.path, SimdPath::Avx2 | SimdPath::Avx512);
+            // A shaded object has the packet loop lit where its box is affine (one normal
+            // matrix) and its lighting fits f32, and no AVX2 lines (they are unlit); else
+            // it takes the one-piece loops.
+            let lit = match &self.lighting {
+                None => None,
+                // The packet loop's gradient is of the `voxel` values it reads, which is
+                // the channel a LUT or ramp opacity map reads.
+                Some(l) => match LaneShading::new(l.material, l.lights, l.to_world) {
+                    Some(shading) => Some(shading),
+                    None => return self.with_maps(maps, true, skip),
+                },
+            };
+            if let Some(stored) = stored {
+                let avx2 = matches!(self.path, SimdPath::Avx2 | SimdPath::Avx512) && lit.is_none();
                 let lanes = if avx2 { Trilinear4::new(&interp, stored, &maps) } else { None };
                 let range = skip.as_ref().and_then(Skipper::value_range);
                 let packets = Packets::new(&interp, stored, &maps, range, self.path);
+                let packets = match lit {
+                    Some(shading) => packets.map(|p| p.lit(shading)),
+                    None => packets,
+                };
                 if lanes.is_some() || packets.is_some() {
                     return Ok(match stored {
                         Stored::U8(v) => self.kernel_with_lanes(interp, Read(v), maps, skip, lanes, packets),

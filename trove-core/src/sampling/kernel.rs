@@ -463,7 +463,7 @@ impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Cast for Kernel<'_, I, V, M, 
         let mut lines = Vec::with_capacity(pieces.len());
         for (slot, walk, alpha_in, stop_at) in pieces {
             match walk.line().filter(Line::fits) {
-                Some(line) => lines.push(Line { slot, line, alpha_in, stop_at }),
+                Some(line) => lines.push(Line { slot, line, world: walk.world_points(), alpha_in, stop_at }),
                 None => out[slot] = self.cast(walk, alpha_in, stop_at),
             }
         }

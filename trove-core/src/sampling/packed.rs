@@ -277,6 +277,150 @@ impl Packed {
     }
 }
 
+impl Grid<'_> {
+    /// The gradient of the trilinear field at positions `u` by central differences over one
+    /// voxel, (I(u + eₐ) − I(u − eₐ))/2 per axis a, each point located as [`Packed::cells`]
+    /// locates a sample (clamped to the grid as `Axis::cell` clamps it): what the f64
+    /// loop's `Shaded::gradient` computes, in f32, for the lanes `lit` (the others get
+    /// finite values of no meaning).
+    ///
+    /// Where a sample's cell is at least one voxel from the grid's faces (its lower corner
+    /// x₀ has 1 ≤ x₀ ≤ n − 3 on every axis), u ± eₐ lie in the cells next to it along a
+    /// with the same weights, and trilinear interpolation is linear in the voxels: the
+    /// difference of the two values is the trilinear interpolation, with the sample's own
+    /// weights, of the voxels' differences V(c + eₐ) − V(c − eₐ) at its cell's eight
+    /// corners. Those are twelve gathers of neighbouring voxels (sixteen for u16) instead of
+    /// six trilinear values' twenty-four. A lit lane nearer a face takes the six values
+    /// ([`Grid::gradient_at_points`]), whose points clamp. Which way a lane takes depends on
+    /// that lane alone, so that every width gives the same bits: a register with lit lanes
+    /// on both sides computes both ways and selects.
+    #[inline(always)]
+    pub(super) fn gradient<S: Simd>(&self, s: S, packed: &Packed, u: [S::F; 3], lit: u32) -> [S::F; 3] {
+        let one = s.splat(1.0);
+        let (x0, h) = packed.cells(s, u);
+        let mut inside = s.ge(x0[0], one);
+        for (a, &x0) in x0.iter().enumerate() {
+            let inner = s.and_m(s.ge(x0, one), s.le(x0, s.splat(packed.rule[a][0] - 2.0)));
+            inside = s.and_m(inside, inner);
+        }
+        if lit & s.bits(inside) == 0 {
+            return self.gradient_at_points(s, packed, u);
+        }
+        let near = (lit & !s.bits(inside) != 0).then(|| self.gradient_at_points(s, packed, u));
+        // Lanes nearer a face (whose gradient, where lit, is `near`'s) read the corner
+        // (1, 1, 1) here instead, so that every gather stays inside the channel: some lit
+        // lane is inside, so the grid has at least four voxels along every axis.
+        let x0 = [s.select(inside, x0[0], one), s.select(inside, x0[1], one), s.select(inside, x0[2], one)];
+        let index = packed.index(s, x0, self.nx, self.ny);
+        let [_, oy, oz] = self.offsets;
+        let rows = [0, oy, oz, oz + oy];
+        // Per row (y₀, z₀), (y₀ + 1, z₀), (y₀, z₀ + 1), (y₀ + 1, z₀ + 1) of the cell: the
+        // voxels at x₀ − 1, x₀, x₀ + 1, x₀ + 2 give the differences along x at its two
+        // corners; the corners' own voxels are kept for the other axes.
+        let mut corner = [[one; 2]; 4];
+        let mut d = [[one; 2]; 4];
+        for r in 0..4 {
+            let [before, c0, c1, after] = self.four(s, s.add_i(index, s.splat_i(rows[r] - 1)));
+            d[r] = [s.sub(c1, before), s.sub(after, c0)];
+            corner[r] = [c0, c1];
+        }
+        let gx = self.halved(s, d, h);
+        // Along y and z: the rows one beyond the cell on either side, against the cell's
+        // own. Along y, rows r0 = (y₀, z) and r1 = (y₀ + 1, z) for z = z₀, z₀ + 1.
+        for side in 0..2 {
+            let (r0, r1, at) = (2 * side, 2 * side + 1, oz * side as i32);
+            let below = self.two(s, s.add_i(index, s.splat_i(at - oy)));
+            let above = self.two(s, s.add_i(index, s.splat_i(at + 2 * oy)));
+            d[r0] = [s.sub(corner[r1][0], below[0]), s.sub(corner[r1][1], below[1])];
+            d[r1] = [s.sub(above[0], corner[r0][0]), s.sub(above[1], corner[r0][1])];
+        }
+        let gy = self.halved(s, d, h);
+        // Along z, rows r0 = (y, z₀) and r1 = (y, z₀ + 1) for y = y₀, y₀ + 1.
+        for side in 0..2 {
+            let (r0, r1, at) = (side, side + 2, oy * side as i32);
+            let below = self.two(s, s.add_i(index, s.splat_i(at - oz)));
+            let above = self.two(s, s.add_i(index, s.splat_i(at + 2 * oz)));
+            d[r0] = [s.sub(corner[r1][0], below[0]), s.sub(corner[r1][1], below[1])];
+            d[r1] = [s.sub(above[0], corner[r0][0]), s.sub(above[1], corner[r0][1])];
+        }
+        let gz = self.halved(s, d, h);
+        match near {
+            Some([nx, ny, nz]) => [s.select(inside, gx, nx), s.select(inside, gy, ny), s.select(inside, gz, nz)],
+            None => [gx, gy, gz],
+        }
+    }
+
+    /// Half the trilinear interpolation, with weights `h`, of values at a cell's corners
+    /// given row by row as [`Grid::trilinear`] orders them.
+    #[inline(always)]
+    fn halved<S: Simd>(&self, s: S, d: [[S::F; 2]; 4], h: [S::F; 3]) -> S::F {
+        let x00 = lerp(s, d[0][0], d[0][1], h[0]);
+        let x10 = lerp(s, d[1][0], d[1][1], h[0]);
+        let x01 = lerp(s, d[2][0], d[2][1], h[0]);
+        let x11 = lerp(s, d[3][0], d[3][1], h[0]);
+        s.mul(lerp(s, lerp(s, x00, x10, h[1]), lerp(s, x01, x11, h[1]), h[2]), s.splat(0.5))
+    }
+
+    /// The four voxels from `at` on along x, as f32.
+    #[inline(always)]
+    fn four<S: Simd>(&self, s: S, at: S::I) -> [S::F; 4] {
+        let base = self.voxels.bytes().as_ptr();
+        if self.voxels.is_wide() {
+            // SAFETY: [`Grid::gradient`] reads only voxels inside the channel.
+            let (a, b) = unsafe { (s.gather::<2>(base, at), s.gather::<2>(base, s.add_i(at, s.splat_i(2)))) };
+            let mask = s.splat_i(0xffff);
+            let part = |w: S::I, shift: u32| s.to_f32(s.and_i(s.shr_i(w, shift), mask));
+            [part(a, 0), part(a, 16), part(b, 0), part(b, 16)]
+        } else {
+            // SAFETY: as above: the four bytes are four voxels inside the channel.
+            let w = unsafe { s.gather::<1>(base, at) };
+            let mask = s.splat_i(0xff);
+            let part = |shift: u32| s.to_f32(s.and_i(s.shr_i(w, shift), mask));
+            [part(0), part(8), part(16), part(24)]
+        }
+    }
+
+    /// The two voxels from `at` on along x, as f32.
+    #[inline(always)]
+    fn two<S: Simd>(&self, s: S, at: S::I) -> [S::F; 2] {
+        let base = self.voxels.bytes().as_ptr();
+        let wide = self.voxels.is_wide();
+        // SAFETY: [`Grid::gradient`] reads rows that are neither the channel's last (for u8,
+        // whose four bytes reach two voxels past the pair) nor outside it.
+        let w = unsafe {
+            if wide {
+                s.gather::<2>(base, at)
+            } else {
+                s.gather::<1>(base, at)
+            }
+        };
+        let (mask, shift) = if wide { (s.splat_i(0xffff), 16) } else { (s.splat_i(0xff), 8) };
+        [s.to_f32(s.and_i(w, mask)), s.to_f32(s.and_i(s.shr_i(w, shift), mask))]
+    }
+
+    /// [`Grid::gradient`] from the six values at u ± eₐ themselves, each point clamped as a
+    /// sample's is: six more trilinear values, near the grid's faces.
+    #[inline(always)]
+    fn gradient_at_points<S: Simd>(&self, s: S, packed: &Packed, u: [S::F; 3]) -> [S::F; 3] {
+        let (one, half) = (s.splat(1.0), s.splat(0.5));
+        let mut g = [one; 3];
+        for (a, g) in g.iter_mut().enumerate() {
+            let (mut hi, mut lo) = (u, u);
+            hi[a] = s.add(u[a], one);
+            lo[a] = s.sub(u[a], one);
+            *g = s.mul(s.sub(self.value_at(s, packed, hi), self.value_at(s, packed, lo)), half);
+        }
+        g
+    }
+
+    /// The trilinear value at positions `u`, located as a sample is.
+    #[inline(always)]
+    fn value_at<S: Simd>(&self, s: S, packed: &Packed, u: [S::F; 3]) -> S::F {
+        let (x0, h) = packed.cells(s, u);
+        self.trilinear(s, packed.index(s, x0, self.nx, self.ny), h)
+    }
+}
+
 /// v0 − h·(v0 − v1), `Linear::apply`'s lerp.
 #[inline(always)]
 fn lerp<S: Simd>(s: S, v0: S::F, v1: S::F, h: S::F) -> S::F {
@@ -405,12 +549,26 @@ fn ln<S: Simd>(s: S, u: S::F) -> S::F {
 const LN2_HIGH: f32 = 0.693_359_4;
 const LN2_LOW: f32 = -2.121_944_4e-4;
 
-/// −expm1(y) = 1 − eʸ for y in [−30, 0]: y = k·ln 2 + r with |r| ≤ ½ ln 2, expm1(r) as
-/// r + r²·P(r) (Cephes' `expf` polynomial, without its 1 +, so that it keeps its relative
-/// precision for small r), then 1 − 2ᵏ·(1 + expm1(r)) as (1 − 2ᵏ) − 2ᵏ·expm1(r), both
-/// parts exact but the last rounding.
+/// −expm1(y) = 1 − eʸ for y in [−30, 0] ([`exp_parts`]): 1 − 2ᵏ·(1 + expm1(r)) as
+/// (1 − 2ᵏ) − 2ᵏ·expm1(r), both parts exact but the last rounding.
 #[inline(always)]
 fn neg_expm1<S: Simd>(s: S, y: S::F) -> S::F {
+    let (two_k, em1) = exp_parts(s, y);
+    s.neg_mul_add(two_k, em1, s.sub(s.splat(1.0), two_k))
+}
+
+/// eʸ for y in [−87, 1] ([`exp_parts`]): 2ᵏ + 2ᵏ·expm1(r), a few f32 roundings off.
+#[inline(always)]
+fn exp<S: Simd>(s: S, y: S::F) -> S::F {
+    let (two_k, em1) = exp_parts(s, y);
+    s.mul_add(two_k, em1, two_k)
+}
+
+/// y = k·ln 2 + r with |r| ≤ ½ ln 2, as (2ᵏ, expm1(r)), for y ≥ −87 (so that 2ᵏ, k ≥ −126,
+/// is a normal f32 made from its exponent field): expm1(r) as r + r²·P(r) (Cephes' `expf`
+/// polynomial, without its 1 +, so that it keeps its relative precision for small r).
+#[inline(always)]
+fn exp_parts<S: Simd>(s: S, y: S::F) -> (S::F, S::F) {
     let k = s.floor(s.mul_add(y, s.splat(std::f32::consts::LOG2_E), s.splat(0.5)));
     let r = s.neg_mul_add(k, s.splat(LN2_LOW), s.neg_mul_add(k, s.splat(LN2_HIGH), y));
     let mut p = s.splat(1.987_569_1e-4);
@@ -418,9 +576,20 @@ fn neg_expm1<S: Simd>(s: S, y: S::F) -> S::F {
         p = s.mul_add(p, r, s.splat(c));
     }
     let em1 = s.mul_add(s.mul(r, r), p, r);
-    // 2ᵏ, k ≥ −44: its exponent field.
     let two_k = s.bits_to_f32(s.shl_i(s.add_i(s.to_i32(k), s.splat_i(127)), 23));
-    s.neg_mul_add(two_k, em1, s.sub(s.splat(1.0), two_k))
+    (two_k, em1)
+}
+
+/// xᵉ per lane for x ≥ 0 and a constant e ≥ 0, as `f64::powf` gives it to f32's rounding
+/// (Blinn–Phong's specular term, [`super::shade`]): e^(e·ln x), the exponent held at −87
+/// and above (where the power is below 10⁻³⁷ anyway). Where x is 0 (or below f32's smallest
+/// normal, which `ln` does not take) it is 0ᵉ: 0, or 1 when e is 0, as `powf` has it.
+#[inline(always)]
+pub(super) fn pow<S: Simd>(s: S, x: S::F, e: f32) -> S::F {
+    let normal = s.ge(x, s.splat(f32::MIN_POSITIVE));
+    let safe = s.select(normal, x, s.splat(1.0));
+    let y = s.max(s.mul(s.splat(e), ln(s, safe)), s.splat(-87.0));
+    s.select(normal, exp(s, y), s.splat(if e == 0.0 { 1.0 } else { 0.0 }))
 }
 
 #[cfg(test)]

@@ -25,6 +25,7 @@
 //! no result.
 
 use super::packed::{corrected, Grid, Packed, Stored};
+use super::shade::{LaneShading, HALF_VECTORS};
 use super::simd::avx2::Avx2;
 use super::simd::avx512::Avx512;
 use super::simd::neon::Neon;
@@ -34,15 +35,16 @@ use super::skip::{cell_of, FineClasses, Jumps, Skipper};
 use super::PieceResult;
 use crate::composite::Rgba;
 use crate::dataset::macrocell::{Level, MACROCELL_SHIFT};
-use crate::geometry::LineSamples;
+use crate::geometry::{LineSamples, WorldPoints};
 use crate::interp::{Identity, Interp, Linear};
 use crate::mapping::{JointPiecewise, SMALL_MAP};
 
-/// A straight piece waiting for a lane: its slot in the results, its samples, the opacity
-/// in front of it and where it may stop.
+/// A straight piece waiting for a lane: its slot in the results, its samples (in VC, and in
+/// the world for lighting), the opacity in front of it and where it may stop.
 pub(super) struct Line {
     pub slot: usize,
     pub line: LineSamples,
+    pub world: WorldPoints,
     pub alpha_in: f64,
     pub stop_at: f64,
 }
@@ -84,13 +86,17 @@ impl Token {
 }
 
 /// One object's packet loop: the f32 forms of its grid and map, the f64 interpolation and
-/// break points it classifies values near a LUT bound with, and the instruction set.
+/// break points it classifies values near a LUT bound with, the instruction set, and its
+/// lighting when the object is shaded.
 pub(super) struct Packets<'a> {
     interp: Linear<Identity>,
     grid: Grid<'a>,
     packed: Packed,
     breaks: Vec<f64>,
     token: Token,
+    /// The lit loop's lighting ([`Packets::lit`]); `None`: the unlit loop, in which no
+    /// step of lighting is compiled.
+    shading: Option<LaneShading>,
 }
 
 impl<'a> Packets<'a> {
@@ -126,7 +132,13 @@ impl<'a> Packets<'a> {
             ny,
             safe: voxels.safe_corner(offsets[1], offsets[2]),
         };
-        Some(Packets { interp: *interp, grid, packed, breaks: breaks.to_vec(), token })
+        Some(Packets { interp: *interp, grid, packed, breaks: breaks.to_vec(), token, shading: None })
+    }
+
+    /// The same loop lit by `shading` (SPEC §6): each sample that contributes shaded before
+    /// it is composited.
+    pub(super) fn lit(self, shading: LaneShading) -> Packets<'a> {
+        Packets { shading: Some(shading), ..self }
     }
 
     /// The instruction set the loop runs in.
@@ -144,12 +156,17 @@ impl<'a> Packets<'a> {
     /// corrected for the step.
     pub(super) fn cast(&self, skip: Option<&Skipper<'_>>, correction: bool, lines: &[Line], out: &mut [PieceResult]) {
         let cast = Cast { packets: self, skip, correction, lines };
-        match self.token {
+        // Lighting is a constant of the loop: the unlit loop has no trace of it.
+        match (self.token, self.shading.is_some()) {
             // SAFETY: a token exists only where the processor has its instructions.
-            Token::Avx512(s) => unsafe { cast.avx512(s, out) },
-            Token::Avx2(s) => unsafe { cast.avx2(s, out) },
-            Token::Neon(s) => unsafe { cast.neon(s, out) },
-            Token::Scalar(s) => cast.run(s, out),
+            (Token::Avx512(s), false) => unsafe { cast.avx512::<false>(s, out) },
+            (Token::Avx512(s), true) => unsafe { cast.avx512::<true>(s, out) },
+            (Token::Avx2(s), false) => unsafe { cast.avx2::<false>(s, out) },
+            (Token::Avx2(s), true) => unsafe { cast.avx2::<true>(s, out) },
+            (Token::Neon(s), false) => unsafe { cast.neon::<false>(s, out) },
+            (Token::Neon(s), true) => unsafe { cast.neon::<true>(s, out) },
+            (Token::Scalar(s), false) => cast.run::<_, false>(s, out),
+            (Token::Scalar(s), true) => cast.run::<_, true>(s, out),
         }
     }
 }
@@ -190,6 +207,14 @@ struct Lanes {
     jumps: [Option<Jumps>; MAX_W],
     /// Each lane's [`Jumps::parts`]: start, samples per unit and margin, per axis.
     leap: [[[f32; MAX_W]; 3]; 3],
+    /// For a lit loop: sample k is at `world + world_step·k` in the world, and `view` is the
+    /// unit vector towards the eye; `shaded` counts the samples lit.
+    world: [[f32; MAX_W]; 3],
+    world_step: [[f32; MAX_W]; 3],
+    view: [[f32; MAX_W]; 3],
+    /// H of the directional lights whose H is kept per piece ([`LaneShading::half_vector`]).
+    half_vector: [[[f32; MAX_W]; 3]; HALF_VECTORS],
+    shaded: [f32; MAX_W],
 }
 
 impl Lanes {
@@ -209,6 +234,11 @@ impl Lanes {
             empty: [false; MAX_W],
             jumps: [const { None }; MAX_W],
             leap: [[[0.0; MAX_W]; 3]; 3],
+            world: [[0.0; MAX_W]; 3],
+            world_step: [[0.0; MAX_W]; 3],
+            view: [[0.0; MAX_W]; 3],
+            half_vector: [[[0.0; MAX_W]; 3]; HALF_VECTORS],
+            shaded: [0.0; MAX_W],
         }
     }
 
@@ -393,8 +423,8 @@ impl Cast<'_, '_, '_> {
     /// The processor must have what [`Avx512`] detects (the token proves it).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx2,fma")]
-    unsafe fn avx512(&self, s: Avx512, out: &mut [PieceResult]) {
-        self.run(s, out)
+    unsafe fn avx512<const LIT: bool>(&self, s: Avx512, out: &mut [PieceResult]) {
+        self.run::<_, LIT>(s, out)
     }
 
     /// [`Cast::run`] compiled for AVX2 and FMA.
@@ -403,8 +433,8 @@ impl Cast<'_, '_, '_> {
     /// The processor must have what [`Avx2`] detects (the token proves it).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
-    unsafe fn avx2(&self, s: Avx2, out: &mut [PieceResult]) {
-        self.run(s, out)
+    unsafe fn avx2<const LIT: bool>(&self, s: Avx2, out: &mut [PieceResult]) {
+        self.run::<_, LIT>(s, out)
     }
 
     /// [`Cast::run`] compiled for NEON.
@@ -413,35 +443,35 @@ impl Cast<'_, '_, '_> {
     /// The processor must have NEON (the token proves it).
     #[cfg(target_arch = "aarch64")]
     #[target_feature(enable = "neon")]
-    unsafe fn neon(&self, s: Neon, out: &mut [PieceResult]) {
-        self.run(s, out)
+    unsafe fn neon<const LIT: bool>(&self, s: Neon, out: &mut [PieceResult]) {
+        self.run::<_, LIT>(s, out)
     }
 
     /// Where the instruction set cannot be, neither can its token.
     #[cfg(not(target_arch = "x86_64"))]
-    unsafe fn avx512(&self, s: Avx512, _out: &mut [PieceResult]) {
+    unsafe fn avx512<const LIT: bool>(&self, s: Avx512, _out: &mut [PieceResult]) {
         match s {}
     }
 
     #[cfg(not(target_arch = "x86_64"))]
-    unsafe fn avx2(&self, s: Avx2, _out: &mut [PieceResult]) {
+    unsafe fn avx2<const LIT: bool>(&self, s: Avx2, _out: &mut [PieceResult]) {
         match s {}
     }
 
     #[cfg(not(target_arch = "aarch64"))]
-    unsafe fn neon(&self, s: Neon, _out: &mut [PieceResult]) {
+    unsafe fn neon<const LIT: bool>(&self, s: Neon, _out: &mut [PieceResult]) {
         match s {}
     }
 
-    /// The loop, for any instruction set: casts the lines, each result to
-    /// `out[line.slot]`.
+    /// The loop, for any instruction set, lit or (`LIT` false) not: casts the lines, each
+    /// result to `out[line.slot]`.
     ///
     /// It is pipelined by one sample: the samples at k + 1 (or where a lane jumps to) are
     /// located, tested for empty space and interpolated before the samples at k are mapped
     /// and composited, so the voxel gathers of the one overlap the other's chain of
     /// dependent steps.
     #[inline(always)]
-    fn run<S: Simd>(&self, s: S, out: &mut [PieceResult]) {
+    fn run<S: Simd, const LIT: bool>(&self, s: S, out: &mut [PieceResult]) {
         let (packets, lines) = (self.packets, self.lines);
         let w = S::LANES * HALVES;
         // Lanes idle (their pieces ended) before they all take new pieces: a quarter.
@@ -481,7 +511,15 @@ impl Cast<'_, '_, '_> {
                             segment = self.exact_segments(s, &lanes, h, near, r.k, segment);
                         }
                     }
-                    let (opacity, colour) = packets.packed.map(s, v, segment);
+                    let (opacity, mut colour) = packets.packed.map(s, v, segment);
+                    if let (true, Some(shading)) = (LIT, &packets.shading) {
+                        // The samples that contribute (opacity > 0), as the f64 loop picks
+                        // them; a register with none skips the gradient's gathers.
+                        let lit = live_bits & s.bits(s.gt(opacity, zero));
+                        if lit != 0 {
+                            colour = self.shade(s, shading, &mut lanes, h, r, lit, colour);
+                        }
+                    }
                     let alpha = if self.correction { corrected(s, opacity, load(s, &lanes.ell, h)) } else { opacity };
                     // `Rgba::add_sample` in live lanes, then the stopping test of `composite`.
                     // Other lanes add a weight of +0 (colours are finite), which leaves
@@ -516,7 +554,7 @@ impl Cast<'_, '_, '_> {
                                 alpha: f64::from(acc[3][l]),
                             },
                             samples: lanes.samples[l] as u64,
-                            shaded: 0,
+                            shaded: lanes.shaded[l] as u64,
                         };
                     }
                     active &= !ended;
@@ -533,6 +571,36 @@ impl Cast<'_, '_, '_> {
                 looked = ahead;
             }
         }
+    }
+
+    /// The colours of half `h`'s samples at `r.k` (mapped to `colour`) lit by `shading`, and
+    /// the lanes `lit` (those that contribute) counted as shaded: the gradient of the
+    /// trilinear field there ([`Grid::gradient`]), then Blinn–Phong ([`LaneShading::shade`]).
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn shade<S: Simd>(
+        &self,
+        s: S,
+        shading: &LaneShading,
+        lanes: &mut Lanes,
+        h: usize,
+        r: &Half<S>,
+        lit: u32,
+        colour: [S::F; 3],
+    ) -> [S::F; 3] {
+        let packets = self.packets;
+        let (zero, one) = (s.splat(0.0), s.splat(1.0));
+        let shaded = s.add(load(s, &lanes.shaded, h), s.select(s.mask(lit), one, zero));
+        store(s, &mut lanes.shaded, h, shaded);
+        let (mut u, mut x, mut view) = ([zero; 3], [zero; 3], [zero; 3]);
+        for a in 0..3 {
+            u[a] = s.mul_add(r.step[a], r.k, r.origin[a]);
+            x[a] = s.mul_add(load(s, &lanes.world_step[a], h), r.k, load(s, &lanes.world[a], h));
+            view[a] = load(s, &lanes.view[a], h);
+        }
+        let g = packets.grid.gradient(s, &packets.packed, u, lit);
+        let half = |j: usize| -> [S::F; 3] { std::array::from_fn(|a| load(s, &lanes.half_vector[j][a], h)) };
+        shading.shade(s, g, x, view, half, colour)
     }
 
     /// The samples at `k` (per half) of the lanes `active`: located
@@ -709,6 +777,21 @@ impl Cast<'_, '_, '_> {
             acc[l] = 0.0;
         }
         lanes.samples[l] = 0.0;
+        if let Some(shading) = &self.packets.shading {
+            // `WorldPoints::at` as first + step·k, and V = −(ray direction).
+            let (first, step, dir) = piece.world.parts();
+            for a in 0..3 {
+                lanes.world[a][l] = first[a] as f32;
+                lanes.world_step[a][l] = step[a] as f32;
+                lanes.view[a][l] = -dir[a] as f32;
+            }
+            for j in 0..shading.half_vectors() {
+                for (a, &h) in shading.half_vector(j, -dir).iter().enumerate() {
+                    lanes.half_vector[j][a][l] = h;
+                }
+            }
+            lanes.shaded[l] = 0.0;
+        }
         lanes.cell[l] = [u32::MAX; 3];
         lanes.empty[l] = false;
         lanes.jumps[l] = self.skip.map(|_| Jumps::for_f32(&self.packets.interp, &piece.line));

@@ -9,10 +9,18 @@
 //! world space by the inverse transpose of the VC → world Jacobian at the sample
 //! ([`GradientToWorld`]) and turned to face the viewer. Blinn–Phong then gives the colour
 //! that replaces the mapped one; opacity is unchanged.
+//!
+//! The f32 packet loop ([`super::packet`]) has the same axis, as a constant parameter of its
+//! loop: [`LaneShading`] is `Shaded`'s computation in f32 lanes, for the objects that loop
+//! casts (trilinear, u8 or u16 voxels, a small joint map) in an affine box, whose normals
+//! all go to world space through one constant matrix. A distorted box's Jacobian changes
+//! from sample to sample; such an object keeps the f64 loops.
 
 use glam::DVec3;
 
 use super::kernel::VoxelSource;
+use super::packed::pow;
+use super::simd::Simd;
 use crate::geometry::GradientToWorld;
 use crate::interp::Interp;
 use crate::scene::{Light, LightSource, Shading};
@@ -126,6 +134,231 @@ impl<F: VoxelSource> Shade for Shaded<'_, F> {
         }
         let lit = DVec3::from(c) * (DVec3::splat(m.ambient()) + diffuse) + specular;
         lit.to_array()
+    }
+}
+
+/// A light as a lane uses it: [`LightAt`] in f32. A directional light's H depends on the
+/// ray only (V is the same along it): the first [`HALF_VECTORS`] are worked out once per
+/// piece, in f64, and `slot` says which ([`LaneShading::half_vector`]).
+#[derive(Clone, Copy, Debug)]
+enum LaneLight {
+    Towards { l: [f32; 3], radiance: [f32; 3], slot: Option<usize> },
+    At { position: [f32; 3], radiance: [f32; 3] },
+}
+
+/// Directional lights whose H a lane keeps per piece; further ones compute it per sample.
+pub(super) const HALF_VECTORS: usize = 4;
+
+/// [`Shaded`] for the f32 packet loop: an affine box's normal matrix, the material and the
+/// lights, rounded to f32, and the same operations on a register of samples at a time
+/// ([`LaneShading::shade`]).
+#[derive(Clone, Debug)]
+pub(super) struct LaneShading {
+    /// The box's [`GradientToWorld::Affine`] matrix row by row, scaled by a power of two (so
+    /// exactly) to put its largest entry in [1, 2): a normal does not depend on the
+    /// gradient's scale, and so scaled the world gradient of u8 or u16 values, and its
+    /// square, stay far inside f32's range whatever the box's size in the world.
+    to_world: [[f32; 3]; 3],
+    ambient: f32,
+    diffuse: f32,
+    specular: f32,
+    shininess: f32,
+    /// The shininess where it is a whole number up to 64, and the least base whose power
+    /// that is stays a normal f32: the power is then a few multiplications
+    /// ([`LaneShading::power`]).
+    whole_shininess: Option<(u32, f32)>,
+    lights: Vec<LaneLight>,
+    /// L of the directional lights whose H lanes keep, in slot order.
+    towards: Vec<DVec3>,
+}
+
+/// For a whole-number shininess n up to 64, n and the least f32 x at or above which xⁿ
+/// (and so every power of x up to n) is a normal f32, with a factor of two to spare for
+/// the roundings on the way (0 for n = 0: x⁰ = 1); `None` for any other shininess.
+fn whole_power(shininess: f64) -> Option<(u32, f32)> {
+    if !(shininess.fract() == 0.0 && (0.0..=64.0).contains(&shininess)) {
+        return None;
+    }
+    let n = shininess as u32;
+    if n == 0 {
+        return Some((0, 0.0));
+    }
+    let least = (2.0 * f64::from(f32::MIN_POSITIVE)).powf(1.0 / f64::from(n));
+    // Rounded up, so that every f32 at or above it keeps the bound.
+    let floor = least as f32;
+    Some((n, if f64::from(floor) < least { floor.next_up() } else { floor }))
+}
+
+/// Bound on a lit colour and on light positions: far inside f32's range, so that no lane,
+/// live or idle, overflows to a value that would turn a sum into NaN.
+const LANE_LIMIT: f64 = 1e18;
+
+impl LaneShading {
+    /// `material` under `lights` for an object whose normals go to world space by
+    /// `to_world`; `None` for a distorted box (its Jacobian is not one matrix) and where a
+    /// number could leave f32's range: those objects keep the f64 loops.
+    pub(super) fn new(material: Shading, lights: &[Light], to_world: GradientToWorld<'_>) -> Option<LaneShading> {
+        let GradientToWorld::Affine(m) = to_world else { return None };
+        let largest = m.to_cols_array().iter().fold(0.0f64, |a, x| a.max(x.abs()));
+        if !(largest > 0.0 && largest.is_finite()) {
+            return None;
+        }
+        let scale = 2f64.powi(-(largest.log2().floor() as i32));
+        let to_world = std::array::from_fn(|r| std::array::from_fn(|c| (m.col(c)[r] * scale) as f32));
+        // A lit colour is at most ambient + Σ (diffuse + specular)·E per channel (c ≤ 1,
+        // N·L ≤ 1, (N·H)^shininess ≤ 1).
+        let mut brightest = material.ambient();
+        let mut lane_lights = Vec::with_capacity(lights.len());
+        let mut towards = Vec::new();
+        for light in lights {
+            let radiance = light.radiance();
+            brightest += (material.diffuse() + material.specular()) * radiance.iter().fold(0.0f64, |a, &e| a.max(e));
+            let radiance = radiance.map(|e| e as f32);
+            lane_lights.push(match light.source() {
+                LightSource::Directional { direction } => {
+                    let slot = (towards.len() < HALF_VECTORS).then_some(towards.len());
+                    if slot.is_some() {
+                        towards.push(-direction.get());
+                    }
+                    LaneLight::Towards { l: (-direction.get()).to_array().map(|x| x as f32), radiance, slot }
+                }
+                LightSource::Point { position } => {
+                    if position.abs().max_element() >= LANE_LIMIT {
+                        return None;
+                    }
+                    LaneLight::At { position: position.to_array().map(|x| x as f32), radiance }
+                }
+            });
+        }
+        if !(brightest < LANE_LIMIT && material.shininess() < LANE_LIMIT) {
+            return None;
+        }
+        Some(LaneShading {
+            to_world,
+            ambient: material.ambient() as f32,
+            diffuse: material.diffuse() as f32,
+            specular: material.specular() as f32,
+            shininess: material.shininess() as f32,
+            whole_shininess: whole_power(material.shininess()),
+            lights: lane_lights,
+            towards,
+        })
+    }
+
+    /// How many directional lights have their H kept per piece ([`LaneShading::half_vector`]).
+    pub(super) fn half_vectors(&self) -> usize {
+        self.towards.len()
+    }
+
+    /// H = normalise(L + V) of the directional light in `slot`, for a ray whose unit vector
+    /// towards the eye is `view`, as `Shaded::shade` computes it (in f64; NaN where L = −V,
+    /// where N·L > 0 cannot hold and H is not used).
+    pub(super) fn half_vector(&self, slot: usize, view: DVec3) -> [f32; 3] {
+        (self.towards[slot] + view).normalize().to_array().map(|x| x as f32)
+    }
+
+    /// xˢ for x ≥ 0 and the shininess s: by repeated squaring where s is a whole number
+    /// (exact to a few roundings, and 0⁰ = 1 as `powf` has it), else [`pow`]. Below the
+    /// floor that [`whole_power`] sets, where xˢ is under twice f32's smallest normal, it is
+    /// 0 (as `pow` is near 0 there): no product is subnormal, which x86 computes slowly.
+    #[inline(always)]
+    fn power<S: Simd>(&self, s: S, x: S::F) -> S::F {
+        let Some((mut n, floor)) = self.whole_shininess else { return pow(s, x, self.shininess) };
+        let x = s.select(s.ge(x, s.splat(floor)), x, s.splat(0.0));
+        let (mut result, mut base) = (s.splat(1.0), x);
+        while n > 0 {
+            if n & 1 == 1 {
+                result = s.mul(result, base);
+            }
+            n >>= 1;
+            if n > 0 {
+                base = s.mul(base, base);
+            }
+        }
+        result
+    }
+
+    /// The colours `c` of a register of samples lit (SPEC §6), [`Shaded::shade`]'s
+    /// operations in f32 lanes: `g` is their VC gradient ([`super::packed::Grid::gradient`]),
+    /// `x` their world points, `view` the unit vectors from them towards the eye, `half(j)`
+    /// the H kept per piece of the directional light in slot `j`
+    /// ([`LaneShading::half_vector`]), read only where a light uses it. Lanes
+    /// whose world gradient is zero or not finite keep `c`; every lane's result is finite
+    /// (idle lanes' included, which the loop weighs by +0).
+    #[inline(always)]
+    pub(super) fn shade<S: Simd>(
+        &self,
+        s: S,
+        g: [S::F; 3],
+        x: [S::F; 3],
+        view: [S::F; 3],
+        half: impl Fn(usize) -> [S::F; 3],
+        c: [S::F; 3],
+    ) -> [S::F; 3] {
+        let (zero, one) = (s.splat(0.0), s.splat(1.0));
+        let dot = |a: [S::F; 3], b: [S::F; 3]| s.mul_add(a[2], b[2], s.mul_add(a[1], b[1], s.mul(a[0], b[0])));
+        let m = &self.to_world;
+        let mut world = [zero; 3];
+        for (r, w) in world.iter_mut().enumerate() {
+            *w = dot([s.splat(m[r][0]), s.splat(m[r][1]), s.splat(m[r][2])], g);
+        }
+        let len = s.sqrt(dot(world, world));
+        // No surface to light (or a gradient that is not a number): false for NaN.
+        let lit = s.and_m(s.gt(len, zero), s.lt(len, s.splat(f32::INFINITY)));
+        let minus_inv = s.div(s.splat(-1.0), len);
+        let mut n = [zero; 3];
+        for (n, &w) in n.iter_mut().zip(&world) {
+            *n = s.mul(w, minus_inv);
+        }
+        let back = s.lt(dot(n, view), zero);
+        for n in &mut n {
+            *n = s.select(back, s.sub(zero, *n), *n);
+        }
+        let (mut diffuse, mut specular) = ([zero; 3], [zero; 3]);
+        for light in &self.lights {
+            let (l, radiance, kept) = match *light {
+                LaneLight::Towards { l, radiance, slot } => {
+                    ([s.splat(l[0]), s.splat(l[1]), s.splat(l[2])], radiance, slot.map(&half))
+                }
+                LaneLight::At { position, radiance } => {
+                    let mut d = [zero; 3];
+                    for (a, d) in d.iter_mut().enumerate() {
+                        *d = s.sub(s.splat(position[a]), x[a]);
+                    }
+                    // At the light's own position d = 0, so L is NaN (0·∞) and N·L > 0 fails:
+                    // not lit by it, as the f64 loop's L = 0 gives.
+                    let inv = s.div(one, s.sqrt(dot(d, d)));
+                    ([s.mul(d[0], inv), s.mul(d[1], inv), s.mul(d[2], inv)], radiance, None)
+                }
+            };
+            let n_dot_l = dot(n, l);
+            // Only where N·L > 0: elsewhere neither term counts.
+            let on = s.gt(n_dot_l, zero);
+            let n_dot_h = match kept {
+                Some(h) => dot(n, h),
+                None => {
+                    let mut half = [zero; 3];
+                    for (a, h) in half.iter_mut().enumerate() {
+                        *h = s.add(l[a], view[a]);
+                    }
+                    s.mul(dot(n, half), s.div(one, s.sqrt(dot(half, half))))
+                }
+            };
+            let n_dot_h = s.max(n_dot_h, zero);
+            let kd = s.select(on, s.mul(s.splat(self.diffuse), n_dot_l), zero);
+            let ks = s.select(on, s.mul(s.splat(self.specular), self.power(s, n_dot_h)), zero);
+            for i in 0..3 {
+                let e = s.splat(radiance[i]);
+                diffuse[i] = s.mul_add(kd, e, diffuse[i]);
+                specular[i] = s.mul_add(ks, e, specular[i]);
+            }
+        }
+        let ambient = s.splat(self.ambient);
+        let mut out = c;
+        for (i, out) in out.iter_mut().enumerate() {
+            *out = s.select(lit, s.mul_add(c[i], s.add(ambient, diffuse[i]), specular[i]), c[i]);
+        }
+        out
     }
 }
 
@@ -244,6 +477,71 @@ mod tests {
                 assert!((exact - numeric).length() < 1e-6 * numeric.length(), "at q {q}: {exact} vs {numeric}");
             }
         }
+    }
+
+    /// [`LaneShading::power`] of `xs` with shininess `e`, a register at a time.
+    fn powers<S: Simd>(s: S, e: f64, xs: &[f32]) -> Vec<f32> {
+        let material = Shading::new(0.1, 0.6, 0.3, e).unwrap();
+        let lanes = LaneShading::new(material, &[], GradientToWorld::Affine(DMat3::IDENTITY)).unwrap();
+        let mut out = Vec::new();
+        for chunk in xs.chunks(S::LANES) {
+            let (mut x, mut y) = ([0.0f32; 16], [0.0f32; 16]);
+            x[..chunk.len()].copy_from_slice(chunk);
+            s.store(&mut y, lanes.power(s, s.load(&x)));
+            out.extend_from_slice(&y[..chunk.len()]);
+        }
+        out
+    }
+
+    /// The lanes' specular power holds `powf` on every path this processor has: by repeated
+    /// squaring for whole shininesses (0 and 1 among them), through `pow` otherwise (for
+    /// normal x and 0). For a whole shininess the result is 0 or a normal f32 (no product on
+    /// the way is subnormal), and 0 only where `powf` gives under twice the smallest normal.
+    #[test]
+    fn lane_powers_hold_powf_and_never_go_subnormal() {
+        #[cfg(target_arch = "aarch64")]
+        use super::super::simd::neon::Neon;
+        use super::super::simd::scalar::Scalar;
+        use super::super::simd::SimdPath;
+        #[cfg(target_arch = "x86_64")]
+        use super::super::simd::{avx2::Avx2, avx512::Avx512};
+        let mut xs: Vec<f32> = vec![0.0, 1e-45, 1e-40, f32::MIN_POSITIVE, 1e-30, 1e-12, 1e-6, 1e-3, 0.05, 0.2];
+        xs.extend((0..=1000).map(|i| i as f32 / 1000.0));
+        xs.extend([1.0 - f32::EPSILON, 1.0, 1.0 + f32::EPSILON]);
+        for e in [0.0, 1.0, 2.0, 3.0, 7.0, 10.0, 12.0, 24.0, 40.0, 63.0, 64.0, 0.5, 7.3] {
+            let mut xs = xs.clone();
+            if let Some((_, floor)) = whole_power(e) {
+                xs.extend([floor.next_down(), floor, floor.next_up()]);
+            }
+            for path in SimdPath::available() {
+                let got = match path {
+                    #[cfg(target_arch = "x86_64")]
+                    SimdPath::Avx512 => powers(Avx512::detect().unwrap(), e, &xs),
+                    #[cfg(target_arch = "x86_64")]
+                    SimdPath::Avx2 => powers(Avx2::detect().unwrap(), e, &xs),
+                    #[cfg(target_arch = "aarch64")]
+                    SimdPath::Neon => powers(Neon::detect().unwrap(), e, &xs),
+                    SimdPath::Scalar => powers(Scalar, e, &xs),
+                    #[allow(unreachable_patterns)]
+                    other => unreachable!("{other} is not available on this architecture"),
+                };
+                for (&x, &y) in xs.iter().zip(&got) {
+                    if whole_power(e).is_none() && x != 0.0 && !x.is_normal() {
+                        continue; // `pow` takes a subnormal x as 0, as it documents
+                    }
+                    let want = f64::from(x).powf(e);
+                    let error = (f64::from(y) - want).abs();
+                    assert!(error <= 8e-6 * want || error <= 4e-38, "{path}: {x:e}^{e}: {y:e} against {want:e}");
+                    if whole_power(e).is_some() {
+                        assert!(y == 0.0 || y.is_normal(), "{path}: {x:e}^{e} = {y:e} is subnormal");
+                        assert!(y != 0.0 || want < 2.0 * f64::from(f32::MIN_POSITIVE), "{path}: {x:e}^{e} = 0");
+                    }
+                }
+            }
+        }
+        assert_eq!(whole_power(12.0).map(|(n, _)| n), Some(12));
+        assert_eq!(whole_power(64.5), None);
+        assert_eq!(whole_power(65.0), None);
     }
 
     #[test]

@@ -200,6 +200,10 @@ pub(super) trait Simd: Copy + Send + Sync + 'static {
     fn floor(self, a: Self::F) -> Self::F;
     fn ceil(self, a: Self::F) -> Self::F;
     fn abs(self, a: Self::F) -> Self::F;
+    /// √a, correctly rounded (the normals and half vectors of shading).
+    fn sqrt(self, a: Self::F) -> Self::F;
+    /// a / b, correctly rounded.
+    fn div(self, a: Self::F, b: Self::F) -> Self::F;
     fn lt(self, a: Self::F, b: Self::F) -> Self::M;
     fn le(self, a: Self::F, b: Self::F) -> Self::M;
     fn gt(self, a: Self::F, b: Self::F) -> Self::M;

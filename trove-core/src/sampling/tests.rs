@@ -340,6 +340,137 @@ fn many_pieces_at_once_skip_alike_in_volumes_of_many_cells() {
     }
 }
 
+/// A smooth field over `dims`: a ball of values rising to 200 towards (0.4, 0.55, 0.5) of
+/// the grid, rippled, 0 outside it (so that macrocells there are empty).
+fn smooth_ball(dims: Dims) -> Vec<f32> {
+    let [nx, ny, nz] = dims.as_array().map(|n| n as f64);
+    let mut v = Vec::new();
+    for k in 0..nz as u64 {
+        for j in 0..ny as u64 {
+            for i in 0..nx as u64 {
+                let p = DVec3::new(i as f64 / nx, j as f64 / ny, k as f64 / nz);
+                let r = (p - DVec3::new(0.4, 0.55, 0.5)).length() / 0.42;
+                let ripple = 1.0 + 0.15 * (11.0 * p.x).sin() * (7.0 * p.y).cos();
+                v.push(if r < 1.0 { (200.0 * (1.0 - r * r) * ripple).round().min(255.0) as f32 } else { 0.0 });
+            }
+        }
+    }
+    v
+}
+
+/// Lit objects (SPEC §6) cast many pieces at once in the lit packet loop, which holds the
+/// f64 one-piece loop (the generic line loop, shading each contributing sample) to 1e-5
+/// per piece on every path: u8 and u16, with and without opacity correction, a LUT and a
+/// ramp, a box turned and scaled unevenly (so that normals need the inverse transpose), a
+/// directional light and point lights outside and inside the box; a whole and a fractional
+/// shininess; and more directional lights than lanes keep H for.
+#[test]
+fn lit_pieces_cast_in_packets_hold_the_f64_lit_loop_on_every_path() {
+    use crate::scene::{Light, LightSource, Shading, UnitVector};
+    let dims = Dims::new([27, 22, 19]).unwrap();
+    let (size, at) = (1.0, DVec3::new(-0.5, -0.5, -0.5));
+    let centre = at + DVec3::splat(size / 2.0);
+    let m = DMat4::from_translation(centre)
+        * DMat4::from_axis_angle(DVec3::new(0.3, 1.0, -0.4).normalize(), 0.6)
+        * DMat4::from_scale(DVec3::new(0.95, 0.7, 0.8) * size)
+        * DMat4::from_translation(DVec3::splat(-0.5));
+    let shape = Shape::Affine { world_from_box: m, box_from_world: m.inverse() };
+    let material = Shading::new(0.15, 0.7, 0.4, 12.0).unwrap();
+    let fractional = Shading::new(0.1, 0.6, 0.5, 7.3).unwrap();
+    let directional = |d: [f64; 3], e: f64| {
+        Light::new(LightSource::Directional { direction: UnitVector::new(DVec3::from(d)).unwrap() }, [1.0; 3], e)
+            .unwrap()
+    };
+    let many: Vec<Light> = (0..6).map(|i| directional([(i as f64).sin(), -0.5, -1.0 + 0.2 * i as f64], 0.3)).collect();
+    let lights = [
+        Light::new(
+            LightSource::Directional { direction: UnitVector::new(DVec3::new(-0.3, -0.5, -1.0)).unwrap() },
+            [1.0, 0.9, 0.8],
+            1.0,
+        )
+        .unwrap(),
+        Light::new(LightSource::Point { position: centre + DVec3::new(2.0, 1.5, 2.5) }, [1.0; 3], 0.6).unwrap(),
+        Light::new(LightSource::Point { position: centre + DVec3::new(0.1, -0.05, 0.02) }, [0.3, 0.5, 1.0], 0.8)
+            .unwrap(),
+    ];
+    let breaks: Vec<f64> = (1..=6).map(|i| 30.0 * i as f64).collect();
+    let opacity_lut = OpacityMap::Lut(Lut::new(breaks.clone(), (0..7).map(|i| (i / 2) as f64 * 0.08).collect()));
+    let colour_lut =
+        ColourMap::Lut(Lut::new(breaks, (0..7).map(|i| [i as f64 / 6.0, 0.5, 1.0 - i as f64 / 8.0]).collect()));
+    let cases = [
+        (VoxelType::U8, false, colour_ramp(), opacity_ramp(), material, &lights[..]),
+        (VoxelType::U16, true, colour_ramp(), opacity_ramp(), fractional, &lights[..]),
+        (VoxelType::U8, true, colour_lut, opacity_lut, material, &many[..]),
+    ];
+    let rays = rays(size, at, 120);
+    let values = smooth_ball(dims);
+    for (ty, correction, colour, opacity, material, lights) in cases {
+        let vol = volume(dims, vec![(ChannelName::Voxel, channel(ty, Endian::Little, &values, dims))]);
+        let unlit = object(colour, opacity, Interpolation::Trilinear, shape.clone(), Extent::FULL, dims);
+        let lit = respecified(&unlit, Interpolation::Trilinear, 0.0).lit_for_tests(material, lights);
+        let mut shaded = 0;
+        for path in SimdPath::available() {
+            let options = CastOptions::default();
+            let caster = ObjectCaster::on_path(&lit, &vol, correction, options, path).unwrap();
+            assert!(caster.is_shaded() && caster.packet_path() == Some(path), "{ty:?} on {path}");
+            assert!(!caster.uses_avx2(), "the AVX2 lines are unlit");
+            let plain = ObjectCaster::on_path(&unlit, &vol, correction, options, path).unwrap();
+            let mut requests = Vec::new();
+            for ray in &rays {
+                let Some((t0, t1)) = lit.placement().segment(ray) else { continue };
+                for (a, b, stop) in [(t0, t1, 0.99), ((t0 + t1) / 2.0, t1, f64::INFINITY), (t0, (t0 + t1) / 3.0, 0.5)] {
+                    for alpha_in in [0.0, 0.3] {
+                        requests.push(PieceRequest { ray: *ray, t0: a, t1: b, alpha_in, stop_at: stop });
+                    }
+                }
+            }
+            let mut many = vec![PieceResult::default(); requests.len()];
+            caster.cast_many(&requests, &mut many);
+            let mut unlit_many = vec![PieceResult::default(); requests.len()];
+            plain.cast_many(&requests, &mut unlit_many);
+            let mut changed = 0.0f64;
+            for ((r, many), unlit) in requests.iter().zip(&many).zip(&unlit_many) {
+                let one = caster.cast(&r.ray, r.t0, r.t1, r.alpha_in, r.stop_at);
+                agree_to_f32(many, &one);
+                assert!(many.shaded.abs_diff(one.shaded) <= 1, "{path}: shaded {} against {}", many.shaded, one.shaded);
+                shaded += many.shaded;
+                changed = changed.max((many.rgba.colour[0] - unlit.rgba.colour[0]).abs());
+            }
+            // The lights change the pieces: a loop that did not shade would fail above.
+            assert!(changed > 0.05, "{ty:?} on {path}: lighting changed at most {changed}");
+        }
+        assert!(shaded > 1000, "{ty:?}: {shaded} samples shaded");
+    }
+}
+
+/// Where the packet loop cannot shade as the f64 loop does, a lit object keeps the f64
+/// loops: a distorted box (its normals' matrix changes from sample to sample), and a point
+/// light too far out for f32 lanes.
+#[test]
+fn lit_objects_the_packet_loop_cannot_shade_keep_the_f64_loops() {
+    use crate::scene::{Light, LightSource, Shading};
+    let dims = Dims::new([12, 10, 9]).unwrap();
+    let vol =
+        volume(dims, vec![(ChannelName::Voxel, channel(VoxelType::U8, Endian::Little, &smooth_ball(dims), dims))]);
+    let material = Shading::DEFAULT;
+    let near = [Light::new(LightSource::Point { position: DVec3::new(2.0, 2.0, 2.0) }, [1.0; 3], 1.0).unwrap()];
+    let far = [Light::new(LightSource::Point { position: DVec3::new(1e19, 0.0, 0.0) }, [1.0; 3], 1.0).unwrap()];
+    let mut corners: [DVec3; 8] =
+        std::array::from_fn(|i| DVec3::new((i & 1) as f64, (i >> 1 & 1) as f64, (i >> 2 & 1) as f64));
+    corners[7] += DVec3::new(0.3, 0.25, 0.2);
+    let distorted = Shape::Distorted { hex: Box::new(Hexahedron::new(corners).unwrap()), straight: true };
+    for (shape, lights, packets) in
+        [(affine(1.0, DVec3::ZERO), &near, true), (distorted, &near, false), (affine(1.0, DVec3::ZERO), &far, false)]
+    {
+        let o = object(colour_ramp(), opacity_ramp(), Interpolation::Trilinear, shape, Extent::FULL, dims)
+            .lit_for_tests(material, lights);
+        let caster = ObjectCaster::new(&o, &vol, true).unwrap();
+        assert!(caster.is_shaded());
+        assert_eq!(caster.casts_packets(), packets, "{:?}", o.placement().shape());
+        assert!(caster.is_specialised());
+    }
+}
+
 #[test]
 fn raw_colour_and_alpha_cast_alike_and_skip_transparent_pixels() {
     // A photograph as a volume one voxel deep: alpha 0 outside a disc.

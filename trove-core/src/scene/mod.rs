@@ -90,6 +90,11 @@ impl Object {
             lights: None,
         }
     }
+
+    /// `self` shaded with `material` under `lights` (SPEC §6).
+    pub(crate) fn lit_for_tests(self, material: Shading, lights: &[Light]) -> Object {
+        Object { shading: Some(material), lights: Some(lights.into()), ..self }
+    }
 }
 
 impl Object {

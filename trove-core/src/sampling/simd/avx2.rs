@@ -94,6 +94,14 @@ mod imp {
             unsafe { _mm256_andnot_ps(_mm256_set1_ps(-0.0), a) }
         }
         #[inline(always)]
+        fn sqrt(self, a: __m256) -> __m256 {
+            unsafe { _mm256_sqrt_ps(a) }
+        }
+        #[inline(always)]
+        fn div(self, a: __m256, b: __m256) -> __m256 {
+            unsafe { _mm256_div_ps(a, b) }
+        }
+        #[inline(always)]
         fn lt(self, a: __m256, b: __m256) -> __m256 {
             unsafe { _mm256_cmp_ps::<_CMP_LT_OQ>(a, b) }
         }

@@ -98,6 +98,14 @@ mod imp {
             unsafe { _mm512_andnot_ps(_mm512_set1_ps(-0.0), a) }
         }
         #[inline(always)]
+        fn sqrt(self, a: __m512) -> __m512 {
+            unsafe { _mm512_sqrt_ps(a) }
+        }
+        #[inline(always)]
+        fn div(self, a: __m512, b: __m512) -> __m512 {
+            unsafe { _mm512_div_ps(a, b) }
+        }
+        #[inline(always)]
         fn lt(self, a: __m512, b: __m512) -> __mmask16 {
             unsafe { _mm512_cmp_ps_mask::<_CMP_LT_OQ>(a, b) }
         }

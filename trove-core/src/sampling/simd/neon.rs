@@ -95,6 +95,14 @@ mod imp {
             unsafe { vabsq_f32(a) }
         }
         #[inline(always)]
+        fn sqrt(self, a: float32x4_t) -> float32x4_t {
+            unsafe { vsqrtq_f32(a) }
+        }
+        #[inline(always)]
+        fn div(self, a: float32x4_t, b: float32x4_t) -> float32x4_t {
+            unsafe { vdivq_f32(a, b) }
+        }
+        #[inline(always)]
         fn lt(self, a: float32x4_t, b: float32x4_t) -> uint32x4_t {
             unsafe { vcltq_f32(a, b) }
         }

@@ -137,6 +137,14 @@ impl Simd for Scalar {
         each(a, f32::abs)
     }
     #[inline(always)]
+    fn sqrt(self, a: F) -> F {
+        each(a, f32::sqrt)
+    }
+    #[inline(always)]
+    fn div(self, a: F, b: F) -> F {
+        pair(a, b, |a, b| a / b)
+    }
+    #[inline(always)]
     fn lt(self, a: F, b: F) -> M {
         test(a, b, |a, b| a < b)
     }
