@@ -275,6 +275,7 @@ fn render_command(args: RenderArgs) -> Result<()> {
         memory_budget: args.memory_budget,
         band_memory: args.band_memory,
         progress: bar.clone().map(|b| Arc::new(move |rows: u64| b.set_position(rows)) as render::Progress),
+        store: None,
     };
     // The image as its file holds it (3 bytes a pixel, plus f32 values for a PFM), not the
     // library's 24 bytes of f64: an 8192² PNG then renders within the band memory plus

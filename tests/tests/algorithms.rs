@@ -301,6 +301,44 @@ fn a_budget_of_exactly_one_dataset_renders_on_many_threads_without_deadlock() {
     }
 }
 
+/// Eight small objects of eight datasets side by side, in front of a translucent backdrop
+/// of a ninth that every one of them covers a part of.
+fn side_by_side(size: u32) -> (String, usize) {
+    let mut text = header(size, 0.999) + &datasets(9, 12);
+    for i in 0..8 {
+        let (x, y) = (-1.5 + 0.75 * (i % 4) as f64, if i < 4 { 0.05 } else { -0.75 });
+        text += &object(&format!("o{i}"), i, [x, y, 0.5], 0.6, i % 2 == 0);
+    }
+    text += &object("backdrop", 8, [-1.8, -1.2, -1.5], 2.6, false);
+    (text, 9)
+}
+
+#[test]
+fn a_kept_store_serves_a_second_render_of_many_datasets_on_many_threads() {
+    use trove_core::render::{render, RenderOptions, VolumeStore};
+    let (text, count) = side_by_side(40);
+    let scene = parse(&scratch("alg-kept"), &text);
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(4).build().unwrap();
+    let store = VolumeStore::new(None);
+    let kept = RenderOptions { store: Some(store.clone()), ..Default::default() };
+    let first = pool.install(|| render(&scene, &kept)).unwrap();
+    // Each dataset loaded once and each object's classification worked out once.
+    assert_eq!(first.stats.dataset_loads, count as u64);
+    assert_eq!(first.stats.classification_misses, count as u64);
+    let all: u64 = scene.datasets().iter().map(|d| d.resident_bytes()).sum();
+    assert!(store.resident_bytes() > all, "the datasets and their classifications stay resident");
+    let second = pool.install(|| render(&scene, &kept)).unwrap();
+    assert_eq!((second.stats.dataset_loads, second.stats.bytes_loaded), (0, 0));
+    assert_eq!(second.stats.classification_misses, 0);
+    assert!(second.stats.classification_hits >= count as u64);
+    assert!(second.image.pixels() == first.image.pixels());
+    assert_eq!(second.stats.samples, first.stats.samples);
+    // Without a kept store the same render loads and classifies everything again.
+    let own = pool.install(|| render(&scene, &RenderOptions::default())).unwrap();
+    assert_eq!((own.stats.dataset_loads, own.stats.classification_misses), (count as u64, count as u64));
+    assert!(own.image.pixels() == first.image.pixels());
+}
+
 #[test]
 fn a_budget_smaller_than_a_dataset_is_a_clear_error() {
     let (scene, total) = budget_scene(&scratch("alg-small"));

@@ -37,10 +37,12 @@ const BATCH_TASKS: usize = 1024;
 /// `band_memory` bytes ([`Bands`], the shape the farm's driver shares): one band, and so
 /// each dataset loaded once, for any image whose pieces fit; more for larger images, which
 /// then render in bounded memory instead of holding every piece at once. Each band is
-/// composited into `canvas` before the next one starts.
+/// composited into `canvas` before the next one starts. `unload`: each dataset is unloaded
+/// after its turn in the last band (false when the caller keeps `store` for later renders).
 pub(super) fn render<C: Canvas>(
     scene: &Scene,
     store: &VolumeStore,
+    unload: bool,
     progress: Option<&Progress>,
     (band_rows, band_memory): (u32, u64),
     mut canvas: C,
@@ -62,10 +64,10 @@ pub(super) fn render<C: Canvas>(
 
         // Phase 2: volume rendering, dataset by dataset, in front-to-back waves. Datasets
         // stay resident from band to band (the store evicts under its budget) and are
-        // unloaded after their turn in the last band.
+        // unloaded after their turn in the last band, unless the caller keeps the store.
         let started = Instant::now();
         let before = bands.rows_done();
-        let last = before + rows.len() as u32 == h;
+        let last = unload && before + rows.len() as u32 == h;
         let (_, scheduler) = bands.casting(band).expect("just intersected");
         let band_progress = progress.map(|p| (p, before as u64, rows.len() as u64));
         let mut band_loading = Duration::ZERO;

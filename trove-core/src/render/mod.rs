@@ -87,6 +87,14 @@ pub struct RenderOptions {
     /// (`None`: [`DEFAULT_BAND_MEMORY`]). An image whose pieces need more is rendered in
     /// bands of rows, each dataset then loaded once per band unless the budget keeps it.
     pub band_memory: Option<u64>,
+    /// A store to render through, kept by the caller across renders (the frames of a
+    /// sequence, repeated renders in one process): the datasets it holds stay resident after
+    /// the render, and with them the macrocell classifications binding kept (`render::store`),
+    /// so the next render over the same data loads and classifies nothing again unless an
+    /// opacity map's zero set, a channel or an interpolation changed. Its own budget
+    /// applies, and `memory_budget` is not read. `None`: a store for this render alone,
+    /// emptied as the render goes.
+    pub store: Option<VolumeStore>,
 }
 
 /// Local Algorithm 2's band memory when the options do not say: a 4096² render of the
@@ -122,8 +130,11 @@ pub fn render_raster(scene: &Scene, options: &RenderOptions, linear: bool) -> Re
 /// Renders onto a canvas of type `C` (`linear`: a raster keeps f32 values).
 fn render_onto<C: Canvas>(scene: &Scene, options: &RenderOptions, linear: bool) -> Result<Rendered<C>, RenderError> {
     let started = std::time::Instant::now();
-    let store = VolumeStore::new(options.memory_budget);
+    let kept = options.store.is_some();
+    let store = options.store.clone().unwrap_or_else(|| VolumeStore::new(options.memory_budget));
     store.check_budget(scene)?;
+    // A kept store's counts cover every render through it; this render's are the difference.
+    let before = store.stats();
     // The work the geometry makes, counted before any is stored (limits.rs); Algorithm 2's
     // bands are sized from that exact count, so each fits the band memory.
     let work = limits::Work::count(scene)?;
@@ -137,10 +148,10 @@ fn render_onto<C: Canvas>(scene: &Scene, options: &RenderOptions, linear: bool) 
             let band_rows = work.rows_within(band_memory)?;
             let (w, h) = (scene.image().width, scene.image().height);
             let canvas = C::blank(w, h, linear);
-            grouped::render(scene, &store, options.progress.as_ref(), (band_rows, band_memory), canvas)?
+            grouped::render(scene, &store, !kept, options.progress.as_ref(), (band_rows, band_memory), canvas)?
         }
     };
     let total = started.elapsed().as_secs_f64();
-    rendered.stats.finish(scene, options.algorithm, &store.stats(), store.budget(), total);
+    rendered.stats.finish(scene, options.algorithm, &store.stats().since(&before), store.budget(), total);
     Ok(rendered)
 }

@@ -30,7 +30,8 @@
 //! one). The store keeps those classifications with the resident dataset they were worked
 //! out from, keyed by everything else they depend on (channel, interpolation, the opacity
 //! map's zero set: [`ClassKey`]), so that a later bind over the same load — the next band
-//! of an image, the next job on a farm worker — uses them instead of classifying again.
+//! of an image, the next job on a farm worker, the next frame of a local sequence rendered
+//! through one store (`RenderOptions::store`) — uses them instead of classifying again.
 //! They are part of the dataset's residency: their bytes count as resident bytes from the
 //! moment they are kept until the dataset is evicted or unloaded, which drops them too; a
 //! reload starts with none. They are only kept in room the budget has free (never by
@@ -130,6 +131,19 @@ pub struct StoreStats {
 }
 
 impl StoreStats {
+    /// The work done since `earlier`, a snapshot of the same store: counts and seconds
+    /// less `earlier`'s, the peak as it stands (the most resident over the store's life).
+    pub fn since(&self, earlier: &StoreStats) -> StoreStats {
+        StoreStats {
+            loads: self.loads - earlier.loads,
+            bytes_loaded: self.bytes_loaded - earlier.bytes_loaded,
+            peak_resident_bytes: self.peak_resident_bytes,
+            loading_seconds: self.loading_seconds - earlier.loading_seconds,
+            classification_hits: self.classification_hits - earlier.classification_hits,
+            classification_misses: self.classification_misses - earlier.classification_misses,
+        }
+    }
+
     /// Adds another store's work to this one.
     pub fn merge(&mut self, other: &StoreStats) {
         self.loads += other.loads;
@@ -558,6 +572,20 @@ mod tests {
     }
 
     #[test]
+    fn statistics_since_a_snapshot_are_the_work_done_after_it() {
+        let s = scene(2);
+        let store = VolumeStore::new(None);
+        drop(store.get(&s.datasets()[0]).unwrap());
+        let before = store.stats();
+        drop(store.get(&s.datasets()[0]).unwrap());
+        drop(store.get(&s.datasets()[1]).unwrap());
+        let since = store.stats().since(&before);
+        assert_eq!((since.loads, since.bytes_loaded), (1, BYTES));
+        assert_eq!(since.peak_resident_bytes, 2 * BYTES);
+        assert!(since.loading_seconds <= store.stats().loading_seconds);
+    }
+
+    #[test]
     fn many_threads_never_exceed_the_budget() {
         let s = scene(5);
         let budget = 2 * BYTES + BYTES / 2;
@@ -723,6 +751,35 @@ mod tests {
         assert_eq!(store.resident_bytes(), 0, "its classifications went with it");
         assert_eq!(render_through(&store, &soft), before);
         assert_eq!((store.stats().loads, hits_and_misses(&store).1), (2, misses + 1));
+    }
+
+    #[test]
+    fn local_renders_through_a_kept_store_reuse_its_loads_and_classifications() {
+        use crate::render::{render, RenderOptions};
+        // The frames of a sequence: one store for every render, kept by the caller.
+        let store = VolumeStore::new(None);
+        let options = RenderOptions { store: Some(store.clone()), ..RenderOptions::default() };
+        let soft = sphere_scene(SOFT);
+        let first = render(&soft, &options).unwrap();
+        assert_eq!((first.stats.dataset_loads, first.stats.classification_misses), (1, 1));
+        let dataset = soft.datasets()[0].resident_bytes();
+        assert!(store.resident_bytes() > dataset, "the dataset and its classification stay resident");
+        // The same job again: nothing loaded, nothing classified, the same image.
+        let again = render(&soft, &options).unwrap();
+        assert_eq!((again.stats.dataset_loads, again.stats.classification_misses), (0, 0));
+        assert!(again.stats.classification_hits > 0, "the repeated render found the kept classification");
+        assert_eq!(again.image.pixels(), first.image.pixels());
+        assert_eq!(first.image.pixels(), &fresh(&soft)[..]);
+        // A changed opacity map (zero over more values): classified again, and its image is
+        // a fresh render's of the changed scene.
+        let hard = sphere_scene("[[0, 0], [150, 0], [255, 0.6]]");
+        let changed = render(&hard, &options).unwrap();
+        assert_eq!((changed.stats.dataset_loads, changed.stats.classification_misses), (0, 1));
+        assert_eq!(changed.image.pixels(), &fresh(&hard)[..]);
+        assert_ne!(changed.image.pixels(), first.image.pixels());
+        // A store of the render's own (no `store`) is emptied as it goes.
+        let own = render(&soft, &RenderOptions::default()).unwrap();
+        assert_eq!((own.stats.dataset_loads, own.stats.classification_misses), (1, 1));
     }
 
     #[test]
