@@ -1,6 +1,8 @@
-//! The `Worker.Cast` stream: one per job and dataset. The scene arrives once, with the
-//! headers of every file it names, and is validated here as it was on the coordinator (the
-//! worker opens the files it holds itself, through its sandbox); then batches of piece tasks
+//! The `Worker.Cast` stream: one per job and dataset. It opens with the job's scene and the
+//! headers of every file it names, validated here as on the coordinator (the worker opens
+//! the files it holds itself, through its sandbox) and parsed once for all the job's
+//! streams (`scenes.rs`), or with the scene's digest alone where this worker was sent it
+//! on another stream of the job; then batches of piece tasks
 //! arrive and each is answered with its results, cast by `trove-core`'s `BatchCaster` on
 //! rayon threads.
 //!
