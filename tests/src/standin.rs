@@ -279,6 +279,8 @@ impl Draws {
 struct StandInService {
     answers: Arc<Answers>,
     order: Order,
+    /// Never accepts a stream ([`serve_stalling`]).
+    stall: bool,
 }
 
 #[tonic::async_trait]
@@ -286,6 +288,9 @@ impl Worker for StandInService {
     type CastStream = ReceiverStream<Result<pb::CastResponse, Status>>;
 
     async fn cast(&self, request: Request<Streaming<pb::CastRequest>>) -> Result<Response<Self::CastStream>, Status> {
+        if self.stall {
+            std::future::pending::<()>().await;
+        }
         let mut inbound = request.into_inner();
         let open = match inbound.message().await? {
             Some(pb::CastRequest { kind: Some(pb::cast_request::Kind::Open(open)) }) => open,
@@ -365,6 +370,31 @@ pub async fn serve_in_order(
     answers: Arc<Answers>,
     order: Order,
 ) -> Result<(), tonic::transport::Error> {
+    serve_as(listener, shutdown, coordinator, threads, StandInService { answers, order, stall: false }).await
+}
+
+/// As [`serve`], but a stand-in that registers and heartbeats and never accepts a `Cast`
+/// stream: each open waits forever, as on a worker alive to the coordinator and stuck (its
+/// disk hung, its process starved). A coordinator must go on with other holders.
+pub async fn serve_stalling(
+    listener: TcpListener,
+    shutdown: impl Future<Output = ()>,
+    coordinator: &str,
+    threads: u32,
+    answers: Arc<Answers>,
+) -> Result<(), tonic::transport::Error> {
+    let service = StandInService { answers, order: Order::AsReceived, stall: true };
+    serve_as(listener, shutdown, coordinator, threads, service).await
+}
+
+async fn serve_as(
+    listener: TcpListener,
+    shutdown: impl Future<Output = ()>,
+    coordinator: &str,
+    threads: u32,
+    service: StandInService,
+) -> Result<(), tonic::transport::Error> {
+    let answers = service.answers.clone();
     let address = listener.local_addr().map(|a| a.to_string()).unwrap_or_default();
     // Plaintext and without a token, as the coordinators it serves are configured.
     let deadline = Duration::from_secs(5);
@@ -375,7 +405,7 @@ pub async fn serve_in_order(
     let files = answers.files.registration();
     let serve = tonic::transport::Server::builder()
         .add_service(
-            WorkerServer::new(StandInService { answers, order })
+            WorkerServer::new(service)
                 .max_decoding_message_size(trove_proto::MAX_MESSAGE_BYTES)
                 .max_encoding_message_size(trove_proto::MAX_MESSAGE_BYTES),
         )

@@ -213,3 +213,48 @@ fn a_worker_that_no_longer_holds_the_scene_is_sent_it_again_and_the_image_is_unc
         let _ = stop.send(());
     }
 }
+
+#[test]
+fn a_holder_that_never_accepts_a_stream_holds_no_dataset_up_while_the_scene_is_on_its_way_to_it() {
+    let dir = scratch("standin-stalled");
+    let pool = Arc::new(rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap());
+    let answers = Arc::new(Answers::new(&dir, pool).unwrap());
+    // Streams that never open are given up only after an hour: the job finishes in time only
+    // if the stalled worker's scene on its way does not keep the other holder from its
+    // datasets.
+    let driver = DriverConfig { batch_deadline: Duration::from_secs(3600), ..DriverConfig::default() };
+    let config = FarmConfig { heartbeat: TEST_HEARTBEAT, driver, ..FarmConfig::default() };
+    let farm = TestFarm::start_with(&[], config, None);
+    // The stalled stand-in registers first, so that it is first among equals for every
+    // dataset: its stream for the first dataset (carrying the scene) never opens, and the
+    // second dataset must go to the other stand-in, not wait for the scene to arrive there.
+    let (stop_stalled, stopped) = oneshot::channel::<()>();
+    let (url, held) = (farm.url.clone(), answers.clone());
+    farm.block_on(async move {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        tokio::spawn(async move {
+            let shutdown = async {
+                let _ = stopped.await;
+            };
+            standin::serve_stalling(listener, shutdown, &url, 2, held).await.unwrap();
+        });
+    });
+    farm.wait_for_workers(1);
+    let mut stops = stand_ins(&farm, &answers, 1, 2, Order::AsReceived);
+    stops.push(stop_stalled);
+    farm.wait_for_workers(2);
+    let (name, text) = ("stalled.toml", scene(30));
+    let got = farm.block_on(async {
+        let mut client = farm.client().await;
+        let options = pb::JobOptions { band_rows: 6, batch_tasks: 40, ..Default::default() };
+        let job = client.render(text.clone(), name.to_string(), options, |_| {});
+        tokio::time::timeout(Duration::from_secs(60), job)
+            .await
+            .expect("the job stopped: a dataset waited for a worker that never accepts its stream")
+            .expect("the job")
+    });
+    assert!(got.png == local_png(&text, name), "the farm's PNG differs from local mode's");
+    for stop in stops {
+        let _ = stop.send(());
+    }
+}

@@ -347,15 +347,19 @@ impl Driver {
                 return Err(JobError::NoHolder { dataset: self.scene().datasets()[d].name().to_string() });
             }
             loop {
-                let opening = &self.opening;
-                let accepted = |w: &WorkerHandle| !opening.iter().any(|((id, od), _)| *od == d && *id == w.id);
-                let Some(worker) = self.dispatch.pick(d, accepted).cloned() else { break };
+                // A worker is usable for `d` unless its stream for `d` is opening, or it has
+                // none and the scene is on its way to it on another stream: that one opens
+                // once the scene is accepted, naming it by digest alone. Other holders take
+                // `d` meanwhile, so a worker that is slow to accept holds nothing up.
+                let usable = |w: &WorkerHandle| {
+                    let opening = self.opening.iter().any(|((id, od), _)| *od == d && *id == w.id);
+                    let waits_for_scene = !self.scene_on.contains(&w.id)
+                        && self.scene_on_its_way(&w.id)
+                        && !self.streams.contains_key(&(w.id.clone(), d));
+                    !opening && !waits_for_scene
+                };
+                let Some(worker) = self.dispatch.pick(d, usable).cloned() else { break };
                 if !self.streams.contains_key(&(worker.id.clone(), d)) {
-                    if !self.scene_on.contains(&worker.id) && self.scene_on_its_way(&worker.id) {
-                        // The scene is on its way to this worker on another stream: this one
-                        // opens once that one is accepted, naming the scene by digest alone.
-                        break;
-                    }
                     // Its batches wait until the worker accepts the stream.
                     self.open(&worker, d);
                     continue;
