@@ -250,9 +250,10 @@ fn finish(farm: &Farm, rx: &mut mpsc::UnboundedReceiver<Option<pb::JobStatus>>) 
     last.expect("the job reported a status")
 }
 
-/// Cubic interpolation at a fine step: about a second of casting spread over three workers
-/// in batches of four tasks, so a kill lands while batches are out.
-const SLOW: &str = "interpolation = \"cubic\"\nsampling_distance = 0.0002";
+/// Cubic interpolation at a fine step: about 0.3 s a job over three workers in batches of
+/// four tasks (measured with the workers' sockets sending at once, `TCP_NODELAY`), so a
+/// kill lands while batches are out.
+const SLOW: &str = "interpolation = \"cubic\"\nsampling_distance = 0.00007";
 
 #[test]
 fn a_worker_killed_mid_job_twenty_times_costs_no_job_and_changes_no_pixel() {

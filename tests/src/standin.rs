@@ -30,7 +30,7 @@ use std::time::Duration;
 use rayon::prelude::*;
 use tokio::net::TcpListener;
 use tokio::sync::mpsc;
-use tokio_stream::wrappers::{ReceiverStream, TcpListenerStream};
+use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 use trove_core::render::wire::{decode_tasks, encode_results};
 use trove_core::render::CastError;
@@ -409,7 +409,7 @@ async fn serve_as(
                 .max_decoding_message_size(trove_proto::MAX_MESSAGE_BYTES)
                 .max_encoding_message_size(trove_proto::MAX_MESSAGE_BYTES),
         )
-        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown);
+        .serve_with_incoming_shutdown(trove_proto::connect::incoming(listener), shutdown);
     tokio::select! {
         served = serve => served,
         () = stay_registered(MembershipClient::new(channel), address, files, threads) => Ok(()),

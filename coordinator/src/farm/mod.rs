@@ -34,7 +34,6 @@ use std::time::Duration;
 use thiserror::Error;
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
-use tokio_stream::wrappers::TcpListenerStream;
 use tonic::service::interceptor::InterceptedService;
 use trove_proto::auth::{RequireToken, Token};
 use trove_proto::connect::Connector;
@@ -213,7 +212,7 @@ pub async fn run(
         .add_optional_service(reflection_v1alpha)
         .add_service(coordinator)
         .add_service(membership)
-        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
+        .serve_with_incoming_shutdown(trove_proto::connect::incoming(listener), async {
             let _ = stopped.await;
         });
     tokio::pin!(serve);
