@@ -159,6 +159,20 @@ mod tests {
     use super::*;
 
     #[test]
+    fn accepted_connections_send_at_once() {
+        use tokio_stream::StreamExt;
+        let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+        rt.block_on(async {
+            let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+            let address = listener.local_addr().unwrap();
+            let mut accepted = incoming(listener);
+            let _client = tokio::net::TcpStream::connect(address).await.unwrap();
+            let server_side = accepted.next().await.unwrap().unwrap();
+            assert!(server_side.nodelay().unwrap(), "an accepted connection must not wait for Nagle's algorithm");
+        });
+    }
+
+    #[test]
     fn the_scheme_and_the_ca_must_agree() {
         let plain = Connector::default();
         assert!(plain.endpoint("http://127.0.0.1:1").is_ok());
