@@ -59,9 +59,7 @@ pub(super) fn render<C: Canvas>(
         let inter = intersect(scene, rows.clone());
         stats.segments += inter.segments;
         stats.pieces += inter.pieces() as u64;
-        let mut scheduler = Scheduler::new(scene, inter, BATCH_TASKS)?;
-        scheduler.share_wave_tails(rayon::current_num_threads());
-        bands.intersected(band, Box::new(scheduler));
+        bands.intersected(band, Box::new(Scheduler::new(scene, inter, BATCH_TASKS)?));
         stats.seconds.intersection += started.elapsed().as_secs_f64();
 
         // Phase 2: volume rendering, dataset by dataset, in front-to-back waves. Datasets

@@ -152,8 +152,6 @@ pub struct Scheduler {
     gain_of_object: Vec<f32>,
     termination: f64,
     batch_tasks: usize,
-    /// How many takers share a wave's last tasks ([`Scheduler::share_wave_tails`]); 1: none.
-    takers: usize,
     status: Vec<Status>,
     /// Each task's result as [r, g, b, α] (a `PieceRgba`'s fields): all-zero f32 arrays,
     /// which the allocator hands out as fresh zeroed pages instead of writing them here.
@@ -171,10 +169,6 @@ pub struct Scheduler {
     /// same `over` operations in the same order, so the same bound to the bit.
     known: Vec<KnownFront>,
 }
-
-/// The smallest batch a wave's shared end is cut into ([`Scheduler::share_wave_tails`]):
-/// below it, handing a batch out costs more than the wait it saves.
-pub const MIN_TAIL_TASKS: usize = 64;
 
 /// A ray's leading pieces that are wholly cast: how many, and their composite's opacity.
 /// Opacity is all that culling and in-piece fronts read, and compositing computes it
@@ -215,22 +209,12 @@ impl Scheduler {
             gain_of_object,
             termination: scene.render().termination,
             batch_tasks: batch_tasks.max(1),
-            takers: 1,
             order,
             queue,
             lanes,
             in_flight: HashMap::new(),
             next_id: 0,
         })
-    }
-
-    /// Shares the end of each wave among `takers` that take batches at once (a local
-    /// driver's threads): where fewer than `takers` full batches of a wave are left, a batch
-    /// takes that rest's share of one taker (but at least [`MIN_TAIL_TASKS`]), so that the
-    /// takers finish the wave together instead of one casting a whole batch while the
-    /// others wait for the next wave. Which tasks a batch holds changes nothing they yield.
-    pub fn share_wave_tails(&mut self, takers: usize) {
-        self.takers = takers.max(1);
     }
 
     /// The region's rays, pieces and tasks.
@@ -308,13 +292,7 @@ impl Scheduler {
             let candidates: &[u32] = match &retry {
                 Some(list) => list,
                 None => {
-                    let left = end - lane.cursor;
-                    let size = if left >= self.takers * self.batch_tasks {
-                        self.batch_tasks
-                    } else {
-                        left.div_ceil(self.takers).max(MIN_TAIL_TASKS).min(self.batch_tasks)
-                    };
-                    let chunk = lane.cursor..(lane.cursor + size).min(end);
+                    let chunk = lane.cursor..(lane.cursor + self.batch_tasks).min(end);
                     lane.cursor = chunk.end;
                     &queue[chunk]
                 }

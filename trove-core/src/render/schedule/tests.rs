@@ -222,42 +222,6 @@ fn batches_hold_at_most_the_batch_size() {
 }
 
 #[test]
-fn shared_wave_tails_split_the_last_batches_among_the_takers_and_hand_out_the_same_tasks() {
-    let batch = 200;
-    let mut split_any = false;
-    for seed in 0..6 {
-        let (scene, inter) = random_scene(seed, 64, 48, 0.999);
-        // Every dataset's first wave (nothing is recorded, so no later wave is ready).
-        let first_waves = |takers: usize| {
-            let mut s = Scheduler::new(&scene, inter.clone(), batch).unwrap();
-            s.share_wave_tails(takers);
-            let order = s.datasets().to_vec();
-            order.iter().map(|&d| drain(&mut s, d)).collect::<Vec<_>>()
-        };
-        let alone = first_waves(1);
-        for takers in [2, 3] {
-            let shared = first_waves(takers);
-            for (one, many) in alone.iter().zip(&shared) {
-                let tasks = |bs: &[Batch]| bs.iter().flat_map(|b| b.tasks.clone()).collect::<Vec<_>>();
-                assert_eq!(tasks(one), tasks(many), "seed {seed}: the same tasks in the same order");
-                let mut left = tasks(one).len();
-                for b in many {
-                    let expected = if left >= takers * batch {
-                        batch
-                    } else {
-                        left.div_ceil(takers).max(MIN_TAIL_TASKS).min(batch)
-                    };
-                    assert_eq!(b.tasks.len(), expected.min(left), "seed {seed}, {takers} takers");
-                    split_any |= b.tasks.len() < batch && b.tasks.len() < left;
-                    left -= b.tasks.len();
-                }
-            }
-        }
-    }
-    assert!(split_any, "some wave's end was shared");
-}
-
-#[test]
 fn greedy_order_is_topological_on_an_acyclic_graph() {
     // A → B on one ray, B → C on a hundred: a net-score order would put B first.
     let votes = HashMap::from([((0, 1), 1), ((1, 2), 100)]);
