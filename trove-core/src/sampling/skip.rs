@@ -421,16 +421,18 @@ fn chessboard_distance(empty: &[u64], dims: [u32; 3]) -> Vec<u8> {
 /// [`chessboard_distance`]'s forward pass, a slice and a row at a time: the 9 neighbours in
 /// the slice below are the previous slice's 3×3 minimum, the 3 in the row before are that
 /// row's 3-minimum, both final by then, and the one before along the row a running minimum.
-/// (The same minima as visiting the 13 neighbours cell by cell, in loops the compiler
-/// vectorises.)
+/// (The same minima as visiting the 13 neighbours cell by cell, in loops over whole rows and
+/// slices, without a test per cell, that the compiler vectorises.)
 fn forward_pass(d: &mut [u8], [nx, ny, nz]: [u32; 3]) {
     let [nx, ny, nz] = [nx, ny, nz].map(|n| n as usize);
     let plane = nx * ny;
     // Per cell of the slice just finished: the minimum of its row's 3 cells around it
     // (`across`), then one more than the minimum of 3 of those rows (`below`, its 3×3
-    // neighbourhood, for the next slice).
+    // neighbourhood, for the next slice); `before`, one more than the 3-minimum of the row
+    // before in this slice.
     let mut across = vec![u8::MAX; plane];
     let mut below = vec![u8::MAX; plane];
+    let mut before = vec![u8::MAX; nx];
     for z in 0..nz {
         let slice = &mut d[z * plane..(z + 1) * plane];
         if z > 0 {
@@ -439,12 +441,12 @@ fn forward_pass(d: &mut [u8], [nx, ny, nz]: [u32; 3]) {
             }
         }
         for y in 0..ny {
-            let (before, rest) = slice.split_at_mut(y * nx);
+            let (done, rest) = slice.split_at_mut(y * nx);
             let row = &mut rest[..nx];
             if y > 0 {
-                let previous = &before[(y - 1) * nx..];
-                for (x, c) in row.iter_mut().enumerate() {
-                    *c = (*c).min(three_min(previous, x, nx).saturating_add(1));
+                three_min_row(&done[(y - 1) * nx..], &mut before);
+                for (c, &b) in row.iter_mut().zip(&before) {
+                    *c = (*c).min(b.saturating_add(1));
                 }
             }
             for x in 1..nx {
@@ -452,38 +454,43 @@ fn forward_pass(d: &mut [u8], [nx, ny, nz]: [u32; 3]) {
             }
         }
         // The 3×3 minimum of this (final) slice, plus one, for the next.
-        for y in 0..ny {
-            let row = &slice[y * nx..(y + 1) * nx];
-            for x in 0..nx {
-                across[y * nx + x] = three_min(row, x, nx);
-            }
+        for (row, out) in slice.chunks_exact(nx).zip(across.chunks_exact_mut(nx)) {
+            three_min_row(row, out);
         }
         for y in 0..ny {
-            for x in 0..nx {
-                let mut m = across[y * nx + x];
-                if y > 0 {
-                    m = m.min(across[(y - 1) * nx + x]);
+            let out = &mut below[y * nx..(y + 1) * nx];
+            out.copy_from_slice(&across[y * nx..(y + 1) * nx]);
+            if y > 0 {
+                for (m, &a) in out.iter_mut().zip(&across[(y - 1) * nx..y * nx]) {
+                    *m = (*m).min(a);
                 }
-                if y + 1 < ny {
-                    m = m.min(across[(y + 1) * nx + x]);
+            }
+            if y + 1 < ny {
+                for (m, &a) in out.iter_mut().zip(&across[(y + 1) * nx..(y + 2) * nx]) {
+                    *m = (*m).min(a);
                 }
-                below[y * nx + x] = m.saturating_add(1);
+            }
+            for m in out.iter_mut() {
+                *m = m.saturating_add(1);
             }
         }
     }
 }
 
-/// The minimum of `row[x − 1..=x + 1]` within the row's `nx` cells.
+/// `out[x]`: the minimum of `row[x − 1..=x + 1]` within the row's `out.len()` cells.
 #[inline(always)]
-fn three_min(row: &[u8], x: usize, nx: usize) -> u8 {
-    let mut m = row[x];
-    if x > 0 {
-        m = m.min(row[x - 1]);
+fn three_min_row(row: &[u8], out: &mut [u8]) {
+    let nx = out.len();
+    let row = &row[..nx];
+    out.copy_from_slice(row);
+    if nx > 1 {
+        for (m, &r) in out[..nx - 1].iter_mut().zip(&row[1..]) {
+            *m = (*m).min(r);
+        }
+        for (m, &r) in out[1..].iter_mut().zip(&row[..nx - 1]) {
+            *m = (*m).min(r);
+        }
     }
-    if x + 1 < nx {
-        m = m.min(row[x + 1]);
-    }
-    m
 }
 
 /// The smallest sample index ≥ x (0 for x ≤ 0), without a libm call.
