@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::oneshot;
 use trove_coordinator::client::{ClientError, FarmClient, JobFiles};
-use trove_coordinator::farm::{self, FarmConfig, FarmSecurity};
+use trove_coordinator::farm::{self, DriverConfig, FarmConfig, FarmSecurity};
 use trove_proto::auth::Token;
 use trove_proto::connect::Connector;
 use trove_proto::tls::{CaCert, ServerTls};
@@ -339,7 +339,11 @@ impl SharedFarm {
             .enable_all()
             .build()
             .expect("a tokio runtime");
-        let config = FarmConfig { heartbeat: TEST_HEARTBEAT, ..FarmConfig::default() };
+        // A worker that refused a job's batch as busy counts as full for that job until it
+        // answers one of the job's batches or the driver's next tick: a tick shorter than the
+        // tests' jobs (a few hundred milliseconds) lets a refused worker back in within them.
+        let driver = DriverConfig { tick: Duration::from_millis(20), ..DriverConfig::default() };
+        let config = FarmConfig { heartbeat: TEST_HEARTBEAT, driver, ..FarmConfig::default() };
         let mut farm = SharedFarm {
             urls: Vec::new(),
             worker_metrics: Vec::new(),

@@ -261,6 +261,10 @@ pub enum Order {
         /// Batches held before answering.
         hold: usize,
     },
+    /// No stream is ever accepted: each open waits forever, as on a worker alive to the
+    /// coordinator and stuck (its disk hung, its process starved). A coordinator must go on
+    /// with other holders.
+    Never,
 }
 
 /// A small deterministic generator for [`Order::Shuffled`] (xorshift64*).
@@ -279,8 +283,6 @@ impl Draws {
 struct StandInService {
     answers: Arc<Answers>,
     order: Order,
-    /// Never accepts a stream ([`serve_stalling`]).
-    stall: bool,
 }
 
 #[tonic::async_trait]
@@ -288,7 +290,7 @@ impl Worker for StandInService {
     type CastStream = ReceiverStream<Result<pb::CastResponse, Status>>;
 
     async fn cast(&self, request: Request<Streaming<pb::CastRequest>>) -> Result<Response<Self::CastStream>, Status> {
-        if self.stall {
+        if matches!(self.order, Order::Never) {
             std::future::pending::<()>().await;
         }
         let mut inbound = request.into_inner();
@@ -304,7 +306,7 @@ impl Worker for StandInService {
         let (answers, order) = (self.answers.clone(), self.order);
         tokio::spawn(async move {
             let (hold, mut draws) = match order {
-                Order::AsReceived => (1, Draws(1)),
+                Order::AsReceived | Order::Never => (1, Draws(1)),
                 Order::Shuffled { seed, hold } => (hold.max(1), Draws((seed ^ (d as u64 + 1) << 32) | 1)),
             };
             let mut held = Vec::new();
@@ -370,31 +372,6 @@ pub async fn serve_in_order(
     answers: Arc<Answers>,
     order: Order,
 ) -> Result<(), tonic::transport::Error> {
-    serve_as(listener, shutdown, coordinator, threads, StandInService { answers, order, stall: false }).await
-}
-
-/// As [`serve`], but a stand-in that registers and heartbeats and never accepts a `Cast`
-/// stream: each open waits forever, as on a worker alive to the coordinator and stuck (its
-/// disk hung, its process starved). A coordinator must go on with other holders.
-pub async fn serve_stalling(
-    listener: TcpListener,
-    shutdown: impl Future<Output = ()>,
-    coordinator: &str,
-    threads: u32,
-    answers: Arc<Answers>,
-) -> Result<(), tonic::transport::Error> {
-    let service = StandInService { answers, order: Order::AsReceived, stall: true };
-    serve_as(listener, shutdown, coordinator, threads, service).await
-}
-
-async fn serve_as(
-    listener: TcpListener,
-    shutdown: impl Future<Output = ()>,
-    coordinator: &str,
-    threads: u32,
-    service: StandInService,
-) -> Result<(), tonic::transport::Error> {
-    let answers = service.answers.clone();
     let address = listener.local_addr().map(|a| a.to_string()).unwrap_or_default();
     // Plaintext and without a token, as the coordinators it serves are configured.
     let deadline = Duration::from_secs(5);
@@ -405,7 +382,7 @@ async fn serve_as(
     let files = answers.files.registration();
     let serve = tonic::transport::Server::builder()
         .add_service(
-            WorkerServer::new(service)
+            WorkerServer::new(StandInService { answers, order })
                 .max_decoding_message_size(trove_proto::MAX_MESSAGE_BYTES)
                 .max_encoding_message_size(trove_proto::MAX_MESSAGE_BYTES),
         )

@@ -228,20 +228,8 @@ fn a_holder_that_never_accepts_a_stream_holds_no_dataset_up_while_the_scene_is_o
     // The stalled stand-in registers first, so that it is first among equals for every
     // dataset: its stream for the first dataset (carrying the scene) never opens, and the
     // second dataset must go to the other stand-in, not wait for the scene to arrive there.
-    let (stop_stalled, stopped) = oneshot::channel::<()>();
-    let (url, held) = (farm.url.clone(), answers.clone());
-    farm.block_on(async move {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        tokio::spawn(async move {
-            let shutdown = async {
-                let _ = stopped.await;
-            };
-            standin::serve_stalling(listener, shutdown, &url, 2, held).await.unwrap();
-        });
-    });
-    farm.wait_for_workers(1);
-    let mut stops = stand_ins(&farm, &answers, 1, 2, Order::AsReceived);
-    stops.push(stop_stalled);
+    let mut stops = stand_ins(&farm, &answers, 1, 2, Order::Never);
+    stops.extend(stand_ins(&farm, &answers, 1, 2, Order::AsReceived));
     farm.wait_for_workers(2);
     let (name, text) = ("stalled.toml", scene(30));
     let got = farm.block_on(async {

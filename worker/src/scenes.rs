@@ -117,13 +117,9 @@ impl JobScenes {
     /// The place kept under `digest`, made (empty) if there is none, evicting the least
     /// recently used beyond [`KEPT_SCENES`].
     fn cell(&self, digest: Digest) -> Cell {
-        if let Some(cell) = self.kept(&digest) {
-            return cell;
-        }
         let mut table = self.table.lock().unwrap_or_else(|e| e.into_inner());
         table.clock += 1;
         let used = table.clock;
-        // Another stream may have made it since `kept` looked.
         if let Some(kept) = table.by_digest.get_mut(&digest) {
             kept.used = used;
             return kept.scene.clone();

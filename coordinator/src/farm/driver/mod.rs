@@ -210,6 +210,7 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     let admission = Admission { max_bands, memory_bound: config.memory_bound };
     let metrics = config.metrics.clone();
     let datasets = plan.scene.datasets().len();
+    let scene_digest = convert::scene_digest(&plan.scene_toml, &plan.scene_name, &plan.headers).to_vec();
     let mut driver = Driver {
         bands: Bands::<BandState>::new(h, band_rows, admission),
         band_tx: HashMap::new(),
@@ -224,7 +225,7 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         streams: Default::default(),
         opening: Vec::new(),
         next_serial: 0,
-        scene_digest: Vec::new(),
+        scene_digest,
         scene_on: HashSet::new(),
         stock: (0..datasets).map(|_| Stock::default()).collect(),
         active: BTreeSet::new(),

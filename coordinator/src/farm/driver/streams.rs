@@ -7,7 +7,7 @@ use std::time::Instant;
 use prost::Message;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
-use trove_proto::convert::{scene_digest, JOB_HEADER};
+use trove_proto::convert::JOB_HEADER;
 use trove_proto::v1 as pb;
 use trove_proto::v1::worker_client::WorkerClient;
 
@@ -24,9 +24,6 @@ impl Driver {
     /// where the worker accepted it on another stream of the job), then batches.
     pub(super) fn open(&mut self, worker: &WorkerHandle, d: usize) {
         let (tx, rx) = mpsc::channel(256);
-        if self.scene_digest.is_empty() {
-            self.scene_digest = scene_digest(&self.plan.scene_toml, &self.plan.scene_name, &self.plan.headers).to_vec();
-        }
         let carries_scene = !self.scene_on.contains(&worker.id);
         let (scene_toml, scene_name, headers) = if carries_scene {
             (self.plan.scene_toml.clone(), self.plan.scene_name.clone(), self.plan.headers.clone())
