@@ -128,6 +128,10 @@ pub const SAMPLER_PATHS: [CastOptions; 6] = [
 /// with `options`; returns the image and the samples cast. The sampler's oracle: every
 /// [`SAMPLER_PATHS`] entry must give the same image.
 pub fn render_with_cast_options(scene: &Scene, options: CastOptions) -> (Image, u64) {
+    // Shadows' other-object shares first (SPEC §6), as every renderer computes them.
+    let (scene, _) = trove_core::render::shadow::attach(scene, &trove_core::render::VolumeStore::new(None))
+        .unwrap_or_else(|e| panic!("shadow pass: {e}"));
+    let scene = &scene;
     let (w, h) = (scene.image().width, scene.image().height);
     let volumes: Vec<_> = scene.datasets().iter().map(|d| d.load().unwrap_or_else(|e| panic!("load: {e}"))).collect();
     let casters: Vec<ObjectCaster<'_>> = scene

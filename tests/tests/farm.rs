@@ -56,6 +56,13 @@ fn every_example_scene_renders_through_the_farm_as_in_local_mode() {
     for (path, _) in example_scenes(48) {
         let text = shrunk_scene_text(&path, 48);
         let name = path.file_name().unwrap().to_string_lossy().to_string();
+        if text.contains("shadows = true") {
+            // Workers do not run the shadow pass yet: refused by key, never rendered
+            // without shadows.
+            let e = farm.render(&text, &name, false).err().unwrap_or_else(|| panic!("{name}: rendered"));
+            assert!(e.to_string().contains("lights[0].shadows"), "{name}: {e}");
+            continue;
+        }
         let expected = local_png(&text, &name, &data);
         let files = farm.render(&text, &name, false).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert!(files.png == expected, "{name}: the farm's PNG differs from local mode's");

@@ -80,6 +80,9 @@ fn example_scenes_use_specialised_loops() {
     // general loop keeps (bit voxels, mixed raw and voxel maps).
     let (mut specialised, mut objects) = (0, 0);
     for (path, scene) in example_scenes(8) {
+        // A scene with shadows binds once the other objects' shares are computed.
+        let (scene, _) = trove_core::render::shadow::attach(&scene, &trove_core::render::VolumeStore::new(None))
+            .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
         let volumes: Vec<_> = scene.datasets().iter().map(|d| d.load().expect("load")).collect();
         for o in scene.objects() {
             let caster = ObjectCaster::new(o, &volumes[o.dataset()], scene.render().opacity_correction)

@@ -63,6 +63,21 @@ fn plan(farm: &Farm, request: pb::SubmitJobRequest) -> Result<JobPlan, Status> {
     let name = if request.scene_name.is_empty() { "scene.toml".to_string() } else { request.scene_name };
     let scene = Scene::parse_with(&request.scene_toml, std::path::Path::new(&name), &catalog)
         .map_err(|e| convert::failure_status(convert::scene_failure(&e)))?;
+    // Shadows need a pass over every dataset before the image's own (`render::shadow`),
+    // which workers do not run yet: refused by key, never rendered without them.
+    if let Some(i) = scene.lights().iter().position(|l| l.shadows()).filter(|_| scene.casts_shadows()) {
+        let mut f = convert::failure(
+            pb::Reason::SceneInvalid,
+            false,
+            format!(
+                "{name}: lights[{i}].shadows: the farm does not render shadows yet; render this scene in local \
+                 mode (`trove render` without `--coordinator`), or set `shadows = false`"
+            ),
+        );
+        f.file = name.clone();
+        f.key = format!("lights[{i}].shadows");
+        return Err(convert::failure_status(f));
+    }
     // The work and memory the job would take, checked before it is queued: its tasks
     // counted without storing one, each band as the driver will size it, and its PFM.
     let options = request.options.unwrap_or_default();

@@ -148,6 +148,20 @@ impl Placement {
         self.vc_scale * q + self.vc_offset
     }
 
+    /// Box coordinates of VC point `vc` ([`Placement::vc_of_box`]'s inverse).
+    #[inline]
+    pub fn box_of_vc(&self, vc: DVec3) -> DVec3 {
+        (vc - self.vc_offset) / self.vc_scale
+    }
+
+    /// The world point at box coordinates `q` (the unit cube maps onto the hexahedron).
+    pub fn world_of_box(&self, q: DVec3) -> DVec3 {
+        match &self.shape {
+            Shape::Affine { world_from_box, .. } => world_from_box.transform_point3(q),
+            Shape::Distorted { hex, .. } => hex.world(q),
+        }
+    }
+
     /// For a distorted box, whether f64 can invert its world map to the SPEC §4.2 tolerance
     /// (10⁻⁶ voxel) everywhere in it; the error says where it cannot. Affine boxes always can.
     ///

@@ -30,6 +30,9 @@ pub mod limits;
 mod per_ray;
 mod raster;
 pub mod schedule;
+pub mod shadow;
+#[cfg(test)]
+mod shadow_tests;
 mod stats;
 mod store;
 pub mod wire;
@@ -138,6 +141,9 @@ fn render_onto<C: Canvas>(scene: &Scene, options: &RenderOptions, linear: bool) 
     // The work the geometry makes, counted before any is stored (limits.rs); Algorithm 2's
     // bands are sized from that exact count, so each fits the band memory.
     let work = limits::Work::count(scene)?;
+    // Shadows first (SPEC §6): one visit of each dataset for the other objects' shares.
+    let (scene, shadow_seconds) = shadow::attach(scene, &store)?;
+    let scene = &scene;
     let mut rendered = match options.algorithm {
         Algorithm::PerRay => {
             let Rendered { image, stats } = per_ray::render(scene, &store, options.progress.as_ref())?;
@@ -152,6 +158,7 @@ fn render_onto<C: Canvas>(scene: &Scene, options: &RenderOptions, linear: bool) 
         }
     };
     let total = started.elapsed().as_secs_f64();
+    rendered.stats.seconds.shadows = shadow_seconds;
     rendered.stats.finish(scene, options.algorithm, &store.stats().since(&before), store.budget(), total);
     Ok(rendered)
 }

@@ -20,6 +20,9 @@ pub struct Seconds {
     pub composition: f64,
     /// Bringing voxel data into memory, including waiting for room under a budget.
     pub loading: f64,
+    /// The shadow pass (SPEC §6, `render::shadow`): the other objects' shares of each lit
+    /// object's shadows, loading included; 0 without shadows.
+    pub shadows: f64,
     /// Everything else: setup, image assembly.
     pub other: f64,
     /// The whole render.
@@ -80,12 +83,21 @@ pub struct RenderStats {
 pub struct ObjectEffects {
     /// The object's name.
     pub object: String,
-    /// The effects, by name: `shading` where the object was lit. Empty for an unlit one.
+    /// The effects, by name: `shading` where the object was lit, and `shadows` where a
+    /// light that lights it casts them. Empty for an unlit one.
     pub ran: Vec<&'static str>,
     /// Samples shaded (a gradient and Blinn–Phong each): samples of the object that
     /// contributed opacity. `null` where the render could not count them: a farm's workers
     /// do not report them yet.
     pub shading_evaluations: Option<u64>,
+    /// Shadow lookups: the shaded samples times the lights that cast shadows onto the
+    /// object, each a lattice lookup and a shadow ray through the object itself (SPEC §6's
+    /// S) where the light is in front of the surface (N·L > 0; behind it S is not needed).
+    /// `null` where not counted.
+    pub shadow_lookups: Option<u64>,
+    /// Lights casting shadows onto it (what `shadow_lookups` multiplies).
+    #[serde(skip)]
+    shadow_lights: u64,
 }
 
 impl ObjectEffects {
@@ -97,17 +109,29 @@ impl ObjectEffects {
             .iter()
             .map(|o| ObjectEffects {
                 object: o.name().to_string(),
-                ran: if sampling::shades(o) { vec!["shading"] } else { Vec::new() },
+                ran: match (sampling::shades(o), o.needs_shadow_maps()) {
+                    (true, true) => vec!["shading", "shadows"],
+                    (true, false) => vec!["shading"],
+                    _ => Vec::new(),
+                },
                 shading_evaluations,
+                shadow_lookups: shading_evaluations.map(|_| 0),
+                shadow_lights: match o.lighting() {
+                    Some((_, lights)) if sampling::shades(o) => lights.iter().filter(|l| l.shadows()).count() as u64,
+                    _ => 0,
+                },
             })
             .collect()
     }
 
-    /// Adds `shaded[i]` to object i's count.
+    /// Adds `shaded[i]` samples shaded to object i's counts.
     pub fn add(effects: &mut [ObjectEffects], shaded: &[u64]) {
         for (e, &n) in effects.iter_mut().zip(shaded) {
             if let Some(count) = &mut e.shading_evaluations {
                 *count += n;
+            }
+            if let Some(count) = &mut e.shadow_lookups {
+                *count += n * e.shadow_lights;
             }
         }
     }
@@ -136,7 +160,7 @@ impl RenderStats {
         }
         let s = &mut self.seconds;
         s.total = total;
-        s.other = (total - s.intersection - s.volume_rendering - s.composition - s.loading).max(0.0);
+        s.other = (total - s.intersection - s.volume_rendering - s.composition - s.loading - s.shadows).max(0.0);
     }
 
     /// Adds the counts and phase times of another part of the same render (a tile, or a
@@ -156,6 +180,7 @@ impl RenderStats {
         } else if self.effects.len() == other.effects.len() {
             for (e, o) in self.effects.iter_mut().zip(&other.effects) {
                 e.shading_evaluations = e.shading_evaluations.zip(o.shading_evaluations).map(|(a, b)| a + b);
+                e.shadow_lookups = e.shadow_lookups.zip(o.shadow_lookups).map(|(a, b)| a + b);
             }
         }
         let (s, o) = (&mut self.seconds, &other.seconds);
@@ -163,6 +188,7 @@ impl RenderStats {
         s.volume_rendering += o.volume_rendering;
         s.composition += o.composition;
         s.loading += o.loading;
+        s.shadows += o.shadows;
     }
 }
 

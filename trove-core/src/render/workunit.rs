@@ -136,6 +136,18 @@ pub struct BindTarget<'a> {
     store: Option<&'a Pinned>,
 }
 
+impl<'a> BindTarget<'a> {
+    /// `object` bound opacity-only for shadow rays (`render::shadow`).
+    pub(crate) fn opacity_only(
+        self,
+        object: &'a crate::scene::Object,
+        opacity_correction: bool,
+    ) -> Result<ObjectCaster<'a>, crate::sampling::BindError> {
+        let cache = self.store.map(|p| p as &dyn crate::sampling::ClassificationCache);
+        ObjectCaster::opacity_only(object, self.volume, opacity_correction, cache)
+    }
+}
+
 impl<'a> From<&'a Volume> for BindTarget<'a> {
     fn from(volume: &'a Volume) -> BindTarget<'a> {
         BindTarget { volume, store: None }

@@ -20,7 +20,7 @@ use std::sync::Arc;
 use super::lanes::Trilinear4;
 use super::packed::Stored;
 use super::packet::Packets;
-use super::shade::{LaneShading, NoShade, Shaded};
+use super::shade::{LaneShading, NoShade, Shaded, Shadows};
 use super::simd::SimdPath;
 use super::skip::Skipper;
 use super::ClassificationCache;
@@ -62,6 +62,8 @@ pub(super) struct Lighting<'a> {
     /// The channel normals come from: the one the opacity map reads (`alpha` for a raw
     /// opacity, else `voxel`).
     pub field: GradientField<'a>,
+    /// Where some light casts shadows: how S is found (the one-piece f64 loops only).
+    pub shadows: Option<Arc<Shadows<'a>>>,
 }
 
 /// The channel a shaded object's gradient is taken over.
@@ -161,7 +163,7 @@ impl<'a> Parts<'a> {
                     interp,
                     voxels,
                     maps,
-                    shade: Shaded::new(field, l.material, l.lights, l.to_world),
+                    shade: Shaded::new(field, l.material, l.lights, l.to_world).with_shadows(l.shadows.clone()),
                     skip,
                     correction,
                     specialised,
@@ -235,6 +237,9 @@ impl<'a> Parts<'a> {
                 None => None,
                 // The packet loop's gradient is of the `voxel` values it reads, which is
                 // the channel a LUT or ramp opacity map reads.
+                // Shadow rays are cast one at a time, in f64: such an object keeps the
+                // one-piece loops.
+                Some(l) if l.shadows.is_some() => return self.with_maps(maps, true, skip),
                 Some(l) => match LaneShading::new(l.material, l.lights, l.to_world) {
                     Some(shading) => Some(shading),
                     None => return self.with_maps(maps, true, skip),

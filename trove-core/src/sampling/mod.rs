@@ -73,6 +73,7 @@ mod skip;
 
 use std::sync::Arc;
 
+pub use shade::SHADOW_STOP;
 pub use simd::{SimdError, SimdPath};
 pub(crate) use skip::{ClassKey, Classes};
 
@@ -106,6 +107,16 @@ pub enum BindError {
     /// not one this processor has.
     #[error(transparent)]
     Simd(#[from] SimdError),
+    /// The object is lit by a light that casts shadows, and the transmittance through the
+    /// other objects was not computed first (`render::shadow`, [`Scene::with_shadow_maps`]):
+    /// refused rather than rendered without shadows.
+    ///
+    /// [`Scene::with_shadow_maps`]: crate::scene::Scene::with_shadow_maps
+    #[error("object `{object}` is lit by a light that casts shadows, and its shadow maps were not computed")]
+    ShadowMapsMissing {
+        /// The object's name.
+        object: String,
+    },
 }
 
 /// What one object contributed over one piece.
@@ -240,6 +251,18 @@ impl<'a> ObjectCaster<'a> {
         ObjectCaster::bind(object, volume, opacity_correction, options, Some(cache), SimdPath::configured()?)
     }
 
+    /// `object` bound for shadow rays (SPEC §6): unlit whatever its lighting (a shadow ray
+    /// reads opacity only), every macrocell classified now or found in `cache`.
+    pub(crate) fn opacity_only(
+        object: &'a Object,
+        volume: &'a Volume,
+        opacity_correction: bool,
+        cache: Option<&'a dyn ClassificationCache>,
+    ) -> Result<ObjectCaster<'a>, BindError> {
+        let options = CastOptions { classify_upfront: true, ..CastOptions::default() };
+        ObjectCaster::bind_lit(object, volume, opacity_correction, options, cache, SimdPath::configured()?, false)
+    }
+
     /// Binds with the vector loops in `path`, which the processor has.
     fn bind(
         object: &'a Object,
@@ -248,6 +271,20 @@ impl<'a> ObjectCaster<'a> {
         options: CastOptions,
         cache: Option<&'a dyn ClassificationCache>,
         path: SimdPath,
+    ) -> Result<ObjectCaster<'a>, BindError> {
+        ObjectCaster::bind_lit(object, volume, opacity_correction, options, cache, path, true)
+    }
+
+    /// [`ObjectCaster::bind`], unlit whatever the object's lighting when `lit` is false (the
+    /// object's own share of its shadows: opacity only).
+    fn bind_lit(
+        object: &'a Object,
+        volume: &'a Volume,
+        opacity_correction: bool,
+        options: CastOptions,
+        cache: Option<&'a dyn ClassificationCache>,
+        path: SimdPath,
+        lit: bool,
     ) -> Result<ObjectCaster<'a>, BindError> {
         let expected = object.placement().dims();
         if volume.dims() != expected {
@@ -267,13 +304,23 @@ impl<'a> ObjectCaster<'a> {
         // SPEC §6: the gradient is taken over the channel the opacity map reads; a constant
         // opacity borrows `voxel` from the colour map, and with neither the object is unlit.
         let lighting = match (object.lighting(), gradient_channel(object)) {
-            (Some((material, lights)), Some(channel)) => Some(bind::Lighting {
+            (Some((material, lights)), Some(channel)) if lit => Some(bind::Lighting {
                 material: *material,
                 lights,
                 to_world: object.placement().gradient_to_world(),
                 field: match channel {
                     ChannelName::Alpha => bind::GradientField::Alpha(reader(ChannelName::Alpha)?),
                     _ => bind::GradientField::Voxel,
+                },
+                shadows: if object.needs_shadow_maps() {
+                    let Some(maps) = object.shadow_maps() else {
+                        return Err(BindError::ShadowMapsMissing { object: object.name().to_string() });
+                    };
+                    let own = ObjectCaster::bind_lit(object, volume, opacity_correction, options, cache, path, false)?;
+                    let per_light = lights.iter().zip(maps).map(|(l, m)| l.shadows().then(|| m.clone())).collect();
+                    Some(Arc::new(shade::Shadows { own, placement: object.placement(), per_light }))
+                } else {
+                    None
                 },
             }),
             _ => None,

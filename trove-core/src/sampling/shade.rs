@@ -16,14 +16,17 @@
 //! all go to world space through one constant matrix. A distorted box's Jacobian changes
 //! from sample to sample; such an object keeps the f64 loops.
 
+use std::sync::Arc;
+
 use glam::DVec3;
 
 use super::kernel::VoxelSource;
 use super::packed::pow;
 use super::simd::Simd;
-use crate::geometry::GradientToWorld;
+use super::ObjectCaster;
+use crate::geometry::{GradientToWorld, Placement, Ray};
 use crate::interp::Interp;
-use crate::scene::{Light, LightSource, Shading};
+use crate::scene::{Light, LightSource, Shading, Transmittance};
 
 /// What a loop does to a contributing sample's colour.
 pub(super) trait Shade: Send + Sync {
@@ -56,6 +59,49 @@ enum LightAt {
     At { position: DVec3, radiance: DVec3 },
 }
 
+/// A shadow ray's cast stops once its opacity reaches this: S is then below 2⁻²⁰, which
+/// no 8-bit image can show (SPEC §6 allows approximations within 2/255).
+pub const SHADOW_STOP: f64 = 1.0 - 1.0 / (1u64 << 20) as f64;
+
+/// S of SPEC §6 for a shaded object under lights that cast shadows: the product over every
+/// object of (1 − A) along the shadow ray. This object's own factor is cast exactly, sample
+/// by sample, through its own volume (`own`, the object bound unlit): it is what decides
+/// whether a surface faces its light, at the scale of the surface itself, where any
+/// lattice would blur it. The other objects' factors come from the lattice over this
+/// object's box that `render::shadow` computed dataset by dataset ([`Transmittance`]).
+pub(super) struct Shadows<'a> {
+    /// The object bound unlit: its opacity along a shadow ray.
+    pub own: ObjectCaster<'a>,
+    pub placement: &'a Placement,
+    /// Per light: `None` where it casts no shadows; else the transmittance through the
+    /// other objects (`None` inside where none comes between).
+    pub per_light: Vec<Option<Option<Transmittance>>>,
+}
+
+impl Shadows<'_> {
+    /// S for light `i`, seen from world point `x` (VC point `vc` of this object) along `l`
+    /// (unit, towards the light) up to `reach` (∞ for a directional light).
+    #[inline]
+    fn transmittance(&self, i: usize, x: DVec3, vc: [f64; 3], l: DVec3, reach: f64) -> f64 {
+        let others = match &self.per_light[i] {
+            None => return 1.0,
+            Some(None) => 1.0,
+            Some(Some(t)) => t.at(self.placement.box_of_vc(DVec3::from(vc))),
+        };
+        if others <= 0.0 {
+            return 0.0;
+        }
+        let ray = Ray { origin: x, dir: l };
+        let own = match self.placement.segment(&ray) {
+            Some((t0, t1)) if t1.min(reach) > t0 => {
+                1.0 - self.own.cast(&ray, t0, t1.min(reach), 0.0, SHADOW_STOP).rgba.alpha
+            }
+            _ => 1.0,
+        };
+        own * others
+    }
+}
+
 /// Blinn–Phong with the gradient of `field` (SPEC §6).
 pub(super) struct Shaded<'a, F> {
     /// The channel the opacity map reads, through the object's interpolation.
@@ -63,6 +109,8 @@ pub(super) struct Shaded<'a, F> {
     material: Shading,
     lights: Vec<LightAt>,
     to_world: GradientToWorld<'a>,
+    /// Where some light casts shadows: how S is found.
+    shadows: Option<Arc<Shadows<'a>>>,
 }
 
 impl<'a, F: VoxelSource> Shaded<'a, F> {
@@ -79,7 +127,12 @@ impl<'a, F: VoxelSource> Shaded<'a, F> {
                 }
             })
             .collect();
-        Shaded { field, material, lights, to_world }
+        Shaded { field, material, lights, to_world, shadows: None }
+    }
+
+    /// The same shading with S (SPEC §6) from `shadows` for the lights that cast them.
+    pub(super) fn with_shadows(self, shadows: Option<Arc<Shadows<'a>>>) -> Self {
+        Shaded { shadows, ..self }
     }
 
     /// I at VC point `p`.
@@ -117,19 +170,27 @@ impl<F: VoxelSource> Shade for Shaded<'_, F> {
         let n = if n.dot(view) < 0.0 { -n } else { n };
         let m = &self.material;
         let (mut diffuse, mut specular) = (DVec3::ZERO, DVec3::ZERO);
-        for light in &self.lights {
-            let (l, radiance) = match *light {
-                LightAt::Towards { l, radiance } => (l, radiance),
+        for (i, light) in self.lights.iter().enumerate() {
+            let (l, radiance, reach) = match *light {
+                LightAt::Towards { l, radiance } => (l, radiance, f64::INFINITY),
                 // A sample at the light's own position is not lit by it (L is undefined).
-                LightAt::At { position, radiance } => ((position - x).normalize_or_zero(), radiance),
+                LightAt::At { position, radiance } => {
+                    let d = position - x;
+                    (d.normalize_or_zero(), radiance, d.length())
+                }
             };
             let n_dot_l = n.dot(l);
-            // Only where N·L > 0: max(0, N·L) is 0 elsewhere, and so is the specular term.
+            // Only where N·L > 0: max(0, N·L) is 0 elsewhere, and so is the specular term
+            // (and S, which scales both, is not needed).
             if n_dot_l > 0.0 {
-                diffuse += m.diffuse() * n_dot_l * radiance;
+                let s = match &self.shadows {
+                    Some(shadows) => shadows.transmittance(i, x, vc, l, reach),
+                    None => 1.0,
+                };
+                diffuse += m.diffuse() * n_dot_l * s * radiance;
                 // L + V ≠ 0 here: N·V ≥ 0 and N·L > 0 rule out L = −V.
                 let h = (l + view).normalize();
-                specular += m.specular() * n.dot(h).max(0.0).powf(m.shininess()) * radiance;
+                specular += m.specular() * n.dot(h).max(0.0).powf(m.shininess()) * s * radiance;
             }
         }
         let lit = DVec3::from(c) * (DVec3::splat(m.ambient()) + diffuse) + specular;

@@ -27,6 +27,12 @@ fn scenes() -> Vec<(PathBuf, PathBuf)> {
     files
 }
 
+/// `scene` with the other objects' shares of its shadows computed (SPEC §6): the same for
+/// every path compared, which then differ only in how they cast.
+fn with_shadow_maps(scene: Scene) -> Scene {
+    crate::render::shadow::attach(&scene, &crate::render::VolumeStore::new(None)).expect("shadow pass").0
+}
+
 /// `scene`, every pixel's pieces cast with each object bound on `path`, many at a time
 /// ([`ObjectCaster::cast_many`]: in f32 lanes where the object's loop has them) or, with
 /// `one_by_one`, piece by piece in f64 ([`ObjectCaster::cast`]), then composited front to
@@ -130,6 +136,7 @@ fn every_available_path_renders_every_example_scene_within_a_level_of_the_f64_lo
         let scale = 40.0 / width.max(height) as f64;
         let side = |s: u32| ((s as f64 * scale).round() as u32).max(1);
         let scene = scene.with_image_size(side(width), side(height)).unwrap();
+        let scene = with_shadow_maps(scene);
         let (reference, _, _) = render(&scene, SimdPath::Scalar, true);
         // The paths with fused multiply-adds run the same operations lane by lane, whatever
         // their width: the same bits (so farm workers on AVX2 and on AVX-512 agree).
@@ -196,6 +203,7 @@ fn every_path_renders_the_shaded_scenes_lit_in_packets_within_a_level_of_the_f64
                 ((height as f64 * scale).round() as u32).max(1),
             )
             .unwrap();
+        let scene = with_shadow_maps(scene);
         let (reference, _, _) = render(&scene, SimdPath::Scalar, true);
         for path in SimdPath::available() {
             let (image, _, lit) = render(&scene, path, false);

@@ -526,13 +526,6 @@ pub enum SceneErrorKind {
         /// The value given.
         got: f64,
     },
-    /// An effect SPEC §6 defines that this build does not render yet: refused, never
-    /// rendered as if it had not been asked for.
-    #[error("{what} are not supported yet: remove the key or set it to false")]
-    NotSupportedYet {
-        /// The effect.
-        what: &'static str,
-    },
 }
 
 /// ` at line L, column C`, or nothing.

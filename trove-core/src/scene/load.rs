@@ -98,8 +98,7 @@ pub(super) fn scene(text: &str, path: &Path, catalog: &dyn Catalog) -> Result<Sc
     Ok(Scene { path: path.to_path_buf(), image, camera, render, datasets, objects, lights })
 }
 
-/// One `[[lights]]` entry (SPEC §6): its type's keys only, each in range. Shadows are not
-/// built yet: a light that asks for them is refused, never rendered without them.
+/// One `[[lights]]` entry (SPEC §6): its type's keys only, each in range.
 fn light(l: &LightFile, key: &str) -> Result<Light, KeyError> {
     let not_for = |field: &str, ty: &'static str, takes: &'static str| {
         err(format!("{key}.{field}"), Kind::LightKeyNotForType { ty, takes })
@@ -124,12 +123,9 @@ fn light(l: &LightFile, key: &str) -> Result<Light, KeyError> {
         }
         other => return err(format!("{key}.type"), Kind::UnknownLightType { got: other.to_string() }),
     };
-    if l.shadows == Some(true) {
-        return err(format!("{key}.shadows"), Kind::NotSupportedYet { what: "shadows (SPEC §6)" });
-    }
     let colour = l.colour.unwrap_or([1.0; 3]);
     let intensity = l.intensity.unwrap_or(1.0);
-    Light::new(source, colour, intensity).map_err(|e| {
+    Light::new(source, colour, intensity).map(|light| light.with_shadows(l.shadows.unwrap_or(false))).map_err(|e| {
         let field = match e {
             super::effects::LightError::Colour { .. } => "colour",
             super::effects::LightError::Intensity { .. } => "intensity",
@@ -627,6 +623,7 @@ fn object(o: &ObjectFile, key: &str, ds: usize, info: &DatasetInfo, straight: bo
         placement,
         shading,
         lights: None,
+        shadow_maps: None,
     })
 }
 

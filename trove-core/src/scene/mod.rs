@@ -24,7 +24,9 @@ use crate::interp::Interpolation;
 use crate::mapping::{ColourMap, OpacityMap};
 
 pub use data_root::{DataRoot, DATA_ROOT_ENV};
-pub use effects::{Light, LightError, LightSource, Shading, ShadingField, UnitVector};
+pub use effects::{
+    Light, LightError, LightSource, Shading, ShadingField, Transmittance, TransmittanceError, UnitVector,
+};
 pub use error::{SceneError, SceneErrorKind};
 pub use limits::{MAX_IMAGE_SIDE, MAX_LIGHTS, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE, MAX_SAMPLES_PER_RENDER};
 
@@ -65,6 +67,10 @@ pub struct Object {
     shading: Option<Shading>,
     /// The scene's lights, when it has some and this object is shaded.
     lights: Option<Arc<[Light]>>,
+    /// Per light, the transmittance through the other objects on a lattice over this one's
+    /// box (`None` for a light without shadows, or where nothing else comes between);
+    /// attached by [`Scene::with_shadow_maps`] once computed.
+    shadow_maps: Option<Arc<[Option<Transmittance>]>>,
 }
 
 /// Objects built without a scene, for unit tests of the sampler, which construct the maps and
@@ -88,6 +94,7 @@ impl Object {
             placement,
             shading: None,
             lights: None,
+            shadow_maps: None,
         }
     }
 
@@ -144,6 +151,18 @@ impl Object {
     /// opt-in), so its objects are unlit whatever their `shading` says.
     pub fn lighting(&self) -> Option<(&Shading, &[Light])> {
         Some((self.shading.as_ref()?, self.lights.as_deref()?))
+    }
+
+    /// Whether it is lit by a light that casts shadows: then its casts need the transmittance
+    /// through the other objects ([`Object::shadow_maps`]).
+    pub fn needs_shadow_maps(&self) -> bool {
+        self.lighting().is_some_and(|(_, lights)| lights.iter().any(Light::shadows))
+    }
+
+    /// Per light, the transmittance through the other objects (SPEC §6's S without this
+    /// object's own share), once [`Scene::with_shadow_maps`] attached it.
+    pub fn shadow_maps(&self) -> Option<&[Option<Transmittance>]> {
+        self.shadow_maps.as_deref()
     }
 
     /// The most a sample's colour channel can be, mapped colours being at most 1: 1 unlit;
@@ -271,6 +290,29 @@ impl Scene {
         for o in &mut self.objects {
             o.placement.set_straight(straight);
         }
+    }
+
+    /// Whether some light casts shadows onto some lit object (SPEC §6): the scene's objects
+    /// then need [`Scene::with_shadow_maps`] before they can be cast.
+    pub fn casts_shadows(&self) -> bool {
+        self.objects.iter().any(Object::needs_shadow_maps)
+    }
+
+    /// The same scene with `maps[i]` (one entry per light, see [`Object::shadow_maps`])
+    /// attached to object `i` where `maps[i]` is `Some`.
+    ///
+    /// # Panics
+    /// If `maps` has not one entry per object, or an entry has not one per light.
+    pub fn with_shadow_maps(&self, maps: Vec<Option<Vec<Option<Transmittance>>>>) -> Scene {
+        assert_eq!(maps.len(), self.objects.len(), "one entry per object");
+        let mut scene = self.clone();
+        for (o, m) in scene.objects.iter_mut().zip(maps) {
+            if let Some(m) = m {
+                assert_eq!(m.len(), self.lights.len(), "one map per light");
+                o.shadow_maps = Some(m.into());
+            }
+        }
+        scene
     }
 
     /// The datasets some object uses, in order of first use.

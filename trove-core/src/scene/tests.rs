@@ -1445,6 +1445,10 @@ fn lights_and_shading_take_their_defaults_and_normalise_directions() {
     assert!(s.objects()[1].lighting().is_none());
     let s = accepted(&with_effects(&format!("{SUN}\ncolour = [1, 0.5, 0]\nintensity = 2\nshadows = false"), ""));
     assert_eq!(s.lights()[0].radiance(), [2.0, 1.0, 0.0]);
+    assert!(!s.lights()[0].shadows());
+    let s = accepted(&with_effects(&format!("{SUN}\nshadows = true\n{SUN}"), "shading = {}"));
+    assert!(s.lights()[0].shadows() && !s.lights()[1].shadows(), "shadows are per light, off by default");
+    assert!(s.casts_shadows());
 
     // Without lights a scene renders as SPEC §4 says, whatever `shading` says.
     let s = accepted(&with_effects("", "shading = {}"));
@@ -1489,8 +1493,7 @@ fn light_keys_are_refused_with_their_path() {
             matches!(k, Kind::Light(_))
         }),
         (format!("{SUN}\nshadows = \"yes\""), "lights[0].shadows", |k| matches!(k, Kind::WrongType { .. })),
-        // Shadows are not built yet: refused by name, never rendered without them.
-        (format!("{SUN}\nshadows = true"), "lights[0].shadows", |k| matches!(k, Kind::NotSupportedYet { .. })),
+        (format!("{SUN}\nshadows = 1"), "lights[0].shadows", |k| matches!(k, Kind::WrongType { .. })),
         (format!("{SUN}\n{SUN}\nintensity = -2"), "lights[1].intensity", |k| matches!(k, Kind::Light(_))),
     ];
     for (lights, key, is) in cases {
@@ -1501,9 +1504,6 @@ fn light_keys_are_refused_with_their_path() {
     refused!(text, "lights[0]", Kind::WrongType { .. });
     let text = with_effects("", "").replacen("\n[image]", "\nlights = 3\n[image]", 1);
     refused!(text, "lights", Kind::NotAnArrayOfTables { .. });
-    let e =
-        refusal(&nowhere(), &with_effects(&format!("{SUN}\nshadows = true"), ""), Some("lights[0].shadows"), |_| true);
-    assert!(shown(&e).contains("not supported yet"), "{}", shown(&e));
 }
 
 #[test]

@@ -1,0 +1,275 @@
+//! Shadows (SPEC §6), grouped by dataset so that Algorithm 2 and the farm keep loading each
+//! dataset once per pass.
+//!
+//! S, the transmittance from a sample towards a light, is a product over objects of
+//! (1 − A), each object's A along the shadow ray depending on that object alone. The
+//! product splits in two:
+//! * the **lit object's own factor**, cast exactly along each sample's shadow ray through
+//!   the object's own volume while its pieces are cast (`sampling::shade`'s `Shadows`):
+//!   that is what tells a surface facing the light from one facing away, at the scale of
+//!   the surface, where any lattice would blur it;
+//! * the **other objects' factors**, on a lattice over the lit object's box ([`ShadowPlan`]):
+//!   for each (shadowing light, lit object) a lattice of at most [`LATTICE_SIDE`] points a
+//!   side, and for each other object the factor (1 − A) along the shadow ray from every
+//!   lattice point, cast while that object's dataset is resident
+//!   ([`ShadowPlan::factors`]). A sample takes the trilinear blend of the lattice
+//!   ([`crate::scene::Transmittance`]).
+//!
+//! So the shadow pass is one more visit of each dataset, before the image's own pass:
+//! locally ([`attach`]) each dataset is loaded once for it, and on a farm each worker
+//! computes the factors of the objects of the datasets it holds, and the coordinator
+//! multiplies them ([`ShadowPlan::combine`], in object order, so that every mode gets the
+//! same f32 values) and hands the lattices to the workers with the scene. Its cost and its
+//! error against SPEC §6's definition are in `docs/shadows.md`.
+
+use std::time::Instant;
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use super::error::CastError;
+use super::workunit::BindTarget;
+use super::{RenderError, VolumeStore};
+use crate::geometry::Ray;
+use crate::sampling::{self, ObjectCaster, PieceRequest, PieceResult, SHADOW_STOP};
+use crate::scene::{Scene, Transmittance};
+
+/// The most lattice points along one side of a lit object's box; fewer where its dataset
+/// has fewer voxels along that side (but at least two).
+pub const LATTICE_SIDE: u32 = 64;
+
+/// Shadow rays cast at a time by [`ShadowPlan::factors`].
+const CHUNK: usize = 4096;
+
+/// One lattice to compute: the transmittance towards `light` over `receiver`'s box.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Lattice {
+    /// Index of the light in the scene.
+    pub light: usize,
+    /// Index of the lit object.
+    pub receiver: usize,
+    /// Points per side.
+    pub dims: [u32; 3],
+}
+
+impl Lattice {
+    /// Points in the lattice.
+    pub fn len(&self) -> usize {
+        self.dims.iter().map(|&n| n as usize).product()
+    }
+
+    /// Whether it has no points (never: each side has at least two).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Box coordinates of point `n` (x fastest).
+    fn box_point(&self, n: usize) -> DVec3 {
+        let [nx, ny, nz] = self.dims.map(|d| d as usize);
+        let (i, j, k) = (n % nx, (n / nx) % ny, n / (nx * ny));
+        DVec3::new(i as f64 / (nx - 1) as f64, j as f64 / (ny - 1) as f64, k as f64 / (nz - 1) as f64)
+    }
+}
+
+/// What one object contributes to one lattice: (1 − A) at each of its points.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Factors {
+    /// Index into [`ShadowPlan::lattices`].
+    pub lattice: usize,
+    /// The object whose opacity they are.
+    pub occluder: usize,
+    /// One per lattice point, each in [0, 1].
+    pub values: Vec<f32>,
+}
+
+/// Every lattice a scene's shadows need: one per (light with shadows, shaded object lit by
+/// it), in (object, light) order.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ShadowPlan {
+    lattices: Vec<Lattice>,
+}
+
+impl ShadowPlan {
+    /// The lattices of `scene` (none without shadows).
+    pub fn of(scene: &Scene) -> ShadowPlan {
+        ShadowPlan::with_lattices(scene, |voxels| voxels.map(|n| n.clamp(2, LATTICE_SIDE)))
+    }
+
+    /// [`ShadowPlan::of`] with each lit object's lattice `dims_of(its dataset's dims)`
+    /// points a side (tests compare the plan's lattices with finer ones).
+    pub(crate) fn with_lattices(scene: &Scene, dims_of: impl Fn([u32; 3]) -> [u32; 3]) -> ShadowPlan {
+        let mut lattices = Vec::new();
+        for (receiver, o) in scene.objects().iter().enumerate() {
+            if !(o.needs_shadow_maps() && sampling::shades(o)) {
+                continue;
+            }
+            let dims = dims_of(o.placement().dims().as_array());
+            for (light, l) in scene.lights().iter().enumerate() {
+                if l.shadows() {
+                    lattices.push(Lattice { light, receiver, dims });
+                }
+            }
+        }
+        ShadowPlan { lattices }
+    }
+
+    /// The lattices.
+    pub fn lattices(&self) -> &[Lattice] {
+        &self.lattices
+    }
+
+    /// Whether there is nothing to compute.
+    pub fn is_empty(&self) -> bool {
+        self.lattices.is_empty()
+    }
+
+    /// Whether object `o` shades some lattice (it is not the only receiver).
+    pub fn has_work_for(&self, o: usize) -> bool {
+        self.lattices.iter().any(|l| l.receiver != o)
+    }
+
+    /// Object `occluder`'s factors on every lattice but its own, cast by `caster` (the object
+    /// bound opacity-only, [`opacity_caster`]); lattices it does not shade anywhere (every
+    /// factor 1) are left out. Shadow rays are cast [`CHUNK`] at a time on rayon's threads.
+    pub fn factors(&self, scene: &Scene, occluder: usize, caster: &ObjectCaster<'_>) -> Vec<Factors> {
+        let object = &scene.objects()[occluder];
+        let mut out = Vec::new();
+        for (index, lattice) in self.lattices.iter().enumerate() {
+            if lattice.receiver == occluder {
+                continue;
+            }
+            let light = scene.lights()[lattice.light];
+            let receiver = scene.objects()[lattice.receiver].placement();
+            let points: Vec<usize> = (0..lattice.len()).collect();
+            let values: Vec<f32> = points
+                .par_chunks(CHUNK)
+                .flat_map_iter(|chunk| {
+                    let mut requests = Vec::with_capacity(chunk.len());
+                    let mut slots = vec![None; chunk.len()];
+                    for (slot, &n) in chunk.iter().enumerate() {
+                        let x = receiver.world_of_box(lattice.box_point(n));
+                        let Some((l, reach)) = light.towards(x) else { continue };
+                        let ray = Ray { origin: x, dir: l };
+                        if let Some((t0, t1)) = object.placement().segment(&ray) {
+                            let t1 = t1.min(reach);
+                            if t1 > t0 {
+                                slots[slot] = Some(requests.len());
+                                requests.push(PieceRequest { ray, t0, t1, alpha_in: 0.0, stop_at: SHADOW_STOP });
+                            }
+                        }
+                    }
+                    let mut results = vec![PieceResult::default(); requests.len()];
+                    caster.cast_many(&requests, &mut results);
+                    slots
+                        .into_iter()
+                        .map(|s| s.map_or(1.0, |r| (1.0 - results[r].rgba.alpha).clamp(0.0, 1.0) as f32))
+                        .collect::<Vec<f32>>()
+                })
+                .collect();
+            if values.iter().any(|&v| v < 1.0) {
+                out.push(Factors { lattice: index, occluder, values });
+            }
+        }
+        out
+    }
+
+    /// The lattices from every occluder's factors: per lattice the product of its factors
+    /// in object order (in f32, so that every mode that multiplies the same factors gets the
+    /// same values), as [`Scene::with_shadow_maps`] takes them: per object, per light.
+    pub fn combine(
+        &self,
+        scene: &Scene,
+        mut factors: Vec<Factors>,
+    ) -> Result<Vec<Option<Vec<Option<Transmittance>>>>, ShadowError> {
+        factors.sort_by_key(|f| (f.lattice, f.occluder));
+        let mut maps: Vec<Option<Vec<Option<Transmittance>>>> =
+            scene.objects().iter().map(|o| o.needs_shadow_maps().then(|| vec![None; scene.lights().len()])).collect();
+        let mut factors = factors.into_iter().peekable();
+        for (index, lattice) in self.lattices.iter().enumerate() {
+            let mut product: Option<Vec<f32>> = None;
+            while let Some(f) = factors.next_if(|f| f.lattice <= index) {
+                if f.lattice < index || f.values.len() != lattice.len() || f.occluder == lattice.receiver {
+                    return Err(ShadowError::Factors { lattice: f.lattice, occluder: f.occluder });
+                }
+                match &mut product {
+                    None => product = Some(f.values),
+                    Some(p) => p.iter_mut().zip(&f.values).for_each(|(p, f)| *p *= f),
+                }
+            }
+            if let Some(values) = product {
+                let t = Transmittance::new(lattice.dims, values)
+                    .map_err(|_| ShadowError::Factors { lattice: index, occluder: lattice.receiver })?;
+                if let Some(m) = &mut maps[lattice.receiver] {
+                    m[lattice.light] = Some(t);
+                }
+            }
+        }
+        if let Some(f) = factors.next() {
+            return Err(ShadowError::Factors { lattice: f.lattice, occluder: f.occluder });
+        }
+        Ok(maps)
+    }
+}
+
+/// Factors that do not fit the plan (a farm worker's answer for another scene).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum ShadowError {
+    /// Factors for a lattice that does not exist, of the wrong size, out of range, or of a
+    /// lattice's own receiver.
+    #[error("shadow factors of object {occluder} do not fit lattice {lattice} of the scene's plan")]
+    Factors {
+        /// The lattice named.
+        lattice: usize,
+        /// The object named.
+        occluder: usize,
+    },
+}
+
+/// `object` bound to `target` opacity-only, as the shadow pass casts it: unlit whatever its
+/// lighting (its colour is not used), its classification kept with the volume when the
+/// target is a store's.
+pub fn opacity_caster<'a>(
+    scene: &'a Scene,
+    object: usize,
+    target: impl Into<BindTarget<'a>>,
+) -> Result<ObjectCaster<'a>, CastError> {
+    let o = &scene.objects()[object];
+    let target = target.into();
+    target
+        .opacity_only(o, scene.render().opacity_correction)
+        .map_err(|source| CastError::Bind { object: o.name().to_string(), source })
+}
+
+/// `scene` with its shadow maps computed and attached ([`Scene::with_shadow_maps`]), each
+/// dataset loaded once from `store` for it; the scene unchanged where it casts no shadows.
+/// Returns the seconds spent.
+pub fn attach(scene: &Scene, store: &VolumeStore) -> Result<(Scene, f64), RenderError> {
+    attach_planned(scene, &ShadowPlan::of(scene), store)
+}
+
+/// [`attach`] with the lattices of `plan`.
+pub(crate) fn attach_planned(
+    scene: &Scene,
+    plan: &ShadowPlan,
+    store: &VolumeStore,
+) -> Result<(Scene, f64), RenderError> {
+    let started = Instant::now();
+    if plan.is_empty() {
+        return Ok((scene.clone(), 0.0));
+    }
+    let mut factors = Vec::new();
+    for d in scene.used_datasets() {
+        let objects: Vec<usize> =
+            (0..scene.objects().len()).filter(|&o| scene.objects()[o].dataset() == d && plan.has_work_for(o)).collect();
+        if objects.is_empty() {
+            continue;
+        }
+        let volume = store.get(&scene.datasets()[d])?;
+        for o in objects {
+            let caster = opacity_caster(scene, o, &volume)?;
+            factors.extend(plan.factors(scene, o, &caster));
+        }
+    }
+    let maps = plan.combine(scene, factors).expect("factors computed from this plan fit it");
+    Ok((scene.with_shadow_maps(maps), started.elapsed().as_secs_f64()))
+}
