@@ -241,9 +241,14 @@ pub fn opacity_caster<'a>(
 }
 
 /// `scene` with its shadow maps computed and attached ([`Scene::with_shadow_maps`]), each
-/// dataset loaded once from `store` for it; the scene unchanged where it casts no shadows.
+/// dataset loaded once from `store` for it; the scene unchanged where it casts no shadows
+/// or has its maps already.
 /// Returns the seconds spent.
 pub fn attach(scene: &Scene, store: &VolumeStore) -> Result<(Scene, f64), RenderError> {
+    // Maps attached already (by the caller, or a farm's coordinator) are kept.
+    if scene.objects().iter().all(|o| !o.needs_shadow_maps() || o.shadow_maps().is_some()) {
+        return Ok((scene.clone(), 0.0));
+    }
     attach_planned(scene, &ShadowPlan::of(scene), store)
 }
 
