@@ -9,8 +9,8 @@
 //!   that is what tells a surface facing the light from one facing away, at the scale of
 //!   the surface, where any lattice would blur it;
 //! * the **other objects' factors**, on a lattice over the lit object's box ([`ShadowPlan`]):
-//!   for each (shadowing light, lit object) a lattice of at most [`LATTICE_SIDE`] points a
-//!   side, and for each other object the factor (1 − A) along the shadow ray from every
+//!   for each (shadowing light, lit object) a lattice with [`POINTS_PER_VOXEL`] points per
+//!   voxel of the finest other object along each side, and for each other object the factor (1 − A) along the shadow ray from every
 //!   lattice point, cast while that object's dataset is resident
 //!   ([`ShadowPlan::factors`]). A sample takes the trilinear blend of the lattice
 //!   ([`crate::scene::Transmittance`]).
@@ -30,13 +30,39 @@ use rayon::prelude::*;
 use super::error::CastError;
 use super::workunit::BindTarget;
 use super::{RenderError, VolumeStore};
-use crate::geometry::Ray;
+use crate::geometry::{Placement, Ray};
 use crate::sampling::{self, ObjectCaster, PieceRequest, PieceResult, SHADOW_STOP};
 use crate::scene::{Scene, Transmittance};
 
-/// The most lattice points along one side of a lit object's box; fewer where its dataset
-/// has fewer voxels along that side (but at least two).
-pub const LATTICE_SIDE: u32 = 64;
+/// Lattice points per voxel of the finest other object, along each side of a lit object's
+/// box (docs/shadows.md measures what finer lattices change).
+pub const POINTS_PER_VOXEL: f64 = 1.0;
+
+/// The most points in one lattice (16 MiB of f32).
+pub const MAX_POINTS: u64 = 1 << 22;
+
+/// The world lengths of a box's three sides (the longest of the four parallel edges).
+fn edges(p: &Placement) -> [f64; 3] {
+    let c = p.corners();
+    // Corner index x + 2y + 4z: the edges along axis a join i and i + 2^a.
+    std::array::from_fn(|a| {
+        let step = 1 << a;
+        (0..8).filter(|i| i & step == 0).map(|i| (c[i + step] - c[i]).length()).fold(0.0, f64::max)
+    })
+}
+
+/// The world size of an object's smallest voxel side (its box's shortest side over its
+/// voxels along that side).
+fn finest_voxel(p: &Placement) -> f64 {
+    let dims = p.dims().as_array();
+    let c = p.corners();
+    (0..3)
+        .flat_map(|a| {
+            let step = 1 << a;
+            (0..8).filter(move |i| i & step == 0).map(move |i| (c[i + step] - c[i]).length() / f64::from(dims[a]))
+        })
+        .fold(f64::INFINITY, f64::min)
+}
 
 /// Shadow rays cast at a time by [`ShadowPlan::factors`].
 const CHUNK: usize = 4096;
@@ -90,20 +116,49 @@ pub struct ShadowPlan {
 }
 
 impl ShadowPlan {
-    /// The lattices of `scene` (none without shadows).
+    /// The lattices of `scene` (none without shadows), [`POINTS_PER_VOXEL`] points per
+    /// voxel of the finest other object along each side of a lit object's box.
     pub fn of(scene: &Scene) -> ShadowPlan {
-        ShadowPlan::with_lattices(scene, |voxels| voxels.map(|n| n.clamp(2, LATTICE_SIDE)))
+        ShadowPlan::with_density(scene, POINTS_PER_VOXEL, MAX_POINTS)
     }
 
-    /// [`ShadowPlan::of`] with each lit object's lattice `dims_of(its dataset's dims)`
-    /// points a side (tests compare the plan's lattices with finer ones).
-    pub(crate) fn with_lattices(scene: &Scene, dims_of: impl Fn([u32; 3]) -> [u32; 3]) -> ShadowPlan {
+    /// [`ShadowPlan::of`] with `per_voxel` lattice points per voxel of the finest other
+    /// object (the shadows' sharpest detail is that object's voxel, seen from the lit one),
+    /// at least two a side, at most [`Transmittance::MAX_SIDE`], and at most `max_points`
+    /// in all (a lattice over that is coarsened evenly along every side).
+    pub fn with_density(scene: &Scene, per_voxel: f64, max_points: u64) -> ShadowPlan {
+        let objects = scene.objects();
+        let voxel: Vec<f64> = objects.iter().map(|o| finest_voxel(o.placement())).collect();
+        ShadowPlan::with_lattices(scene, |receiver| {
+            let finest = (0..objects.len()).filter(|&o| o != receiver).map(|o| voxel[o]).fold(f64::INFINITY, f64::min);
+            let edges = edges(objects[receiver].placement());
+            let side = |edge: f64, scale: f64| {
+                let n = (edge * per_voxel * scale / finest).ceil() + 1.0;
+                if n.is_finite() {
+                    n.clamp(2.0, f64::from(Transmittance::MAX_SIDE)) as u32
+                } else {
+                    2
+                }
+            };
+            let dims = edges.map(|e| side(e, 1.0));
+            let points: f64 = dims.iter().map(|&n| f64::from(n)).product();
+            if points <= max_points as f64 {
+                return dims;
+            }
+            let scale = (max_points as f64 / points).cbrt();
+            edges.map(|e| side(e, scale))
+        })
+    }
+
+    /// The plan with lit object `receiver`'s lattice `dims_of(receiver)` points a side (tests
+    /// compare the plan's lattices with finer ones).
+    pub(crate) fn with_lattices(scene: &Scene, dims_of: impl Fn(usize) -> [u32; 3]) -> ShadowPlan {
         let mut lattices = Vec::new();
         for (receiver, o) in scene.objects().iter().enumerate() {
             if !(o.needs_shadow_maps() && sampling::shades(o)) {
                 continue;
             }
-            let dims = dims_of(o.placement().dims().as_array());
+            let dims = dims_of(receiver);
             for (light, l) in scene.lights().iter().enumerate() {
                 if l.shadows() {
                     lattices.push(Lattice { light, receiver, dims });
