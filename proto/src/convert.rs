@@ -23,7 +23,12 @@ pub const JOB_HEADER: &str = "x-trove-job";
 /// SHA-256 of the scene's text, its name and the headers of its files, each length-prefixed,
 /// so that the coordinator and every worker compute the same 32 bytes from the same fields,
 /// and two different scenes never share them.
-pub fn scene_digest(scene_toml: &str, scene_name: &str, headers: &[pb::DatasetFile]) -> [u8; 32] {
+pub fn scene_digest(
+    scene_toml: &str,
+    scene_name: &str,
+    headers: &[pb::DatasetFile],
+    shadow_maps: &[pb::ShadowMap],
+) -> [u8; 32] {
     use sha2::{Digest, Sha256};
     let mut h = Sha256::new();
     for part in [scene_toml.as_bytes(), scene_name.as_bytes()] {
@@ -34,7 +39,71 @@ pub fn scene_digest(scene_toml: &str, scene_name: &str, headers: &[pb::DatasetFi
     for header in headers {
         h.update(header.encode_length_delimited_to_vec());
     }
+    // A scene without shadows hashes as it did before maps existed.
+    if !shadow_maps.is_empty() {
+        h.update((shadow_maps.len() as u64).to_le_bytes());
+        for map in shadow_maps {
+            h.update(map.encode_length_delimited_to_vec());
+        }
+    }
     h.finalize().into()
+}
+
+/// f32s as little-endian bytes (shadow factors and maps on the wire).
+pub fn f32_bytes(values: &[f32]) -> Vec<u8> {
+    values.iter().flat_map(|v| v.to_le_bytes()).collect()
+}
+
+/// Little-endian bytes as f32s; `None` when their length is not a multiple of 4.
+pub fn f32s_of(bytes: &[u8]) -> Option<Vec<f32>> {
+    bytes
+        .len()
+        .is_multiple_of(4)
+        .then(|| bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
+}
+
+/// The maps of a scene's shadow plan as `CastOpen` carries them.
+pub fn shadow_maps_to_wire(maps: &[Option<Vec<Option<trove_core::scene::Transmittance>>>]) -> Vec<pb::ShadowMap> {
+    let mut out = Vec::new();
+    for (object, per_light) in maps.iter().enumerate() {
+        for (light, map) in per_light.iter().flatten().enumerate() {
+            if let Some(t) = map {
+                out.push(pb::ShadowMap {
+                    object: object as u32,
+                    light: light as u32,
+                    dims: t.dims().to_vec(),
+                    values: f32_bytes(t.values()),
+                });
+            }
+        }
+    }
+    out
+}
+
+/// `scene` with the maps `CastOpen` carried attached, every lit object under a shadowing
+/// light given its maps (none where nothing else comes between it and the light); an error
+/// names what does not fit the scene.
+pub fn attach_shadow_maps(
+    scene: &trove_core::scene::Scene,
+    maps: &[pb::ShadowMap],
+) -> Result<trove_core::scene::Scene, String> {
+    let lights = scene.lights().len();
+    let mut per_object: Vec<Option<Vec<Option<trove_core::scene::Transmittance>>>> =
+        scene.objects().iter().map(|o| o.needs_shadow_maps().then(|| vec![None; lights])).collect();
+    for m in maps {
+        let (o, l) = (m.object as usize, m.light as usize);
+        let slot = per_object
+            .get_mut(o)
+            .and_then(|p| p.as_mut())
+            .and_then(|p| p.get_mut(l))
+            .ok_or_else(|| format!("a shadow map for object {o} and light {l}, which the scene has no use for"))?;
+        let dims: [u32; 3] =
+            m.dims.as_slice().try_into().map_err(|_| format!("shadow map {o}/{l}: dims {:?}", m.dims))?;
+        let values = f32s_of(&m.values).ok_or_else(|| format!("shadow map {o}/{l}: {} bytes", m.values.len()))?;
+        let t = trove_core::scene::Transmittance::new(dims, values).map_err(|e| format!("shadow map {o}/{l}: {e}"))?;
+        *slot = Some(t);
+    }
+    Ok(scene.with_shadow_maps(per_object))
 }
 
 /// A failure for a person and a program: `reason` and `retryable` for the program, the
@@ -232,6 +301,65 @@ pub fn workers_disagree(key: &str) -> DatasetError {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A lit ball and an unlit one under a light that casts shadows.
+    const SHADOWED: &str = r#"
+[image]
+width = 4
+height = 4
+background = [0.0, 0.0, 0.0]
+[camera]
+eye = [0.5, 0.5, 3.0]
+target = [0.5, 0.5, 0.5]
+up = [0.0, 1.0, 0.0]
+fov_y = 30.0
+[[lights]]
+type = "directional"
+direction = [0.0, -1.0, 0.0]
+shadows = true
+[[datasets]]
+name = "ball"
+dims = [4, 4, 4]
+[datasets.channels.voxel]
+generator = { kind = "sphere", radius = 0.5, profile = "radial", value = 1.0, type = "f32" }
+[[objects]]
+name = "lit"
+dataset = "ball"
+colour = { type = "constant", red = [1.0], green = [1.0], blue = [1.0] }
+opacity = { type = "ramp", points = [[0.0, 0.0], [1.0, 1.0]] }
+shading = {}
+[[objects]]
+name = "unlit"
+dataset = "ball"
+colour = { type = "constant", red = [1.0], green = [1.0], blue = [1.0] }
+opacity = { type = "ramp", points = [[0.0, 0.0], [1.0, 1.0]] }
+"#;
+
+    #[test]
+    fn shadow_maps_cross_the_wire_unchanged_and_bad_ones_are_refused() {
+        let scene = trove_core::scene::Scene::parse(SHADOWED, "s.toml").unwrap();
+        let t = trove_core::scene::Transmittance::new([2, 3, 2], (0..12).map(|i| i as f32 / 11.0).collect()).unwrap();
+        let maps = vec![Some(vec![Some(t.clone())]), None];
+        let wire = shadow_maps_to_wire(&maps);
+        assert_eq!(wire.len(), 1);
+        let attached = attach_shadow_maps(&scene, &wire).unwrap();
+        assert_eq!(attached.objects()[0].shadow_maps(), Some(&[Some(t)][..]));
+        assert_eq!(attached.objects()[1].shadow_maps(), None);
+        // None sent: the lit object has nothing else between it and the light.
+        assert_eq!(attach_shadow_maps(&scene, &[]).unwrap().objects()[0].shadow_maps(), Some(&[None][..]));
+        let bad = |edit: fn(&mut pb::ShadowMap)| {
+            let mut m = wire[0].clone();
+            edit(&mut m);
+            attach_shadow_maps(&scene, &[m]).unwrap_err()
+        };
+        assert!(bad(|m| m.object = 1).contains("no use for"));
+        assert!(bad(|m| m.light = 1).contains("no use for"));
+        assert!(bad(|m| m.object = 9).contains("no use for"));
+        assert!(bad(|m| m.dims = vec![2, 3]).contains("dims"));
+        assert!(bad(|m| m.values.truncate(45)).contains("bytes"));
+        assert!(bad(|m| m.values.truncate(44)).contains("values"));
+        assert!(bad(|m| m.values[0..4].copy_from_slice(&2.0f32.to_le_bytes())).contains("[0, 1]"));
+    }
 
     #[test]
     fn a_failure_survives_a_status_round_trip() {

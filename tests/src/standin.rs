@@ -129,7 +129,7 @@ impl Answers {
         let id: [u8; 32] = if open.scene_toml.is_empty() {
             open.scene_digest.as_slice().try_into().unwrap_or_default()
         } else {
-            convert::scene_digest(&open.scene_toml, &open.scene_name, &open.headers)
+            convert::scene_digest(&open.scene_toml, &open.scene_name, &open.headers, &open.shadow_maps)
         };
         let answers = match scenes.get(&id) {
             Some(a) => a.clone(),
@@ -288,6 +288,12 @@ struct StandInService {
 #[tonic::async_trait]
 impl Worker for StandInService {
     type CastStream = ReceiverStream<Result<pb::CastResponse, Status>>;
+
+    /// Stand-ins answer recorded batches; a scene with shadows is not one they were recorded
+    /// from.
+    async fn shadow(&self, _: Request<pb::ShadowRequest>) -> Result<Response<pb::ShadowReply>, Status> {
+        Err(Status::unimplemented("stand-in workers do not run the shadow pass"))
+    }
 
     async fn cast(&self, request: Request<Streaming<pb::CastRequest>>) -> Result<Response<Self::CastStream>, Status> {
         if matches!(self.order, Order::Never) {

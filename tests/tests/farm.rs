@@ -56,13 +56,6 @@ fn every_example_scene_renders_through_the_farm_as_in_local_mode() {
     for (path, _) in example_scenes(48) {
         let text = shrunk_scene_text(&path, 48);
         let name = path.file_name().unwrap().to_string_lossy().to_string();
-        if text.contains("shadows = true") {
-            // Workers do not run the shadow pass yet: refused by key, never rendered
-            // without shadows.
-            let e = farm.render(&text, &name, false).err().unwrap_or_else(|| panic!("{name}: rendered"));
-            assert!(e.to_string().contains("lights[0].shadows"), "{name}: {e}");
-            continue;
-        }
         let expected = local_png(&text, &name, &data);
         let files = farm.render(&text, &name, false).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert!(files.png == expected, "{name}: the farm's PNG differs from local mode's");
@@ -81,6 +74,29 @@ fn every_example_scene_renders_through_the_farm_as_in_local_mode() {
             .sum();
         let lit = text.contains("[[lights]]");
         assert_eq!(shaded > 0, lit, "{name}: {shaded} samples shaded");
+    }
+}
+
+#[test]
+fn a_scene_with_shadows_renders_through_the_farm_as_in_local_mode() {
+    // Generators only: runs without the shared data. One worker, and three, each holding
+    // every dataset, so the shadow pass and the casting spread over them.
+    let dir = scratch("farm-shadows");
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/shadows.toml");
+    let text = shrunk_scene_text(&path, 40);
+    let expected = local_png(&text, "shadows.toml", &dir);
+    for workers in [1, 3] {
+        let roots: Vec<PathBuf> =
+            (0..workers).map(|i| data_root(&dir.join(format!("w{workers}-{i}")), &dir, &[])).collect();
+        let farm = TestFarm::start(&roots);
+        let files = farm.render(&text, "shadows.toml", false).unwrap_or_else(|e| panic!("{workers} workers: {e}"));
+        assert!(files.png == expected, "{workers} workers: the farm's PNG differs from local mode's");
+        let stats: serde_json::Value = serde_json::from_slice(&files.stats_json).unwrap();
+        assert!(stats["seconds"]["shadows"].as_f64().is_some_and(|s| s > 0.0), "{}", stats["seconds"]);
+        for e in stats["effects"].as_array().expect("effects") {
+            assert_eq!(e["ran"], serde_json::json!(["shading", "shadows"]), "{e}");
+            assert!(e["shadow_lookups"].as_u64().is_some_and(|n| n > 0), "{e}");
+        }
     }
 }
 

@@ -82,6 +82,7 @@ fn open_stream(scene: &str) -> (mpsc::Sender<pb::CastRequest>, ReceiverStream<pb
         dataset: 0,
         headers: Vec::new(),
         scene_digest: Vec::new(),
+        shadow_maps: Vec::new(),
     };
     tx.try_send(pb::CastRequest { kind: Some(pb::cast_request::Kind::Open(open)) }).unwrap();
     (tx, ReceiverStream::new(rx))

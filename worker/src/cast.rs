@@ -37,6 +37,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 use trove_core::dataset::{Catalog, DatasetError, FileInfo, FileKind};
 use trove_core::render::dispatch;
+use trove_core::render::shadow::{opacity_caster, ShadowPlan};
 use trove_core::render::wire::{decode_tasks, encode_results};
 use trove_core::render::{BatchCaster, PieceRgba, VolumeStore};
 use trove_core::scene::Scene;
@@ -226,8 +227,14 @@ impl Catalog for JobCatalog<'_> {
 pub fn parse_job_scene(files: &DataFiles, open: &pb::CastOpen) -> Result<Scene, Status> {
     let others = open.headers.iter().map(|f| (f.key.clone(), f)).collect();
     let catalog = JobCatalog { files, others };
-    Scene::parse_with(&open.scene_toml, std::path::Path::new(&open.scene_name), &catalog)
-        .map_err(|e| convert::failure_status(convert::scene_failure(&e)))
+    let scene = Scene::parse_with(&open.scene_toml, std::path::Path::new(&open.scene_name), &catalog)
+        .map_err(|e| convert::failure_status(convert::scene_failure(&e)))?;
+    if open.shadow_maps.is_empty() {
+        return Ok(scene);
+    }
+    convert::attach_shadow_maps(&scene, &open.shadow_maps).map_err(|e| {
+        convert::failure_status(convert::failure(pb::Reason::BadBatch, false, format!("the stream's shadow maps: {e}")))
+    })
 }
 
 /// Validates the job's scene (parsed once for all its streams: `scenes`) and checks that
@@ -266,9 +273,56 @@ fn open_job(files: &DataFiles, scenes: &JobScenes, open: &pb::CastOpen) -> Resul
     Ok((scene, d))
 }
 
+/// The shadow pass's share of the objects of `open.dataset` (SPEC §6, `render::shadow`):
+/// their factors on every lattice of the scene's plan, cast from this worker's copy.
+fn shadow_factors(
+    files: &DataFiles,
+    scenes: &JobScenes,
+    store: &VolumeStore,
+    open: &pb::CastOpen,
+) -> Result<pb::ShadowReply, Status> {
+    let (scene, d) = open_job(files, scenes, open)?;
+    let plan = ShadowPlan::of(&scene);
+    let objects: Vec<usize> =
+        (0..scene.objects().len()).filter(|&o| scene.objects()[o].dataset() == d && plan.has_work_for(o)).collect();
+    let mut factors = Vec::new();
+    if objects.is_empty() {
+        return Ok(pb::ShadowReply { factors });
+    }
+    let volume = store.get(&scene.datasets()[d]).map_err(|e| convert::failure_status(convert::store_failure(&e)))?;
+    for o in objects {
+        let caster =
+            opacity_caster(&scene, o, &volume).map_err(|e| convert::failure_status(convert::cast_failure(&e)))?;
+        for f in plan.factors(&scene, o, &caster) {
+            factors.push(pb::ShadowFactors {
+                lattice: f.lattice as u32,
+                occluder: f.occluder as u32,
+                values: convert::f32_bytes(&f.values),
+            });
+        }
+    }
+    Ok(pb::ShadowReply { factors })
+}
+
 #[tonic::async_trait]
 impl pb::worker_server::Worker for CastService {
     type CastStream = ReceiverStream<Result<pb::CastResponse, Status>>;
+
+    async fn shadow(&self, request: Request<pb::ShadowRequest>) -> Result<Response<pb::ShadowReply>, Status> {
+        let permit = self.admit()?;
+        let Some(open) = request.into_inner().open else {
+            return Err(Status::invalid_argument("a shadow request carries an `open`"));
+        };
+        let (files, scenes, store) = (self.files.clone(), self.scenes.clone(), self.store.clone());
+        let reply = tokio::task::spawn_blocking(move || {
+            let reply = shadow_factors(&files, &scenes, &store, &open);
+            drop(permit);
+            reply
+        })
+        .await
+        .map_err(|e| Status::internal(format!("the shadow pass failed: {e}")))?;
+        Ok(Response::new(reply?))
+    }
 
     async fn cast(&self, request: Request<Streaming<pb::CastRequest>>) -> Result<Response<Self::CastStream>, Status> {
         // Taken before anything is read, so that streams that never send are counted too.

@@ -224,6 +224,10 @@ type Answers = Pin<Box<dyn Stream<Item = Result<pb::CastResponse, Status>> + Sen
 impl<S: Worker> Worker for Metered<S> {
     type CastStream = Answers;
 
+    async fn shadow(&self, request: Request<pb::ShadowRequest>) -> Result<Response<pb::ShadowReply>, Status> {
+        self.inner.shadow(request).await
+    }
+
     async fn cast(&self, request: Request<Streaming<pb::CastRequest>>) -> Result<Response<Self::CastStream>, Status> {
         let response = self.inner.cast(request).await?;
         self.metrics.streams_open.inc();

@@ -42,6 +42,7 @@ mod config;
 mod dispatch;
 mod error;
 mod raster;
+mod shadows;
 mod streams;
 mod tally;
 
@@ -160,6 +161,8 @@ struct Driver {
     /// The scene's SHA-256 (`convert::scene_digest`): what names it on streams that do not
     /// carry it.
     scene_digest: Vec<u8>,
+    /// The scene's shadow maps (`shadows.rs`), carried with the scene: none without shadows.
+    shadow_maps: Vec<pb::ShadowMap>,
     /// Workers that accepted a stream of this job carrying the scene: they hold it, and the
     /// job's other streams to them name it by digest alone.
     scene_on: HashSet<String>,
@@ -210,7 +213,8 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     let admission = Admission { max_bands, memory_bound: config.memory_bound };
     let metrics = config.metrics.clone();
     let datasets = plan.scene.datasets().len();
-    let scene_digest = convert::scene_digest(&plan.scene_toml, &plan.scene_name, &plan.headers).to_vec();
+    // Without shadow maps: the shadow pass, where there is one, sets it again with them.
+    let scene_digest = convert::scene_digest(&plan.scene_toml, &plan.scene_name, &plan.headers, &[]).to_vec();
     let mut driver = Driver {
         bands: Bands::<BandState>::new(h, band_rows, admission),
         band_tx: HashMap::new(),
@@ -226,6 +230,7 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         opening: Vec::new(),
         next_serial: 0,
         scene_digest,
+        shadow_maps: Vec::new(),
         scene_on: HashSet::new(),
         stock: (0..datasets).map(|_| Stock::default()).collect(),
         active: BTreeSet::new(),
@@ -247,42 +252,53 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     tokio::pin!(past_deadline);
     let mut tick = tokio::time::interval(driver.config.tick);
     let mut room = driver.registry.watch_room();
-    let outcome = loop {
-        // Whatever room was freed before this point, the dispatch below sees.
-        room.borrow_and_update();
-        let step = Instant::now();
-        let advanced = driver.advance();
-        driver.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
-        if let Err(e) = advanced {
-            break Err(e);
-        }
-        if driver.bands.is_done() {
-            break Ok(());
-        }
-        tokio::select! {
-            event = inbox.recv() => {
-                let Some(event) = event else { break Err(JobError::Internal("the job's event channel closed".into())) };
-                let step = Instant::now();
-                let mut handled = driver.handle(event);
-                // Take whatever else has arrived before dispatching again: one dispatch
-                // pass serves many answers when they come quickly.
-                while handled.is_ok() {
-                    let Ok(event) = inbox.try_recv() else { break };
-                    handled = driver.handle(event);
-                }
-                driver.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
-                if let Err(e) = handled {
-                    break Err(e);
-                }
+    // Shadows first (SPEC §6): the other objects' shares, from the workers.
+    let job_deadline = driver.config.job_deadline;
+    let shadows = tokio::select! {
+        done = driver.shadow_pass() => done,
+        _ = cancelled.changed() => Err(JobError::Cancelled),
+        _ = &mut past_deadline => Err(JobError::DeadlineExceeded { deadline: job_deadline }),
+    };
+    let outcome = if let Err(e) = shadows {
+        Err(e)
+    } else {
+        loop {
+            // Whatever room was freed before this point, the dispatch below sees.
+            room.borrow_and_update();
+            let step = Instant::now();
+            let advanced = driver.advance();
+            driver.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
+            if let Err(e) = advanced {
+                break Err(e);
             }
-            // Another job's answer (or lost stream) freed room on a worker this job may use.
-            _ = room.changed() => {}
-            _ = cancelled.changed() => break Err(JobError::Cancelled),
-            _ = &mut past_deadline => break Err(JobError::DeadlineExceeded { deadline: driver.config.job_deadline }),
-            _ = tick.tick() => {
-                let step = Instant::now();
-                driver.check_workers();
-                driver.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
+            if driver.bands.is_done() {
+                break Ok(());
+            }
+            tokio::select! {
+                event = inbox.recv() => {
+                    let Some(event) = event else { break Err(JobError::Internal("the job's event channel closed".into())) };
+                    let step = Instant::now();
+                    let mut handled = driver.handle(event);
+                    // Take whatever else has arrived before dispatching again: one dispatch
+                    // pass serves many answers when they come quickly.
+                    while handled.is_ok() {
+                        let Ok(event) = inbox.try_recv() else { break };
+                        handled = driver.handle(event);
+                    }
+                    driver.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
+                    if let Err(e) = handled {
+                        break Err(e);
+                    }
+                }
+                // Another job's answer (or lost stream) freed room on a worker this job may use.
+                _ = room.changed() => {}
+                _ = cancelled.changed() => break Err(JobError::Cancelled),
+                _ = &mut past_deadline => break Err(JobError::DeadlineExceeded { deadline: driver.config.job_deadline }),
+                _ = tick.tick() => {
+                    let step = Instant::now();
+                    driver.check_workers();
+                    driver.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
+                }
             }
         }
     };

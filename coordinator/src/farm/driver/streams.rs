@@ -25,8 +25,13 @@ impl Driver {
     pub(super) fn open(&mut self, worker: &WorkerHandle, d: usize) {
         let (tx, rx) = mpsc::channel(256);
         let carries_scene = !self.scene_on.contains(&worker.id);
-        let (scene_toml, scene_name, headers) = if carries_scene {
-            (self.plan.scene_toml.clone(), self.plan.scene_name.clone(), self.plan.headers.clone())
+        let (scene_toml, scene_name, headers, shadow_maps) = if carries_scene {
+            (
+                self.plan.scene_toml.clone(),
+                self.plan.scene_name.clone(),
+                self.plan.headers.clone(),
+                self.shadow_maps.clone(),
+            )
         } else {
             Default::default()
         };
@@ -38,6 +43,7 @@ impl Driver {
                 dataset: d as u32,
                 headers,
                 scene_digest: self.scene_digest.clone(),
+                shadow_maps,
             })),
         };
         self.tally.wire_to += open.encoded_len() as u64;
