@@ -306,8 +306,10 @@ pub fn intersect(scene: &Scene, rows: std::ops::Range<u32>) -> Intersections {
 
 /// As [`intersect`], refusing rows that make more than `max_tasks` tasks (what
 /// `band_memory` bytes hold, [`super::limits::max_band_tasks`], which the error quotes) as
-/// soon as the count passes it: no ray's tasks are stored once the total would exceed the
-/// limit, so a band denser than its sizing expected never allocates past it.
+/// soon as the count passes it: no ray's tasks are stored once the total a thread knows of
+/// would exceed the limit (threads add their counts to the shared total a row at a time, so
+/// each may store up to a row's tasks more than the others' rows leave room for), so a band
+/// denser than its sizing expected allocates at most a row per thread past it.
 pub fn intersect_within(
     scene: &Scene,
     rows: std::ops::Range<u32>,
@@ -324,15 +326,23 @@ pub fn intersect_within(
         .map(|first_row| {
             let mut band = Band::default();
             let mut scratch = RayScratch::default();
+            // The shared total is added to once a row, not once a ray: `known` is what it
+            // held after this thread's last addition (it only grows), `row_tasks` this row's
+            // tasks since. A thread stops as soon as those two pass the limit, adding its
+            // row's tasks first, so the total then passes it too; and a band within the
+            // limit adds up to its exact count.
+            let mut known = 0u64;
             for row in first_row..(first_row + BAND_ROWS).min(rows.end as usize) {
+                let mut row_tasks = 0u64;
                 for col in 0..w {
                     if over.load(Ordering::Relaxed) {
                         return band;
                     }
                     let ray_index = row as u32 * w + col;
                     band.segments += scratch.pieces(scene, &reach, (col, row as u32)) as u64;
-                    let n = scratch.cover.len() as u64;
-                    if n > 0 && total.fetch_add(n, Ordering::Relaxed).saturating_add(n) > max_tasks {
+                    row_tasks += scratch.cover.len() as u64;
+                    if known.saturating_add(row_tasks) > max_tasks {
+                        total.fetch_add(row_tasks, Ordering::Relaxed);
                         over.store(true, Ordering::Relaxed);
                         return band;
                     }
@@ -345,6 +355,11 @@ pub fn intersect_within(
                         }
                         band.tasks_per_piece.push(objects.len() as u32);
                     }
+                }
+                known = total.fetch_add(row_tasks, Ordering::Relaxed).saturating_add(row_tasks);
+                if known > max_tasks {
+                    over.store(true, Ordering::Relaxed);
+                    return band;
                 }
             }
             band
