@@ -264,6 +264,12 @@ impl Scheduler {
         &self.inter
     }
 
+    /// The region's intersections, given back (to [`super::intersection::recycle`] them
+    /// once the region is composited).
+    pub fn into_intersections(self) -> Intersections {
+        self.inter
+    }
+
     /// The datasets that have tasks, front to back as far as the scene allows.
     pub fn datasets(&self) -> &[usize] {
         &self.order

@@ -19,7 +19,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use tokio::sync::mpsc;
-use trove_core::render::intersection::{intersect_within, Intersections};
+use trove_core::render::intersection::{intersect_within, recycle, Intersections};
 use trove_core::render::limits::max_band_tasks;
 use trove_core::render::schedule::Progress;
 use trove_core::render::wire::{decode_results, TaskWriter};
@@ -159,7 +159,9 @@ fn run(start: Start, mut inbox: mpsc::UnboundedReceiver<ToBand>, events: &mpsc::
         Composited::of(&scene, rows, &scheduler, want_pfm)
     })?;
     let progress = scheduler.progress();
-    drop(scheduler);
+    // Its buffers go to the next band's intersection, which then writes memory that is
+    // already paged in.
+    recycle(scheduler.into_intersections());
     tell(News::Composited { part: Box::new(part), progress });
     Ok(())
 }
