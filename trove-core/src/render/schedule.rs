@@ -548,6 +548,10 @@ impl Scheduler {
     ///
     /// Both use opacities only, laid over each other as `Rgba::over` lays them
     /// ([`over_alpha`]), so they are the bits the full composite would give.
+    ///
+    /// Inlined into both of `hand_out`'s instances: called from two, the compiler kept it
+    /// out of line, a call per task.
+    #[inline(always)]
     fn decide(&mut self, t: usize, first_wave: bool) -> Decision {
         let task = &self.inter.tasks[t];
         let r = self.inter.local_ray(task.ray);
