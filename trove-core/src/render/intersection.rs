@@ -92,6 +92,109 @@ struct Band {
     segments: u64,
 }
 
+impl Band {
+    fn heap_bytes(&self) -> usize {
+        self.tasks.capacity() * std::mem::size_of::<PieceTask>()
+            + (self.tasks_per_piece.capacity() + self.pieces_per_ray.capacity()) * 4
+    }
+}
+
+/// Buffers of finished intersections, kept for the next ones: the bands' lists, which
+/// every intersection fills and copies out, and whole [`Intersections`] handed back with
+/// [`recycle`] once their region is composited. Memory the allocator handed out fresh is
+/// zero-filled by the kernel page by page as it is first written (a coordinator spent about
+/// a tenth of its time in those page faults); memory kept here is written again without.
+/// At most [`POOL_BYTES`] are kept; every buffer is emptied before it is used again.
+struct Pool {
+    bands: Vec<Band>,
+    regions: Vec<Intersections>,
+    bytes: usize,
+}
+
+static POOL: std::sync::Mutex<Pool> = std::sync::Mutex::new(Pool { bands: Vec::new(), regions: Vec::new(), bytes: 0 });
+
+/// The most bytes of buffers [`POOL`] keeps.
+const POOL_BYTES: usize = 96 << 20;
+
+fn pool() -> std::sync::MutexGuard<'static, Pool> {
+    // A panic while holding the lock leaves only buffers behind, which are emptied anyway.
+    POOL.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// An empty band, with kept buffers when there are some.
+fn take_band() -> Band {
+    let mut pool = pool();
+    match pool.bands.pop() {
+        Some(band) => {
+            pool.bytes -= band.heap_bytes();
+            band
+        }
+        None => Band::default(),
+    }
+}
+
+/// Keeps the buffers of `bands` for later bands, as far as the pool has room.
+fn keep_bands(bands: impl IntoIterator<Item = Band>) {
+    let mut pool = pool();
+    for mut band in bands {
+        let bytes = band.heap_bytes();
+        if pool.bytes + bytes > POOL_BYTES {
+            continue;
+        }
+        band.tasks.clear();
+        band.tasks_per_piece.clear();
+        band.pieces_per_ray.clear();
+        band.segments = 0;
+        pool.bytes += bytes;
+        pool.bands.push(band);
+    }
+}
+
+/// The bytes `region`'s lists hold, used or not.
+fn capacity_bytes(region: &Intersections) -> usize {
+    region.tasks.capacity() * std::mem::size_of::<PieceTask>()
+        + (region.piece_start.capacity() + region.ray_start.capacity()) * std::mem::size_of::<usize>()
+}
+
+/// An empty region for `first_ray`, with kept buffers when there are some.
+fn take_region(first_ray: u32) -> Intersections {
+    let mut pool = pool();
+    match pool.regions.pop() {
+        Some(mut region) => {
+            pool.bytes -= capacity_bytes(&region);
+            drop(pool);
+            region.tasks.clear();
+            region.piece_start.clear();
+            region.ray_start.clear();
+            region.first_ray = first_ray;
+            region.segments = 0;
+            region
+        }
+        None => Intersections { first_ray, ..Intersections::default() },
+    }
+}
+
+/// Makes empty `list` hold `n` items: a kept buffer too small is replaced, not grown, since
+/// growing would copy its stale contents.
+fn room_for<T>(list: &mut Vec<T>, n: usize) {
+    debug_assert!(list.is_empty());
+    if list.capacity() < n {
+        *list = Vec::with_capacity(n);
+    }
+}
+
+/// Hands the buffers of intersections that are no longer needed (their region is
+/// composited) to later intersections, which then write them without the kernel's page
+/// faults of fresh memory. What does not fit the pool is freed.
+pub fn recycle(region: Intersections) {
+    let mut pool = pool();
+    let bytes = capacity_bytes(&region);
+    if pool.bytes + bytes <= POOL_BYTES {
+        pool.bytes += bytes;
+        pool.regions.push(region);
+    }
+}
+
 /// Per object of a scene, the pixels whose rays can meet it (the projected bounding
 /// rectangle of its box's corners, [`crate::geometry::Camera::pixels_reaching`]): a ray
 /// outside is not tested against the object. An object's box lies in the convex hull of its
@@ -306,8 +409,10 @@ pub fn intersect(scene: &Scene, rows: std::ops::Range<u32>) -> Intersections {
 
 /// As [`intersect`], refusing rows that make more than `max_tasks` tasks (what
 /// `band_memory` bytes hold, [`super::limits::max_band_tasks`], which the error quotes) as
-/// soon as the count passes it: no ray's tasks are stored once the total would exceed the
-/// limit, so a band denser than its sizing expected never allocates past it.
+/// soon as the count passes it: no ray's tasks are stored once the total a thread knows of
+/// would exceed the limit (threads add their counts to the shared total a row at a time, so
+/// each may store up to a row's tasks more than the others' rows leave room for), so a band
+/// denser than its sizing expected allocates at most a row per thread past it.
 pub fn intersect_within(
     scene: &Scene,
     rows: std::ops::Range<u32>,
@@ -322,17 +427,25 @@ pub fn intersect_within(
         .into_par_iter()
         .step_by(BAND_ROWS)
         .map(|first_row| {
-            let mut band = Band::default();
+            let mut band = take_band();
             let mut scratch = RayScratch::default();
+            // The shared total is added to once a row, not once a ray: `known` is what it
+            // held after this thread's last addition (it only grows), `row_tasks` this row's
+            // tasks since. A thread stops as soon as those two pass the limit, adding its
+            // row's tasks first, so the total then passes it too; and a band within the
+            // limit adds up to its exact count.
+            let mut known = 0u64;
             for row in first_row..(first_row + BAND_ROWS).min(rows.end as usize) {
+                let mut row_tasks = 0u64;
                 for col in 0..w {
                     if over.load(Ordering::Relaxed) {
                         return band;
                     }
                     let ray_index = row as u32 * w + col;
                     band.segments += scratch.pieces(scene, &reach, (col, row as u32)) as u64;
-                    let n = scratch.cover.len() as u64;
-                    if n > 0 && total.fetch_add(n, Ordering::Relaxed).saturating_add(n) > max_tasks {
+                    row_tasks += scratch.cover.len() as u64;
+                    if known.saturating_add(row_tasks) > max_tasks {
+                        total.fetch_add(row_tasks, Ordering::Relaxed);
                         over.store(true, Ordering::Relaxed);
                         return band;
                     }
@@ -346,6 +459,11 @@ pub fn intersect_within(
                         band.tasks_per_piece.push(objects.len() as u32);
                     }
                 }
+                known = total.fetch_add(row_tasks, Ordering::Relaxed).saturating_add(row_tasks);
+                if known > max_tasks {
+                    over.store(true, Ordering::Relaxed);
+                    return band;
+                }
             }
             band
         })
@@ -357,27 +475,27 @@ pub fn intersect_within(
 
     let n_tasks = bands.iter().map(|b| b.tasks.len()).sum();
     let n_pieces = bands.iter().map(|b| b.tasks_per_piece.len()).sum::<usize>();
-    let mut out = Intersections {
-        first_ray: rows.start * w,
-        tasks: Vec::with_capacity(n_tasks),
-        piece_start: Vec::with_capacity(n_pieces + 1),
-        ray_start: Vec::with_capacity(w as usize * rows.len() + 1),
-        segments: 0,
-    };
+    let mut out = take_region(rows.start * w);
+    room_for(&mut out.tasks, n_tasks);
+    room_for(&mut out.piece_start, n_pieces + 1);
+    room_for(&mut out.ray_start, w as usize * rows.len() + 1);
     out.piece_start.push(0);
     out.ray_start.push(0);
-    for band in bands {
+    for band in &bands {
         out.segments += band.segments;
         out.tasks.extend_from_slice(&band.tasks);
-        for n in band.tasks_per_piece {
-            let last = *out.piece_start.last().expect("starts with 0");
-            out.piece_start.push(last + n as usize);
-        }
-        for n in band.pieces_per_ray {
-            let last = *out.ray_start.last().expect("starts with 0");
-            out.ray_start.push(last + n as usize);
-        }
+        let mut last = *out.piece_start.last().expect("starts with 0");
+        out.piece_start.extend(band.tasks_per_piece.iter().map(|&n| {
+            last += n as usize;
+            last
+        }));
+        let mut last = *out.ray_start.last().expect("starts with 0");
+        out.ray_start.extend(band.pieces_per_ray.iter().map(|&n| {
+            last += n as usize;
+            last
+        }));
     }
+    keep_bands(bands);
     Ok(out)
 }
 
@@ -462,5 +580,43 @@ mod tests {
         // Out of view: no pixel; partly behind the eye: every pixel.
         assert_eq!(reach.0[4].pixels(), 0);
         assert_eq!(reach.0[3], PixelRect::whole(w, h));
+    }
+
+    /// Intersections written into kept buffers are those written into fresh ones: whatever
+    /// a recycled region or band held (more, fewer, other rows), none of it shows.
+    #[test]
+    fn kept_buffers_change_nothing() {
+        let text = |size: u32| {
+            format!(
+                "[image]\nwidth = {size}\nheight = {size}\nbackground = [0, 0, 0]\n[camera]\neye = [0.2, 0.3, 4.0]\n\
+                 target = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 40.0\n[[datasets]]\nname = \"v\"\ndims = [3, 4, 5]\n\
+                 [datasets.channels.voxel]\ngenerator = {{ kind = \"constant\", value = 1.0 }}\n\
+                 [[objects]]\nname = \"a\"\ndataset = \"v\"\ncolour = {{ type = \"constant\", red = [1], green = [1], blue = [1] }}\n\
+                 opacity = {{ type = \"constant\", coefficients = [0.5] }}\n\
+                 [[objects]]\nname = \"b\"\ndataset = \"v\"\ncolour = {{ type = \"constant\", red = [1], green = [1], blue = [1] }}\n\
+                 opacity = {{ type = \"constant\", coefficients = [0.5] }}\n\
+                 transform = {{ matrix = [[1, 0, 0, -0.3], [0, 1, 0, -0.2], [0, 0, 1, -0.4], [0, 0, 0, 1]] }}\n"
+            )
+        };
+        let small = Scene::parse(&text(19), "small.toml").unwrap();
+        let large = Scene::parse(&text(61), "large.toml").unwrap();
+        let fresh: Vec<Intersections> =
+            [(&small, 2..15), (&large, 0..61), (&large, 30..31), (&small, 0..19)].map(|(s, r)| intersect(s, r)).into();
+        let key =
+            |i: &Intersections| (i.first_ray, i.tasks.clone(), i.piece_start.clone(), i.ray_start.clone(), i.segments);
+        for round in 0..3 {
+            // Regions of other sizes handed back, some with more room than they use.
+            for (k, region) in fresh.iter().enumerate() {
+                let mut kept = region.clone();
+                kept.tasks.reserve(k * 1000);
+                recycle(kept);
+            }
+            for (i, (s, rows)) in
+                [(&small, 2..15), (&large, 0..61), (&large, 30..31), (&small, 0..19)].into_iter().enumerate()
+            {
+                assert_eq!(key(&intersect(s, rows)), key(&fresh[i]), "round {round}, region {i}");
+            }
+        }
+        assert!(fresh[1].tasks.len() > fresh[0].tasks.len() && fresh[1].pieces() > 100, "{}", fresh[1].pieces());
     }
 }

@@ -77,17 +77,24 @@ impl Raster {
         let values = self.band_values(first_row, scheduler);
         let rgb8 = &mut self.rgb8[values.clone()];
         let put8 = |px: &mut [u8], c: [f64; 3]| px.copy_from_slice(&c.map(quantize_inline));
+        // Runs of pixels per parallel item, each pixel composited as alone: the same bytes,
+        // without a rayon item (and its splitting) per pixel.
+        const RUN: usize = 256;
         match &mut self.rgb32f {
-            Some(all) => {
-                rgb8.par_chunks_mut(3).zip(all[values].par_chunks_mut(3)).enumerate().for_each(|(r, (px8, px32))| {
-                    let c = composite(scheduler, r, background);
-                    put8(px8, c);
-                    px32.copy_from_slice(&c.map(|v| v as f32));
-                })
-            }
-            None => {
-                rgb8.par_chunks_mut(3).enumerate().for_each(|(r, px)| put8(px, composite(scheduler, r, background)))
-            }
+            Some(all) => rgb8.par_chunks_mut(3 * RUN).zip(all[values].par_chunks_mut(3 * RUN)).enumerate().for_each(
+                |(run, (run8, run32))| {
+                    for (i, (px8, px32)) in run8.chunks_exact_mut(3).zip(run32.chunks_exact_mut(3)).enumerate() {
+                        let c = composite(scheduler, run * RUN + i, background);
+                        put8(px8, c);
+                        px32.copy_from_slice(&c.map(|v| v as f32));
+                    }
+                },
+            ),
+            None => rgb8.par_chunks_mut(3 * RUN).enumerate().for_each(|(run, run8)| {
+                for (i, px) in run8.chunks_exact_mut(3).enumerate() {
+                    put8(px, composite(scheduler, run * RUN + i, background));
+                }
+            }),
         }
     }
 

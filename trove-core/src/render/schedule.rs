@@ -42,6 +42,7 @@ use std::collections::HashMap;
 
 use super::error::ScheduleError;
 use super::intersection::Intersections;
+use super::wire::TaskWriter;
 use super::workunit::{PieceRgba, PieceTask};
 use crate::composite::Rgba;
 use crate::scene::Scene;
@@ -67,6 +68,47 @@ pub struct Batch {
     pub attempt: u32,
     /// The tasks, each with its front opacity set.
     pub tasks: Vec<PieceTask>,
+}
+
+/// A batch handed out by [`Scheduler::next_batch_encoded`], its tasks in the writer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct EncodedBatch {
+    /// As [`Batch::id`].
+    pub id: u64,
+    /// As [`Batch::dataset`].
+    pub dataset: usize,
+    /// As [`Batch::attempt`].
+    pub attempt: u32,
+    /// How many tasks it holds.
+    pub tasks: usize,
+}
+
+/// Where a batch's tasks go as they are decided: a list, or their wire form.
+trait TaskSink {
+    fn reserve(&mut self, tasks: usize);
+    fn push(&mut self, task: &PieceTask);
+}
+
+impl TaskSink for Vec<PieceTask> {
+    fn reserve(&mut self, tasks: usize) {
+        self.reserve_exact(tasks);
+    }
+
+    #[inline]
+    fn push(&mut self, task: &PieceTask) {
+        Vec::push(self, *task);
+    }
+}
+
+impl TaskSink for TaskWriter {
+    fn reserve(&mut self, tasks: usize) {
+        TaskWriter::reserve(self, tasks);
+    }
+
+    #[inline]
+    fn push(&mut self, task: &PieceTask) {
+        TaskWriter::push(self, task);
+    }
 }
 
 /// Where a task stands.
@@ -222,6 +264,12 @@ impl Scheduler {
         &self.inter
     }
 
+    /// The region's intersections, given back (to [`super::intersection::recycle`] them
+    /// once the region is composited).
+    pub fn into_intersections(self) -> Intersections {
+        self.inter
+    }
+
     /// The datasets that have tasks, front to back as far as the scene allows.
     pub fn datasets(&self) -> &[usize] {
         &self.order
@@ -266,6 +314,22 @@ impl Scheduler {
     /// unanswered (the next wave needs their results). Tasks whose ray is known to be opaque
     /// in front are culled here and never handed out.
     pub fn next_batch(&mut self, d: usize) -> Option<Batch> {
+        let mut tasks = Vec::new();
+        let (id, attempt) = self.hand_out(d, &mut tasks)?;
+        Some(Batch { id, dataset: d, attempt, tasks })
+    }
+
+    /// [`Scheduler::next_batch`] with its tasks written straight into their wire form
+    /// ([`super::wire::encode_tasks`]'s bytes) as they are decided, never held as a list of
+    /// tasks: the same batch, the same bytes. `writer` is cleared first.
+    pub fn next_batch_encoded(&mut self, d: usize, writer: &mut TaskWriter) -> Option<EncodedBatch> {
+        writer.clear();
+        let (id, attempt) = self.hand_out(d, writer)?;
+        Some(EncodedBatch { id, dataset: d, attempt, tasks: writer.len() })
+    }
+
+    /// The next batch of dataset `d`, its tasks given to `sink`: its id and attempt.
+    fn hand_out(&mut self, d: usize, sink: &mut impl TaskSink) -> Option<(u64, u32)> {
         loop {
             let lane = self.lanes.get_mut(d)?;
             if lane.wave >= lane.wave_count() {
@@ -298,7 +362,7 @@ impl Scheduler {
                 }
             };
             let mut cast = Vec::with_capacity(candidates.len());
-            let mut tasks = Vec::with_capacity(candidates.len());
+            sink.reserve(candidates.len());
             for &t in candidates {
                 match self.decide(t as usize, first_wave) {
                     Decision::Cull => {
@@ -312,7 +376,7 @@ impl Scheduler {
                         if front > 0.0 {
                             task.set_front_alpha(front);
                         }
-                        tasks.push(task);
+                        sink.push(&task);
                         cast.push(t);
                     }
                 }
@@ -325,7 +389,7 @@ impl Scheduler {
             self.next_id += 1;
             self.lanes[d].outstanding += 1;
             self.in_flight.insert(id, InFlight { dataset: d, attempt, tasks: cast });
-            return Some(Batch { id, dataset: d, attempt, tasks });
+            return Some((id, attempt));
         }
     }
 
@@ -484,6 +548,10 @@ impl Scheduler {
     ///
     /// Both use opacities only, laid over each other as `Rgba::over` lays them
     /// ([`over_alpha`]), so they are the bits the full composite would give.
+    ///
+    /// Inlined into both of `hand_out`'s instances: called from two, the compiler kept it
+    /// out of line, a call per task.
+    #[inline(always)]
     fn decide(&mut self, t: usize, first_wave: bool) -> Decision {
         let task = &self.inter.tasks[t];
         let r = self.inter.local_ray(task.ray);

@@ -54,14 +54,85 @@ pub fn encode_tasks(tasks: &[PieceTask]) -> Vec<u8> {
     put_varint(&mut out, tasks.len() as u64);
     let mut ray = 0u32;
     for t in tasks {
-        put_varint(&mut out, zigzag(t.ray as i64 - ray as i64));
-        ray = t.ray;
-        put_varint(&mut out, t.object as u64);
-        out.extend_from_slice(&t.front.to_le_bytes());
-        out.extend_from_slice(&t.t0.to_le_bytes());
-        out.extend_from_slice(&t.t1.to_le_bytes());
+        put_task(&mut out, &mut ray, t);
     }
     out
+}
+
+/// The most bytes one task takes on the wire: a ray step of up to 33 bits (5 bytes), an
+/// object of 16 bits (3), the front (2) and the bounds (16).
+const MAX_TASK_BYTES: usize = 5 + 3 + 2 + 16;
+
+/// Room left before the tasks for the count, which is known only at the end: a varint of
+/// up to 64 bits.
+const COUNT_ROOM: usize = 10;
+
+/// Appends task `t` (after a task of ray `ray`, which it updates) in [`encode_tasks`]' form.
+#[inline]
+fn put_task(out: &mut Vec<u8>, ray: &mut u32, t: &PieceTask) {
+    let mut buf = [0u8; MAX_TASK_BYTES];
+    let mut n = put_varint_into(&mut buf, 0, zigzag(t.ray as i64 - *ray as i64));
+    *ray = t.ray;
+    n = put_varint_into(&mut buf, n, t.object as u64);
+    buf[n..n + 2].copy_from_slice(&t.front.to_le_bytes());
+    buf[n + 2..n + 10].copy_from_slice(&t.t0.to_le_bytes());
+    buf[n + 10..n + 18].copy_from_slice(&t.t1.to_le_bytes());
+    out.extend_from_slice(&buf[..n + 18]);
+}
+
+/// Tasks written one at a time, as they are decided, into [`encode_tasks`]' form: the
+/// bytes are those `encode_tasks` makes of the same tasks, with no list of tasks between.
+pub struct TaskWriter {
+    out: Vec<u8>,
+    count: u64,
+    ray: u32,
+}
+
+impl TaskWriter {
+    /// A writer with room for `tasks` tasks.
+    pub fn with_capacity(tasks: usize) -> TaskWriter {
+        let mut out = Vec::with_capacity(COUNT_ROOM + tasks * MAX_TASK_BYTES);
+        out.resize(COUNT_ROOM, 0);
+        TaskWriter { out, count: 0, ray: 0 }
+    }
+
+    /// Appends `task`.
+    #[inline]
+    pub fn push(&mut self, task: &PieceTask) {
+        put_task(&mut self.out, &mut self.ray, task);
+        self.count += 1;
+    }
+
+    /// Makes room for `tasks` more tasks.
+    pub fn reserve(&mut self, tasks: usize) {
+        self.out.reserve(tasks * MAX_TASK_BYTES);
+    }
+
+    /// Tasks written so far.
+    pub fn len(&self) -> usize {
+        self.count as usize
+    }
+
+    /// Whether no task is written.
+    pub fn is_empty(&self) -> bool {
+        self.count == 0
+    }
+
+    /// Forgets every task written, keeping the buffer.
+    pub fn clear(&mut self) {
+        self.out.truncate(COUNT_ROOM);
+        (self.count, self.ray) = (0, 0);
+    }
+
+    /// The buffer, and where the encoding starts in it: `buf[start..]` is what
+    /// [`encode_tasks`] makes of the tasks written (the count goes just before them).
+    pub fn finish(mut self) -> (Vec<u8>, usize) {
+        let mut count = [0u8; COUNT_ROOM];
+        let n = put_varint_into(&mut count, 0, self.count);
+        let start = COUNT_ROOM - n;
+        self.out[start..COUNT_ROOM].copy_from_slice(&count[..n]);
+        (self.out, start)
+    }
 }
 
 /// Reads tasks written by [`encode_tasks`]. Whether each task makes sense for a scene
@@ -144,6 +215,18 @@ fn zigzag(v: i64) -> u64 {
 
 fn unzigzag(v: u64) -> i64 {
     (v >> 1) as i64 ^ -((v & 1) as i64)
+}
+
+/// [`put_varint`] into `buf` at `at`; returns where it ends.
+#[inline]
+fn put_varint_into(buf: &mut [u8], mut at: usize, mut v: u64) -> usize {
+    while v >= 0x80 {
+        buf[at] = v as u8 | 0x80;
+        v >>= 7;
+        at += 1;
+    }
+    buf[at] = v as u8;
+    at + 1
 }
 
 /// LEB128: seven bits a byte, low first.
@@ -246,6 +329,25 @@ mod tests {
         fn tasks_round_trip_bit_for_bit(tasks in prop::collection::vec(task(), 0..200)) {
             let back = decode_tasks(&encode_tasks(&tasks)).unwrap();
             prop_assert_eq!(back.iter().map(task_bits).collect::<Vec<_>>(), tasks.iter().map(task_bits).collect::<Vec<_>>());
+        }
+
+        #[test]
+        fn tasks_written_one_at_a_time_are_the_bytes_of_encode_tasks(
+            tasks in prop::collection::vec(task(), 0..200),
+            first in prop::collection::vec(task(), 0..5),
+        ) {
+            let mut writer = TaskWriter::with_capacity(1);
+            // A writer cleared after some tasks starts again from nothing.
+            for t in &first {
+                writer.push(t);
+            }
+            writer.clear();
+            for t in &tasks {
+                writer.push(t);
+            }
+            prop_assert_eq!(writer.len(), tasks.len());
+            let (buf, start) = writer.finish();
+            prop_assert_eq!(&buf[start..], &encode_tasks(&tasks)[..]);
         }
 
         #[test]

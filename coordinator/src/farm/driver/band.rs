@@ -19,10 +19,10 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use tokio::sync::mpsc;
-use trove_core::render::intersection::{intersect_within, Intersections};
+use trove_core::render::intersection::{intersect_within, recycle, Intersections};
 use trove_core::render::limits::max_band_tasks;
 use trove_core::render::schedule::Progress;
-use trove_core::render::wire::{decode_results, encode_tasks};
+use trove_core::render::wire::{decode_results, TaskWriter};
 use trove_core::render::Scheduler;
 use trove_core::scene::Scene;
 
@@ -159,7 +159,9 @@ fn run(start: Start, mut inbox: mpsc::UnboundedReceiver<ToBand>, events: &mpsc::
         Composited::of(&scene, rows, &scheduler, want_pfm)
     })?;
     let progress = scheduler.progress();
-    drop(scheduler);
+    // Its buffers go to the next band's intersection, which then writes memory that is
+    // already paged in.
+    recycle(scheduler.into_intersections());
     tell(News::Composited { part: Box::new(part), progress });
     Ok(())
 }
@@ -172,14 +174,18 @@ fn step(scheduler: &mut Scheduler, band: usize, message: ToBand) -> Option<News>
             let mut batches = Vec::with_capacity(n);
             while batches.len() < n {
                 let asked = Instant::now();
-                let next = scheduler.next_batch(dataset);
+                // Each task is encoded as it is decided (`next_batch_encoded`), so the
+                // dispatch time includes the encoding; what is left of encoding is the
+                // hand-over of the bytes.
+                let mut writer = TaskWriter::with_capacity(0);
+                let next = scheduler.next_batch_encoded(dataset, &mut writer);
                 let encoding = Instant::now();
                 seconds.dispatch += (encoding - asked).as_secs_f64();
                 let Some(batch) = next else { break };
-                let encoded = encode_tasks(&batch.tasks).into();
+                let (bytes, start) = writer.finish();
+                let encoded = prost::bytes::Bytes::from(bytes).slice(start..);
                 seconds.encoding += encoding.elapsed().as_secs_f64();
-                let tasks = batch.tasks.len() as u64;
-                batches.push(Ready { band, id: batch.id, attempt: batch.attempt, tasks, encoded });
+                batches.push(Ready { band, id: batch.id, attempt: batch.attempt, tasks: batch.tasks as u64, encoded });
             }
             let more = batches.len() == n;
             Some(News::Produced { dataset, asked: n, batches, more, progress: scheduler.progress(), seconds })

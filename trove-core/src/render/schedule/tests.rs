@@ -450,3 +450,50 @@ fn fronts_and_culls_are_those_of_full_compositing() {
     }
     assert!(culled_any > 50 && fronted > 50, "the scenes cull ({culled_any}) and set fronts ({fronted})");
 }
+
+/// Batches written straight into their wire form are the batches `next_batch` hands out,
+/// encoded: the same ids, attempts and bytes, through culls, fronts and a retried batch.
+#[test]
+fn encoded_batches_are_the_batches_encoded() {
+    use crate::render::wire::{encode_tasks, TaskWriter};
+    let mut batches = 0;
+    for seed in 0..20 {
+        let (scene, inter) = random_scene(seed, 23, 17, [0.6, 0.95, 0.999][seed as usize % 3]);
+        let mut listed = Scheduler::new(&scene, inter.clone(), 7).unwrap();
+        let mut encoded = Scheduler::new(&scene, inter, 7).unwrap();
+        let mut writer = TaskWriter::with_capacity(0);
+        let mut step = 0u64;
+        while !listed.is_complete() {
+            let order = listed.datasets().to_vec();
+            let mut handed = Vec::new();
+            for &d in &order {
+                loop {
+                    let (a, b) = match (listed.next_batch(d), encoded.next_batch_encoded(d, &mut writer)) {
+                        (Some(a), Some(b)) => (a, b),
+                        (None, None) => break,
+                        _ => panic!("seed {seed}: one scheduler handed out a batch and the other did not"),
+                    };
+                    assert_eq!((a.id, a.dataset, a.attempt, a.tasks.len()), (b.id, b.dataset, b.attempt, b.tasks));
+                    let (bytes, start) = std::mem::replace(&mut writer, TaskWriter::with_capacity(0)).finish();
+                    assert_eq!(&bytes[start..], &encode_tasks(&a.tasks)[..], "seed {seed}, batch {}", a.id);
+                    handed.push(a);
+                    batches += 1;
+                }
+            }
+            for (i, b) in handed.into_iter().enumerate() {
+                if i == 1 && b.attempt == 0 && step.is_multiple_of(3) {
+                    listed.abandon(b.id).unwrap();
+                    encoded.abandon(b.id).unwrap();
+                    continue;
+                }
+                let results: Vec<PieceRgba> =
+                    (0..b.tasks.len()).map(|k| rgba([0.1, 0.45, 0.8, 0.3][((step + k as u64) % 4) as usize])).collect();
+                step += 1;
+                listed.record(b.id, &results).unwrap();
+                encoded.record(b.id, &results).unwrap();
+            }
+        }
+        assert!(encoded.is_complete() && encoded.progress() == listed.progress(), "seed {seed}");
+    }
+    assert!(batches > 200, "{batches} batches");
+}
