@@ -133,7 +133,10 @@ impl ShadowPlan {
             let finest = (0..objects.len()).filter(|&o| o != receiver).map(|o| voxel[o]).fold(f64::INFINITY, f64::min);
             let edges = edges(objects[receiver].placement());
             let side = |edge: f64, scale: f64| {
-                let n = (edge * per_voxel * scale / finest).ceil() + 1.0;
+                // Lengths carry rounding (a turned box's sides differ in their last bits),
+                // so a ratio within 10⁻⁹ of a whole number is taken as that number: the
+                // lattice of a turned scene is the same lattice, turned.
+                let n = (edge * per_voxel * scale / finest * (1.0 - 1e-9)).ceil() + 1.0;
                 if n.is_finite() {
                     n.clamp(2.0, f64::from(Transmittance::MAX_SIDE)) as u32
                 } else {

@@ -246,3 +246,87 @@ fn lattice_error_of_the_example_scene() {
         a.pixels().len()
     );
 }
+
+/// [`scene_text`]'s ball over a floor with every position, direction and box turned by `r`
+/// about the world origin (the camera seeing it from a side, so the turn is not a symmetry).
+fn turned_text(r: glam::DMat3) -> String {
+    let v = |p: [f64; 3]| {
+        let q = r * DVec3::from(p);
+        format!("[{:.17e}, {:.17e}, {:.17e}]", q.x, q.y, q.z)
+    };
+    let matrix = |scale: [f64; 3], offset: [f64; 3]| {
+        let m = r * glam::DMat3::from_diagonal(DVec3::from(scale));
+        let t = r * DVec3::from(offset);
+        let row =
+            |i: usize| format!("[{:.17e}, {:.17e}, {:.17e}, {:.17e}]", m.x_axis[i], m.y_axis[i], m.z_axis[i], t[i]);
+        format!("{{ matrix = [{}, {}, {}, [0, 0, 0, 1]] }}", row(0), row(1), row(2))
+    };
+    format!(
+        r#"
+[image]
+width = 32
+height = 32
+background = [0.0, 0.0, 0.0]
+[camera]
+eye = {eye}
+target = {target}
+up = {up}
+fov_y = 45.0
+[[lights]]
+type = "directional"
+direction = {sun}
+shadows = true
+[[lights]]
+type = "point"
+position = {lamp}
+intensity = 0.4
+shadows = true
+[[datasets]]
+name = "floor"
+dims = [24, 6, 24]
+[datasets.channels.voxel]
+generator = {{ kind = "ramp", axis = "y", from = 1.0, to = 0.0 }}
+[[datasets]]
+name = "ball"
+dims = [16, 16, 16]
+[datasets.channels.voxel]
+generator = {{ kind = "sphere", radius = 0.5, profile = "radial", value = 1.0, type = "f32" }}
+[[objects]]
+name = "floor"
+dataset = "floor"
+colour = {{ type = "constant", red = [0.8], green = [0.8], blue = [0.7] }}
+opacity = {{ type = "ramp", points = [[0.3, 0.0], [0.7, 1.0]] }}
+shading = {{ ambient = 0.25, diffuse = 0.8 }}
+transform = {floor}
+[[objects]]
+name = "ball"
+dataset = "ball"
+colour = {{ type = "constant", red = [0.9], green = [0.3], blue = [0.2] }}
+opacity = {{ type = "ramp", points = [[0.0, 0.0], [0.2, 1.0]] }}
+shading = {{ ambient = 0.2, diffuse = 0.8, specular = 0.3, shininess = 20.0 }}
+transform = {ball}
+"#,
+        eye = v([1.5, 2.5, 2.8]),
+        target = v([0.0, 0.0, 0.0]),
+        up = v([0.0, 1.0, 0.0]),
+        sun = v([1.0, -1.0, -0.3]),
+        lamp = v([-1.5, 1.5, 1.0]),
+        floor = matrix([2.0, 0.3, 2.0], [-1.0, -0.3, -1.0]),
+        ball = matrix([0.6, 0.6, 0.6], [-0.7, 0.3, -0.3]),
+    )
+}
+
+#[test]
+fn turning_the_objects_their_lights_and_the_camera_together_leaves_the_shadows_unchanged() {
+    let r = glam::DMat3::from_axis_angle(DVec3::new(1.0, 2.0, 0.5).normalize(), 0.7);
+    let still = Scene::parse(&turned_text(glam::DMat3::IDENTITY), "still.toml").unwrap();
+    let turned = Scene::parse(&turned_text(r), "turned.toml").unwrap();
+    let (a, b) = (rendered(&still, Algorithm::PerRay), rendered(&turned, Algorithm::PerRay));
+    // The lattices turn with the boxes they lie on, so only rounding moves.
+    let d = max_difference(&a, &b);
+    assert!(d < 1e-6, "the turned image differs by {d}");
+    // And the shadows matter here: without them the image is another.
+    let unshadowed =
+        Scene::parse(&turned_text(glam::DMat3::IDENTITY).replace("shadows = true", "shadows = false"), "u.toml");
+    assert!(max_difference(&a, &rendered(&unshadowed.unwrap(), Algorithm::PerRay)) > 0.1);
+}
