@@ -198,6 +198,7 @@ impl ShadowPlan {
             }
             let light = scene.lights()[lattice.light];
             let receiver = scene.objects()[lattice.receiver].placement();
+            let reach_of = Ball::around(object.placement());
             let points: Vec<usize> = (0..lattice.len()).collect();
             let values: Vec<f32> = points
                 .par_chunks(CHUNK)
@@ -207,6 +208,11 @@ impl ShadowPlan {
                     for (slot, &n) in chunk.iter().enumerate() {
                         let x = receiver.world_of_box(lattice.box_point(n));
                         let Some((l, reach)) = light.towards(x) else { continue };
+                        // Most shadow rays pass far from a given object: a ball around its
+                        // box turns them away before the box itself is tested.
+                        if reach_of.misses(x, l, reach) {
+                            continue;
+                        }
                         let ray = Ray { origin: x, dir: l };
                         if let Some((t0, t1)) = object.placement().segment(&ray) {
                             let t1 = t1.min(reach);
@@ -266,6 +272,32 @@ impl ShadowPlan {
             return Err(ShadowError::Factors { lattice: f.lattice, occluder: f.occluder });
         }
         Ok(maps)
+    }
+}
+
+/// A ball holding a box (it holds the box's corners, whose hull holds the box).
+struct Ball {
+    centre: DVec3,
+    /// Its radius, widened so that rounding never turns away a ray that meets the box.
+    radius: f64,
+}
+
+impl Ball {
+    fn around(p: &Placement) -> Ball {
+        let c = p.corners();
+        let centre = c.iter().fold(DVec3::ZERO, |a, &x| a + x) / 8.0;
+        let radius = c.iter().map(|&x| (x - centre).length()).fold(0.0, f64::max);
+        Ball { centre, radius: radius * (1.0 + 1e-6) + 1e-9 * centre.abs().max_element() }
+    }
+
+    /// Whether the ray from `x` along unit `l`, for t in [0, `reach`], stays out of the ball
+    /// (so out of the box: no segment, no factor).
+    #[inline]
+    fn misses(&self, x: DVec3, l: DVec3, reach: f64) -> bool {
+        let w = self.centre - x;
+        let t = w.dot(l);
+        let r = self.radius;
+        t < -r || t - r > reach || (w.length_squared() - t * t) > r * r
     }
 }
 
