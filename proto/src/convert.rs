@@ -27,7 +27,7 @@ pub fn scene_digest(
     scene_toml: &str,
     scene_name: &str,
     headers: &[pb::DatasetFile],
-    shadow_maps: &[pb::ShadowMap],
+    shadow_maps: Option<&[pb::ShadowMap]>,
 ) -> [u8; 32] {
     use sha2::{Digest, Sha256};
     let mut h = Sha256::new();
@@ -39,8 +39,9 @@ pub fn scene_digest(
     for header in headers {
         h.update(header.encode_length_delimited_to_vec());
     }
-    // A scene without shadows hashes as it did before maps existed.
-    if !shadow_maps.is_empty() {
+    // A scene without shadow maps hashes as it did before maps existed.
+    if let Some(shadow_maps) = shadow_maps {
+        h.update(b"shadow maps");
         h.update((shadow_maps.len() as u64).to_le_bytes());
         for map in shadow_maps {
             h.update(map.encode_length_delimited_to_vec());
@@ -49,17 +50,46 @@ pub fn scene_digest(
     h.finalize().into()
 }
 
-/// f32s as little-endian bytes (shadow factors and maps on the wire).
-pub fn f32_bytes(values: &[f32]) -> Vec<u8> {
-    values.iter().flat_map(|v| v.to_le_bytes()).collect()
+/// Shadow factors and maps on the wire: most of a lattice's values are exactly 1 (rays
+/// that meet nothing), so the values go as runs, each a u32 count of values that are 1, a
+/// u32 count n of values that follow, and those n f32s, all little-endian.
+pub fn unit_runs(values: &[f32]) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < values.len() {
+        let ones = values[i..].iter().take_while(|&&v| v == 1.0).count();
+        i += ones;
+        let others = values[i..].iter().take_while(|&&v| v != 1.0).count();
+        out.extend((ones as u32).to_le_bytes());
+        out.extend((others as u32).to_le_bytes());
+        values[i..i + others].iter().for_each(|v| out.extend(v.to_le_bytes()));
+        i += others;
+    }
+    out
 }
 
-/// Little-endian bytes as f32s; `None` when their length is not a multiple of 4.
-pub fn f32s_of(bytes: &[u8]) -> Option<Vec<f32>> {
-    bytes
-        .len()
-        .is_multiple_of(4)
-        .then(|| bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
+/// [`unit_runs`]' inverse for `len` values; `None` for bytes that are not runs of exactly
+/// `len` values.
+pub fn from_unit_runs(bytes: &[u8], len: usize) -> Option<Vec<f32>> {
+    let mut out = Vec::with_capacity(len);
+    let mut rest = bytes;
+    let word = |rest: &mut &[u8]| -> Option<[u8; 4]> {
+        let (w, tail) = rest.split_first_chunk::<4>()?;
+        *rest = tail;
+        Some(*w)
+    };
+    while !rest.is_empty() {
+        let ones = u32::from_le_bytes(word(&mut rest)?) as usize;
+        let others = u32::from_le_bytes(word(&mut rest)?) as usize;
+        if out.len() + ones + others > len {
+            return None;
+        }
+        out.resize(out.len() + ones, 1.0);
+        for _ in 0..others {
+            out.push(f32::from_le_bytes(word(&mut rest)?));
+        }
+    }
+    (out.len() == len).then_some(out)
 }
 
 /// The maps of a scene's shadow plan as `CastOpen` carries them.
@@ -72,7 +102,7 @@ pub fn shadow_maps_to_wire(maps: &[Option<Vec<Option<trove_core::scene::Transmit
                     object: object as u32,
                     light: light as u32,
                     dims: t.dims().to_vec(),
-                    values: f32_bytes(t.values()),
+                    values: unit_runs(t.values()),
                 });
             }
         }
@@ -99,7 +129,9 @@ pub fn attach_shadow_maps(
             .ok_or_else(|| format!("a shadow map for object {o} and light {l}, which the scene has no use for"))?;
         let dims: [u32; 3] =
             m.dims.as_slice().try_into().map_err(|_| format!("shadow map {o}/{l}: dims {:?}", m.dims))?;
-        let values = f32s_of(&m.values).ok_or_else(|| format!("shadow map {o}/{l}: {} bytes", m.values.len()))?;
+        let len = dims.iter().map(|&n| n as usize).product();
+        let values = from_unit_runs(&m.values, len)
+            .ok_or_else(|| format!("shadow map {o}/{l}: {} bytes that are not {len} values", m.values.len()))?;
         let t = trove_core::scene::Transmittance::new(dims, values).map_err(|e| format!("shadow map {o}/{l}: {e}"))?;
         *slot = Some(t);
     }
@@ -357,8 +389,28 @@ opacity = { type = "ramp", points = [[0.0, 0.0], [1.0, 1.0]] }
         assert!(bad(|m| m.object = 9).contains("no use for"));
         assert!(bad(|m| m.dims = vec![2, 3]).contains("dims"));
         assert!(bad(|m| m.values.truncate(45)).contains("bytes"));
-        assert!(bad(|m| m.values.truncate(44)).contains("values"));
-        assert!(bad(|m| m.values[0..4].copy_from_slice(&2.0f32.to_le_bytes())).contains("[0, 1]"));
+        assert!(bad(|m| m.values.truncate(44)).contains("bytes"));
+        assert!(bad(|m| m.values[8..12].copy_from_slice(&2.0f32.to_le_bytes())).contains("[0, 1]"));
+    }
+
+    #[test]
+    fn unit_runs_round_trip_and_refuse_what_is_not_runs_of_the_length() {
+        for values in [vec![], vec![1.0; 5], vec![0.5; 3], vec![1.0, 0.0, 0.25, 1.0, 1.0, 0.75, 1.0], vec![0.0, 1.0]] {
+            let bytes = unit_runs(&values);
+            assert_eq!(from_unit_runs(&bytes, values.len()), Some(values.clone()));
+            assert_eq!(from_unit_runs(&bytes, values.len() + 1), None);
+            if !bytes.is_empty() {
+                assert_eq!(from_unit_runs(&bytes[..bytes.len() - 1], values.len()), None);
+            }
+        }
+        // A lattice that is mostly 1 costs little.
+        let mut mostly = vec![1.0f32; 10_000];
+        mostly[5000..5010].fill(0.5);
+        assert_eq!(unit_runs(&mostly).len(), 2 * 8 + 40);
+        // Counts that overrun the length are refused without allocating them.
+        let mut huge = u32::MAX.to_le_bytes().to_vec();
+        huge.extend(0u32.to_le_bytes());
+        assert_eq!(from_unit_runs(&huge, 4), None);
     }
 
     #[test]

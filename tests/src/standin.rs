@@ -129,7 +129,12 @@ impl Answers {
         let id: [u8; 32] = if open.scene_toml.is_empty() {
             open.scene_digest.as_slice().try_into().unwrap_or_default()
         } else {
-            convert::scene_digest(&open.scene_toml, &open.scene_name, &open.headers, &open.shadow_maps)
+            convert::scene_digest(
+                &open.scene_toml,
+                &open.scene_name,
+                &open.headers,
+                open.shadow_maps_computed.then_some(&open.shadow_maps[..]),
+            )
         };
         let answers = match scenes.get(&id) {
             Some(a) => a.clone(),

@@ -97,6 +97,12 @@ fn a_scene_with_shadows_renders_through_the_farm_as_in_local_mode() {
             assert_eq!(e["ran"], serde_json::json!(["shading", "shadows"]), "{e}");
             assert!(e["shadow_lookups"].as_u64().is_some_and(|n| n > 0), "{e}");
         }
+        // One lit object alone: its shadow pass finds nothing else between it and the
+        // light, so no map goes with the scene, and its own share still renders.
+        let lone = generated_scene(16)
+            + "shading = {}\n[[lights]]\ntype = \"directional\"\ndirection = [0.3, -1.0, -0.5]\nshadows = true\n";
+        let files = farm.render(&lone, "lone.toml", false).unwrap_or_else(|e| panic!("{workers} workers, lone: {e}"));
+        assert!(files.png == local_png(&lone, "lone.toml", &dir), "{workers} workers: the lone object differs");
     }
 }
 

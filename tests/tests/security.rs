@@ -83,6 +83,7 @@ fn open_stream(scene: &str) -> (mpsc::Sender<pb::CastRequest>, ReceiverStream<pb
         headers: Vec::new(),
         scene_digest: Vec::new(),
         shadow_maps: Vec::new(),
+        shadow_maps_computed: false,
     };
     tx.try_send(pb::CastRequest { kind: Some(pb::cast_request::Kind::Open(open)) }).unwrap();
     (tx, ReceiverStream::new(rx))

@@ -229,7 +229,7 @@ pub fn parse_job_scene(files: &DataFiles, open: &pb::CastOpen) -> Result<Scene, 
     let catalog = JobCatalog { files, others };
     let scene = Scene::parse_with(&open.scene_toml, std::path::Path::new(&open.scene_name), &catalog)
         .map_err(|e| convert::failure_status(convert::scene_failure(&e)))?;
-    if open.shadow_maps.is_empty() {
+    if !open.shadow_maps_computed {
         return Ok(scene);
     }
     convert::attach_shadow_maps(&scene, &open.shadow_maps).map_err(|e| {
@@ -297,11 +297,24 @@ fn shadow_factors(
             factors.push(pb::ShadowFactors {
                 lattice: f.lattice as u32,
                 occluder: f.occluder as u32,
-                values: convert::f32_bytes(&f.values),
+                values: convert::unit_runs(&f.values),
             });
         }
     }
-    Ok(pb::ShadowReply { factors })
+    let reply = pb::ShadowReply { factors };
+    // Larger than a message may be: refused by name, not failed by the transport.
+    if prost::Message::encoded_len(&reply) > trove_proto::MAX_MESSAGE_BYTES - (1 << 16) {
+        let message = format!(
+            "lights: the shadow factors of dataset `{}` take {} bytes, more than a farm message holds; render \
+             this scene in local mode, or cast shadows from fewer lights",
+            scene.datasets()[d].name(),
+            prost::Message::encoded_len(&reply)
+        );
+        let mut f = convert::failure(pb::Reason::LimitExceeded, false, message);
+        f.key = "lights".into();
+        return Err(convert::failure_status(f));
+    }
+    Ok(reply)
 }
 
 #[tonic::async_trait]

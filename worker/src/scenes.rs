@@ -88,7 +88,12 @@ impl JobScenes {
             self.reused.fetch_add(1, Ordering::Relaxed);
             return Ok(scene);
         }
-        let digest = scene_digest(&open.scene_toml, &open.scene_name, &open.headers, &open.shadow_maps);
+        let digest = scene_digest(
+            &open.scene_toml,
+            &open.scene_name,
+            &open.headers,
+            open.shadow_maps_computed.then_some(&open.shadow_maps[..]),
+        );
         if !open.scene_digest.is_empty() && open.scene_digest[..] != digest[..] {
             return Err(SceneRefusal::Mismatch);
         }
@@ -166,14 +171,15 @@ mod tests {
             scene_name: "t.toml".into(),
             dataset,
             headers: vec![],
-            scene_digest: scene_digest(text, "t.toml", &[], &[]).to_vec(),
+            scene_digest: scene_digest(text, "t.toml", &[], None).to_vec(),
             shadow_maps: vec![],
+            shadow_maps_computed: false,
         }
     }
 
     /// An open naming `text`'s scene by digest alone.
     fn by_digest(text: &str, dataset: u32) -> pb::CastOpen {
-        let digest = scene_digest(text, "t.toml", &[], &[]).to_vec();
+        let digest = scene_digest(text, "t.toml", &[], None).to_vec();
         pb::CastOpen { dataset, scene_digest: digest, ..Default::default() }
     }
 
@@ -200,7 +206,7 @@ mod tests {
         short.scene_digest.truncate(8);
         assert_eq!(scenes.get_or_parse(&short, never).unwrap_err(), SceneRefusal::Unknown);
         let mut wrong = open("a", 0, "j");
-        wrong.scene_digest = scene_digest("b", "t.toml", &[], &[]).to_vec();
+        wrong.scene_digest = scene_digest("b", "t.toml", &[], None).to_vec();
         assert_eq!(scenes.get_or_parse(&wrong, never).unwrap_err(), SceneRefusal::Mismatch);
         // A failed parse is not a scene held.
         assert_eq!(scenes.get_or_parse(&open("a", 0, "j"), || Err("bad")).unwrap_err(), SceneRefusal::Parse("bad"));

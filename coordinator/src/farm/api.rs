@@ -14,7 +14,6 @@ use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
 use trove_core::render::limits::LimitError;
-use trove_core::render::shadow::ShadowPlan;
 use trove_core::scene::Scene;
 use trove_proto::convert;
 use trove_proto::v1 as pb;
@@ -64,23 +63,6 @@ fn plan(farm: &Farm, request: pb::SubmitJobRequest) -> Result<JobPlan, Status> {
     let name = if request.scene_name.is_empty() { "scene.toml".to_string() } else { request.scene_name };
     let scene = Scene::parse_with(&request.scene_toml, std::path::Path::new(&name), &catalog)
         .map_err(|e| convert::failure_status(convert::scene_failure(&e)))?;
-    // A scene with shadows carries its lattices to the workers with the scene, in one
-    // message: refused at once where they would not fit one.
-    let lattices: u64 = ShadowPlan::of(&scene).lattices().iter().map(|l| 4 * l.len() as u64).sum();
-    let room = (trove_proto::MAX_MESSAGE_BYTES as u64).saturating_sub(request.scene_toml.len() as u64 + (1 << 20));
-    if lattices > room {
-        let mut f = convert::failure(
-            pb::Reason::LimitExceeded,
-            false,
-            format!(
-                "{name}: lights: the shadows' lattices take {lattices} bytes, more than the {room} a farm message has \
-                 room for; render this scene in local mode, or cast shadows from fewer lights"
-            ),
-        );
-        f.file = name.clone();
-        f.key = "lights".into();
-        return Err(convert::limit_status(f));
-    }
     // The work and memory the job would take, checked before it is queued: its tasks
     // counted without storing one, each band as the driver will size it, and its PFM.
     let options = request.options.unwrap_or_default();

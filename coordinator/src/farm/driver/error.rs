@@ -62,6 +62,17 @@ pub enum JobError {
         /// The panic's message.
         message: String,
     },
+    /// The scene's shadow maps, as they go with the scene, would not fit one message.
+    #[error(
+        "lights: the shadows' lattices take {bytes} bytes on the wire, more than the {room} a farm message has room for; \
+         render this scene in local mode, or cast shadows from fewer lights"
+    )]
+    ShadowMaps {
+        /// Their encoded size.
+        bytes: u64,
+        /// What a message has room for beside the scene.
+        room: u64,
+    },
     /// A client cancelled the job.
     #[error("the job was cancelled")]
     Cancelled,
@@ -89,6 +100,11 @@ impl JobError {
                 f
             }
             JobError::Band { .. } => convert::failure(pb::Reason::LimitExceeded, false, message),
+            JobError::ShadowMaps { .. } => {
+                let mut f = convert::failure(pb::Reason::LimitExceeded, false, message);
+                f.key = "lights".into();
+                f
+            }
             JobError::Limit(e) => convert::limit_failure(e),
             JobError::DeadlineExceeded { .. } => convert::failure(pb::Reason::DeadlineExceeded, false, message),
             JobError::Panicked { .. } => convert::failure(pb::Reason::Internal, false, message),
@@ -129,6 +145,8 @@ mod tests {
         assert_eq!(JobError::Cancelled.to_failure().reason(), pb::Reason::Cancelled);
         let f = JobError::DeadlineExceeded { deadline: Duration::from_secs(2) }.to_failure();
         assert!(f.reason() == pb::Reason::DeadlineExceeded && !f.retryable && f.message.contains("2 s"), "{f:?}");
+        let f = JobError::ShadowMaps { bytes: 20, room: 10 }.to_failure();
+        assert!(f.reason() == pb::Reason::LimitExceeded && f.key == "lights" && !f.retryable, "{f:?}");
         let f = JobError::Panicked { step: "composition", message: "boom".into() }.to_failure();
         assert!(f.reason() == pb::Reason::Internal && f.message.contains("composition step panicked: boom"), "{f:?}");
     }

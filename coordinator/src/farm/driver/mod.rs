@@ -161,8 +161,9 @@ struct Driver {
     /// The scene's SHA-256 (`convert::scene_digest`): what names it on streams that do not
     /// carry it.
     scene_digest: Vec<u8>,
-    /// The scene's shadow maps (`shadows.rs`), carried with the scene: none without shadows.
-    shadow_maps: Vec<pb::ShadowMap>,
+    /// The scene's shadow maps (`shadows.rs`), carried with the scene, once its shadow pass
+    /// ran: `None` without shadows.
+    shadow_maps: Option<Vec<pb::ShadowMap>>,
     /// Workers that accepted a stream of this job carrying the scene: they hold it, and the
     /// job's other streams to them name it by digest alone.
     scene_on: HashSet<String>,
@@ -214,7 +215,7 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     let metrics = config.metrics.clone();
     let datasets = plan.scene.datasets().len();
     // Without shadow maps: the shadow pass, where there is one, sets it again with them.
-    let scene_digest = convert::scene_digest(&plan.scene_toml, &plan.scene_name, &plan.headers, &[]).to_vec();
+    let scene_digest = convert::scene_digest(&plan.scene_toml, &plan.scene_name, &plan.headers, None).to_vec();
     let mut driver = Driver {
         bands: Bands::<BandState>::new(h, band_rows, admission),
         band_tx: HashMap::new(),
@@ -230,7 +231,7 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         opening: Vec::new(),
         next_serial: 0,
         scene_digest,
-        shadow_maps: Vec::new(),
+        shadow_maps: None,
         scene_on: HashSet::new(),
         stock: (0..datasets).map(|_| Stock::default()).collect(),
         active: BTreeSet::new(),

@@ -46,6 +46,7 @@ impl Driver {
                 headers: self.plan.headers.clone(),
                 scene_digest: self.scene_digest.clone(),
                 shadow_maps: Vec::new(),
+                shadow_maps_computed: false,
             };
             self.tally.wire_to += open.encoded_len() as u64;
             let dataset = scene.datasets()[d].name().to_string();
@@ -64,7 +65,8 @@ impl Driver {
                         format!("its shadow factors of object {} do not fit the scene's plan", f.occluder),
                     )),
                 };
-                let values = convert::f32s_of(&f.values).ok_or_else(bad)?;
+                let len = plan.lattices().get(f.lattice as usize).map(|l| l.len()).ok_or_else(bad)?;
+                let values = convert::from_unit_runs(&f.values, len).ok_or_else(bad)?;
                 factors.push(Factors { lattice: f.lattice as usize, occluder: f.occluder as usize, values });
             }
         }
@@ -72,10 +74,17 @@ impl Driver {
             worker: "(a shadow answer)".into(),
             failure: Box::new(convert::failure(pb::Reason::BadBatch, false, e.to_string())),
         })?;
-        self.shadow_maps = convert::shadow_maps_to_wire(&maps);
+        let shadow_maps = convert::shadow_maps_to_wire(&maps);
+        let bytes: u64 = shadow_maps.iter().map(|m| m.encoded_len() as u64).sum();
+        let scene_bytes = self.plan.scene_toml.len() + self.plan.headers.iter().map(|h| h.encoded_len()).sum::<usize>();
+        let room = (trove_proto::MAX_MESSAGE_BYTES as u64).saturating_sub(scene_bytes as u64 + (1 << 16));
+        if bytes > room {
+            return Err(JobError::ShadowMaps { bytes, room });
+        }
         self.scene_digest =
-            convert::scene_digest(&self.plan.scene_toml, &self.plan.scene_name, &self.plan.headers, &self.shadow_maps)
+            convert::scene_digest(&self.plan.scene_toml, &self.plan.scene_name, &self.plan.headers, Some(&shadow_maps))
                 .to_vec();
+        self.shadow_maps = Some(shadow_maps);
         self.tally.stats.seconds.shadows += started.elapsed().as_secs_f64();
         Ok(())
     }

@@ -30,7 +30,7 @@ impl Driver {
                 self.plan.scene_toml.clone(),
                 self.plan.scene_name.clone(),
                 self.plan.headers.clone(),
-                self.shadow_maps.clone(),
+                self.shadow_maps.clone().unwrap_or_default(),
             )
         } else {
             Default::default()
@@ -44,6 +44,7 @@ impl Driver {
                 headers,
                 scene_digest: self.scene_digest.clone(),
                 shadow_maps,
+                shadow_maps_computed: carries_scene && self.shadow_maps.is_some(),
             })),
         };
         self.tally.wire_to += open.encoded_len() as u64;
