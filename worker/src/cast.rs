@@ -37,9 +37,9 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 use trove_core::dataset::{Catalog, DatasetError, FileInfo, FileKind};
 use trove_core::render::dispatch;
-use trove_core::render::shadow::{opacity_caster, ShadowPlan};
+use trove_core::render::shadow::{dataset_factors, ShadowPlan};
 use trove_core::render::wire::{decode_tasks, encode_results};
-use trove_core::render::{BatchCaster, PieceRgba, VolumeStore};
+use trove_core::render::{BatchCaster, PieceRgba, RenderError, VolumeStore};
 use trove_core::scene::Scene;
 use trove_proto::convert::{self, JOB_HEADER};
 use trove_proto::v1 as pb;
@@ -282,33 +282,30 @@ fn shadow_factors(
     open: &pb::CastOpen,
 ) -> Result<pb::ShadowReply, Status> {
     let (scene, d) = open_job(files, scenes, open)?;
-    let plan = ShadowPlan::of(&scene);
-    let objects: Vec<usize> =
-        (0..scene.objects().len()).filter(|&o| scene.objects()[o].dataset() == d && plan.has_work_for(o)).collect();
-    let mut factors = Vec::new();
-    if objects.is_empty() {
-        return Ok(pb::ShadowReply { factors });
-    }
-    let volume = store.get(&scene.datasets()[d]).map_err(|e| convert::failure_status(convert::store_failure(&e)))?;
-    for o in objects {
-        let caster =
-            opacity_caster(&scene, o, &volume).map_err(|e| convert::failure_status(convert::cast_failure(&e)))?;
-        for f in plan.factors(&scene, o, &caster) {
-            factors.push(pb::ShadowFactors {
-                lattice: f.lattice as u32,
-                occluder: f.occluder as u32,
-                values: convert::unit_runs(&f.values),
-            });
-        }
-    }
+    let factors = dataset_factors(&scene, &ShadowPlan::of(&scene), d, store).map_err(|e| {
+        let f = match &e {
+            RenderError::Store(e) => convert::store_failure(e),
+            RenderError::Cast(e) => convert::cast_failure(e),
+            other => convert::failure(pb::Reason::Internal, false, other.to_string()),
+        };
+        convert::failure_status(f)
+    })?;
+    let factors = factors
+        .into_iter()
+        .map(|f| pb::ShadowFactors {
+            lattice: f.lattice as u32,
+            occluder: f.occluder as u32,
+            values: convert::unit_runs(&f.values),
+        })
+        .collect();
     let reply = pb::ShadowReply { factors };
     // Larger than a message may be: refused by name, not failed by the transport.
-    if prost::Message::encoded_len(&reply) > trove_proto::MAX_MESSAGE_BYTES - (1 << 16) {
+    let bytes = prost::Message::encoded_len(&reply);
+    if bytes > trove_proto::MAX_MESSAGE_BYTES - (1 << 16) {
         let message = format!(
-            "lights: the shadow factors of dataset `{}` take {} bytes, more than a farm message holds; render \
+            "lights: the shadow factors of dataset `{}` take {bytes} bytes, more than a farm message holds; render \
              this scene in local mode, or cast shadows from fewer lights",
             scene.datasets()[d].name(),
-            prost::Message::encoded_len(&reply)
         );
         let mut f = convert::failure(pb::Reason::LimitExceeded, false, message);
         f.key = "lights".into();

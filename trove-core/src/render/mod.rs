@@ -143,7 +143,7 @@ fn render_onto<C: Canvas>(scene: &Scene, options: &RenderOptions, linear: bool) 
     let work = limits::Work::count(scene)?;
     // Shadows first (SPEC §6): one visit of each dataset for the other objects' shares.
     let (scene, shadow_seconds) = shadow::attach(scene, &store)?;
-    let scene = &scene;
+    let scene: &Scene = &scene;
     let mut rendered = match options.algorithm {
         Algorithm::PerRay => {
             let Rendered { image, stats } = per_ray::render(scene, &store, options.progress.as_ref())?;

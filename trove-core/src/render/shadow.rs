@@ -22,6 +22,7 @@
 //! same f32 values) and hands the lattices to the workers with the scene. Its cost and its
 //! error against SPEC §6's definition are in `docs/shadows.md`.
 
+use std::borrow::Cow;
 use std::time::Instant;
 
 use glam::DVec3;
@@ -186,11 +187,23 @@ impl ShadowPlan {
         self.lattices.iter().any(|l| l.receiver != o)
     }
 
+    /// The datasets, in order of first use, of which some object shades some lattice: the
+    /// ones the shadow pass visits.
+    pub fn datasets_with_work(&self, scene: &Scene) -> Vec<usize> {
+        let objects = scene.objects();
+        scene
+            .used_datasets()
+            .into_iter()
+            .filter(|&d| (0..objects.len()).any(|o| objects[o].dataset() == d && self.has_work_for(o)))
+            .collect()
+    }
+
     /// Object `occluder`'s factors on every lattice but its own, cast by `caster` (the object
     /// bound opacity-only, [`opacity_caster`]); lattices it does not shade anywhere (every
     /// factor 1) are left out. Shadow rays are cast [`CHUNK`] at a time on rayon's threads.
     pub fn factors(&self, scene: &Scene, occluder: usize, caster: &ObjectCaster<'_>) -> Vec<Factors> {
         let object = &scene.objects()[occluder];
+        let reach_of = Ball::around(object.placement());
         let mut out = Vec::new();
         for (index, lattice) in self.lattices.iter().enumerate() {
             if lattice.receiver == occluder {
@@ -198,14 +211,14 @@ impl ShadowPlan {
             }
             let light = scene.lights()[lattice.light];
             let receiver = scene.objects()[lattice.receiver].placement();
-            let reach_of = Ball::around(object.placement());
-            let points: Vec<usize> = (0..lattice.len()).collect();
-            let values: Vec<f32> = points
-                .par_chunks(CHUNK)
-                .flat_map_iter(|chunk| {
+            let len = lattice.len();
+            let values: Vec<f32> = (0..len.div_ceil(CHUNK))
+                .into_par_iter()
+                .flat_map_iter(|c| {
+                    let chunk = c * CHUNK..((c + 1) * CHUNK).min(len);
                     let mut requests = Vec::with_capacity(chunk.len());
                     let mut slots = vec![None; chunk.len()];
-                    for (slot, &n) in chunk.iter().enumerate() {
+                    for (slot, n) in chunk.enumerate() {
                         let x = receiver.world_of_box(lattice.box_point(n));
                         let Some((l, reach)) = light.towards(x) else { continue };
                         // Most shadow rays pass far from a given object: a ball around its
@@ -330,41 +343,54 @@ pub fn opacity_caster<'a>(
         .map_err(|source| CastError::Bind { object: o.name().to_string(), source })
 }
 
+/// The factors that the objects of dataset `d` contribute to `plan`'s lattices, the dataset
+/// loaded from `store` only where one of them has some to give: the shadow pass's visit of
+/// one dataset, locally ([`attach`]) and on a farm worker alike.
+pub fn dataset_factors(
+    scene: &Scene,
+    plan: &ShadowPlan,
+    d: usize,
+    store: &VolumeStore,
+) -> Result<Vec<Factors>, RenderError> {
+    let objects: Vec<usize> =
+        (0..scene.objects().len()).filter(|&o| scene.objects()[o].dataset() == d && plan.has_work_for(o)).collect();
+    let mut factors = Vec::new();
+    if objects.is_empty() {
+        return Ok(factors);
+    }
+    let volume = store.get(&scene.datasets()[d])?;
+    for o in objects {
+        let caster = opacity_caster(scene, o, &volume)?;
+        factors.extend(plan.factors(scene, o, &caster));
+    }
+    Ok(factors)
+}
+
 /// `scene` with its shadow maps computed and attached ([`Scene::with_shadow_maps`]), each
-/// dataset loaded once from `store` for it; the scene unchanged where it casts no shadows
-/// or has its maps already.
-/// Returns the seconds spent.
-pub fn attach(scene: &Scene, store: &VolumeStore) -> Result<(Scene, f64), RenderError> {
-    // Maps attached already (by the caller, or a farm's coordinator) are kept.
+/// dataset loaded once from `store` for it; `scene` itself, not a copy, where it casts no
+/// shadows or has its maps already (by the caller, or a farm's coordinator). Returns the
+/// seconds spent.
+pub fn attach<'a>(scene: &'a Scene, store: &VolumeStore) -> Result<(Cow<'a, Scene>, f64), RenderError> {
     if scene.objects().iter().all(|o| !o.needs_shadow_maps() || o.shadow_maps().is_some()) {
-        return Ok((scene.clone(), 0.0));
+        return Ok((Cow::Borrowed(scene), 0.0));
     }
     attach_planned(scene, &ShadowPlan::of(scene), store)
 }
 
 /// [`attach`] with the lattices of `plan`.
-pub(crate) fn attach_planned(
-    scene: &Scene,
+pub(crate) fn attach_planned<'a>(
+    scene: &'a Scene,
     plan: &ShadowPlan,
     store: &VolumeStore,
-) -> Result<(Scene, f64), RenderError> {
+) -> Result<(Cow<'a, Scene>, f64), RenderError> {
     let started = Instant::now();
     if plan.is_empty() {
-        return Ok((scene.clone(), 0.0));
+        return Ok((Cow::Borrowed(scene), 0.0));
     }
     let mut factors = Vec::new();
-    for d in scene.used_datasets() {
-        let objects: Vec<usize> =
-            (0..scene.objects().len()).filter(|&o| scene.objects()[o].dataset() == d && plan.has_work_for(o)).collect();
-        if objects.is_empty() {
-            continue;
-        }
-        let volume = store.get(&scene.datasets()[d])?;
-        for o in objects {
-            let caster = opacity_caster(scene, o, &volume)?;
-            factors.extend(plan.factors(scene, o, &caster));
-        }
+    for d in plan.datasets_with_work(scene) {
+        factors.extend(dataset_factors(scene, plan, d, store)?);
     }
     let maps = plan.combine(scene, factors).expect("factors computed from this plan fit it");
-    Ok((scene.with_shadow_maps(maps), started.elapsed().as_secs_f64()))
+    Ok((Cow::Owned(scene.with_shadow_maps(maps)), started.elapsed().as_secs_f64()))
 }

@@ -30,7 +30,7 @@ fn scenes() -> Vec<(PathBuf, PathBuf)> {
 /// `scene` with the other objects' shares of its shadows computed (SPEC §6): the same for
 /// every path compared, which then differ only in how they cast.
 fn with_shadow_maps(scene: Scene) -> Scene {
-    crate::render::shadow::attach(&scene, &crate::render::VolumeStore::new(None)).expect("shadow pass").0
+    crate::render::shadow::attach(&scene, &crate::render::VolumeStore::new(None)).expect("shadow pass").0.into_owned()
 }
 
 /// `scene`, every pixel's pieces cast with each object bound on `path`, many at a time

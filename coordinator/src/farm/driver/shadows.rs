@@ -27,11 +27,7 @@ impl Driver {
         }
         let started = Instant::now();
         let mut asks = JoinSet::new();
-        for d in scene.used_datasets() {
-            let objects = scene.objects().iter().enumerate();
-            if !objects.filter(|(_, o)| o.dataset() == d).any(|(i, _)| plan.has_work_for(i)) {
-                continue;
-            }
+        for d in plan.datasets_with_work(&scene) {
             let holders: Vec<WorkerHandle> = self
                 .registry
                 .holders(&self.plan.dataset_keys[d])
