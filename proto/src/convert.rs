@@ -103,6 +103,7 @@ pub fn shadow_maps_to_wire(maps: &[Option<Vec<Option<trove_core::scene::Transmit
                     light: light as u32,
                     dims: t.dims().to_vec(),
                     values: unit_runs(t.values()),
+                    fine_values: unit_runs(t.fine_values()),
                 });
             }
         }
@@ -132,7 +133,15 @@ pub fn attach_shadow_maps(
         let len = dims.iter().map(|&n| n as usize).product();
         let values = from_unit_runs(&m.values, len)
             .ok_or_else(|| format!("shadow map {o}/{l}: {} bytes that are not {len} values", m.values.len()))?;
-        let t = trove_core::scene::Transmittance::new(dims, values).map_err(|e| format!("shadow map {o}/{l}: {e}"))?;
+        let mut t =
+            trove_core::scene::Transmittance::new(dims, values).map_err(|e| format!("shadow map {o}/{l}: {e}"))?;
+        if !m.fine_values.is_empty() {
+            let len = t.fine_points().len();
+            let fine = from_unit_runs(&m.fine_values, len).ok_or_else(|| {
+                format!("shadow map {o}/{l}: {} bytes of fine values that are not {len} values", m.fine_values.len())
+            })?;
+            t = t.with_fine(fine).map_err(|e| format!("shadow map {o}/{l}: fine values: {e}"))?;
+        }
         *slot = Some(t);
     }
     Ok(scene.with_shadow_maps(per_object))
@@ -391,6 +400,35 @@ opacity = { type = "ramp", points = [[0.0, 0.0], [1.0, 1.0]] }
         assert!(bad(|m| m.values.truncate(45)).contains("bytes"));
         assert!(bad(|m| m.values.truncate(44)).contains("bytes"));
         assert!(bad(|m| m.values[8..12].copy_from_slice(&2.0f32.to_le_bytes())).contains("[0, 1]"));
+    }
+
+    #[test]
+    fn refined_shadow_maps_cross_the_wire_with_their_fine_values() {
+        let scene = trove_core::scene::Scene::parse(SHADOWED, "s.toml").unwrap();
+        // A shadow edge across x: the cells it crosses are refined.
+        let coarse = trove_core::scene::Transmittance::new(
+            [6, 3, 3],
+            (0..54).map(|n| if n % 6 < 3 { 0.25 } else { 1.0 }).collect(),
+        )
+        .unwrap();
+        let fine_len = coarse.fine_points().len();
+        assert!(fine_len > 0);
+        let fine: Vec<f32> = (0..fine_len).map(|i| (i % 7) as f32 / 7.0).collect();
+        let t = coarse.clone().with_fine(fine).unwrap();
+        let wire = shadow_maps_to_wire(&[Some(vec![Some(t.clone())]), None]);
+        let attached = attach_shadow_maps(&scene, &wire).unwrap();
+        assert_eq!(attached.objects()[0].shadow_maps(), Some(&[Some(t)][..]));
+        // The first pass's maps, without fine values, cross as they are.
+        let first = shadow_maps_to_wire(&[Some(vec![Some(coarse.clone())]), None]);
+        assert!(first[0].fine_values.is_empty());
+        assert_eq!(attach_shadow_maps(&scene, &first).unwrap().objects()[0].shadow_maps(), Some(&[Some(coarse)][..]));
+        let mut short = wire[0].clone();
+        short.fine_values.truncate(short.fine_values.len() - 4);
+        assert!(attach_shadow_maps(&scene, &[short]).unwrap_err().contains("fine values"));
+        // Fine values for a lattice that refines nothing are refused too.
+        let mut flat = wire[0].clone();
+        flat.values = unit_runs(&[0.5; 54]);
+        assert!(attach_shadow_maps(&scene, &[flat]).unwrap_err().contains("fine values"));
     }
 
     #[test]

@@ -274,15 +274,25 @@ fn open_job(files: &DataFiles, scenes: &JobScenes, open: &pb::CastOpen) -> Resul
 }
 
 /// The shadow pass's share of the objects of `open.dataset` (SPEC §6, `render::shadow`):
-/// their factors on every lattice of the scene's plan, cast from this worker's copy.
+/// their factors on every lattice of the scene's plan, cast from this worker's copy; with
+/// `refine`, on the fine points of the first pass's maps, which `open` carries.
 fn shadow_factors(
     files: &DataFiles,
     scenes: &JobScenes,
     store: &VolumeStore,
     open: &pb::CastOpen,
+    refine: bool,
 ) -> Result<pb::ShadowReply, Status> {
     let (scene, d) = open_job(files, scenes, open)?;
-    let factors = dataset_factors(&scene, &ShadowPlan::of(&scene), d, store).map_err(|e| {
+    let mut plan = ShadowPlan::of(&scene);
+    if refine {
+        if !open.shadow_maps_computed {
+            let message = "a refining shadow request must carry the first pass's maps".to_string();
+            return Err(convert::failure_status(convert::failure(pb::Reason::BadBatch, false, message)));
+        }
+        plan = plan.refinement(&scene);
+    }
+    let factors = dataset_factors(&scene, &plan, d, store).map_err(|e| {
         let f = match &e {
             RenderError::Store(e) => convert::store_failure(e),
             RenderError::Cast(e) => convert::cast_failure(e),
@@ -320,12 +330,14 @@ impl pb::worker_server::Worker for CastService {
 
     async fn shadow(&self, request: Request<pb::ShadowRequest>) -> Result<Response<pb::ShadowReply>, Status> {
         let permit = self.admit()?;
-        let Some(open) = request.into_inner().open else {
+        let request = request.into_inner();
+        let refine = request.refine;
+        let Some(open) = request.open else {
             return Err(Status::invalid_argument("a shadow request carries an `open`"));
         };
         let (files, scenes, store) = (self.files.clone(), self.scenes.clone(), self.store.clone());
         let reply = tokio::task::spawn_blocking(move || {
-            let reply = shadow_factors(&files, &scenes, &store, &open);
+            let reply = shadow_factors(&files, &scenes, &store, &open, refine);
             drop(permit);
             reply
         })

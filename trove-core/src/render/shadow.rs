@@ -23,6 +23,7 @@
 //! error against SPEC §6's definition are in `docs/shadows.md`.
 
 use std::borrow::Cow;
+use std::sync::Arc;
 use std::time::Instant;
 
 use glam::DVec3;
@@ -33,6 +34,7 @@ use super::workunit::BindTarget;
 use super::{RenderError, VolumeStore};
 use crate::geometry::{Placement, Ray};
 use crate::sampling::{self, ObjectCaster, PieceRequest, PieceResult, SHADOW_STOP};
+use crate::scene::transmittance::fine_point;
 use crate::scene::{Scene, Transmittance};
 
 /// Lattice points per voxel of the finest other object, along each side of a lit object's
@@ -68,8 +70,10 @@ fn finest_voxel(p: &Placement) -> f64 {
 /// Shadow rays cast at a time by [`ShadowPlan::factors`].
 const CHUNK: usize = 4096;
 
-/// One lattice to compute: the transmittance towards `light` over `receiver`'s box.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// One lattice to compute: the transmittance towards `light` over `receiver`'s box, at its
+/// own points or, in a refinement pass ([`ShadowPlan::refinement`]), at the fine points of
+/// its refined cells.
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Lattice {
     /// Index of the light in the scene.
     pub light: usize,
@@ -77,21 +81,30 @@ pub struct Lattice {
     pub receiver: usize,
     /// Points per side.
     pub dims: [u32; 3],
+    /// In a refinement pass, the points to compute: the fine points of the lattice's coarse
+    /// values (`Transmittance::fine_points`).
+    pub fine_points: Option<Arc<[u64]>>,
 }
 
 impl Lattice {
-    /// Points in the lattice.
+    /// Points to compute.
     pub fn len(&self) -> usize {
-        self.dims.iter().map(|&n| n as usize).product()
+        match &self.fine_points {
+            None => self.dims.iter().map(|&n| n as usize).product(),
+            Some(points) => points.len(),
+        }
     }
 
-    /// Whether it has no points (never: each side has at least two).
+    /// Whether it has no points to compute (a refinement of a lattice with no refined cell).
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
 
     /// Box coordinates of point `n` (x fastest).
     fn box_point(&self, n: usize) -> DVec3 {
+        if let Some(points) = &self.fine_points {
+            return fine_point(self.dims, points[n]);
+        }
         let [nx, ny, nz] = self.dims.map(|d| d as usize);
         let (i, j, k) = (n % nx, (n / nx) % ny, n / (nx * ny));
         DVec3::new(i as f64 / (nx - 1) as f64, j as f64 / (ny - 1) as f64, k as f64 / (nz - 1) as f64)
@@ -110,23 +123,27 @@ pub struct Factors {
 }
 
 /// Every lattice a scene's shadows need: one per (light with shadows, shaded object lit by
-/// it), in (object, light) order.
+/// it), in (object, light) order; and whether the lattices are refined where they are not
+/// flat, in a second pass ([`ShadowPlan::refinement`]).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct ShadowPlan {
     lattices: Vec<Lattice>,
+    refine: bool,
 }
 
 impl ShadowPlan {
     /// The lattices of `scene` (none without shadows), [`POINTS_PER_VOXEL`] points per
-    /// voxel of the finest other object along each side of a lit object's box.
+    /// voxel of the finest other object along each side of a lit object's box, refined
+    /// where they are not flat.
     pub fn of(scene: &Scene) -> ShadowPlan {
-        ShadowPlan::with_density(scene, POINTS_PER_VOXEL, MAX_POINTS)
+        ShadowPlan { refine: true, ..ShadowPlan::with_density(scene, POINTS_PER_VOXEL, MAX_POINTS) }
     }
 
     /// [`ShadowPlan::of`] with `per_voxel` lattice points per voxel of the finest other
     /// object (the shadows' sharpest detail is that object's voxel, seen from the lit one),
     /// at least two a side, at most [`Transmittance::MAX_SIDE`], and at most `max_points`
-    /// in all (a lattice over that is coarsened evenly along every side).
+    /// in all (a lattice over that is coarsened evenly along every side); not refined (tests
+    /// hold the plan against such uniform lattices).
     pub fn with_density(scene: &Scene, per_voxel: f64, max_points: u64) -> ShadowPlan {
         let objects = scene.objects();
         let voxel: Vec<f64> = objects.iter().map(|o| finest_voxel(o.placement())).collect();
@@ -165,11 +182,33 @@ impl ShadowPlan {
             let dims = dims_of(receiver);
             for (light, l) in scene.lights().iter().enumerate() {
                 if l.shadows() {
-                    lattices.push(Lattice { light, receiver, dims });
+                    lattices.push(Lattice { light, receiver, dims, fine_points: None });
                 }
             }
         }
-        ShadowPlan { lattices }
+        ShadowPlan { lattices, refine: false }
+    }
+
+    /// Whether a second pass refines the lattices where they are not flat.
+    pub fn refines(&self) -> bool {
+        self.refine
+    }
+
+    /// The second pass of a refining plan: the same lattices, in the same order, each with
+    /// the fine points of its coarse values, read from `scene`'s attached maps (the first
+    /// pass's, [`ShadowPlan::combine`]); a lattice that got no map (nothing shades it) or
+    /// that bends nowhere has no points.
+    pub fn refinement(&self, scene: &Scene) -> ShadowPlan {
+        let lattices = self
+            .lattices
+            .iter()
+            .map(|l| {
+                let map = scene.objects()[l.receiver].shadow_maps().and_then(|m| m[l.light].as_ref());
+                let points = map.map_or_else(Vec::new, Transmittance::fine_points);
+                Lattice { fine_points: Some(points.into()), ..l.clone() }
+            })
+            .collect();
+        ShadowPlan { lattices, refine: false }
     }
 
     /// The lattices.
@@ -179,12 +218,12 @@ impl ShadowPlan {
 
     /// Whether there is nothing to compute.
     pub fn is_empty(&self) -> bool {
-        self.lattices.is_empty()
+        self.lattices.iter().all(Lattice::is_empty)
     }
 
-    /// Whether object `o` shades some lattice (it is not the only receiver).
+    /// Whether object `o` shades some lattice with points (it is not the only receiver).
     pub fn has_work_for(&self, o: usize) -> bool {
-        self.lattices.iter().any(|l| l.receiver != o)
+        self.lattices.iter().any(|l| l.receiver != o && !l.is_empty())
     }
 
     /// The datasets, in order of first use, of which some object shades some lattice: the
@@ -206,7 +245,7 @@ impl ShadowPlan {
         let reach_of = Ball::around(object.placement());
         let mut out = Vec::new();
         for (index, lattice) in self.lattices.iter().enumerate() {
-            if lattice.receiver == occluder {
+            if lattice.receiver == occluder || lattice.is_empty() {
                 continue;
             }
             let light = scene.lights()[lattice.light];
@@ -250,18 +289,13 @@ impl ShadowPlan {
         out
     }
 
-    /// The lattices from every occluder's factors: per lattice the product of its factors
-    /// in object order (in f32, so that every mode that multiplies the same factors gets the
-    /// same values), as [`Scene::with_shadow_maps`] takes them: per object, per light.
-    pub fn combine(
-        &self,
-        scene: &Scene,
-        mut factors: Vec<Factors>,
-    ) -> Result<Vec<Option<Vec<Option<Transmittance>>>>, ShadowError> {
+    /// Per lattice, the product of its occluders' factors in object order (in f32, so that
+    /// every mode that multiplies the same factors gets the same values); `None` where no
+    /// occluder shades it.
+    fn products(&self, mut factors: Vec<Factors>) -> Result<Vec<Option<Vec<f32>>>, ShadowError> {
         factors.sort_by_key(|f| (f.lattice, f.occluder));
-        let mut maps: Vec<Option<Vec<Option<Transmittance>>>> =
-            scene.objects().iter().map(|o| o.needs_shadow_maps().then(|| vec![None; scene.lights().len()])).collect();
         let mut factors = factors.into_iter().peekable();
+        let mut products = Vec::with_capacity(self.lattices.len());
         for (index, lattice) in self.lattices.iter().enumerate() {
             let mut product: Option<Vec<f32>> = None;
             while let Some(f) = factors.next_if(|f| f.lattice <= index) {
@@ -273,6 +307,24 @@ impl ShadowPlan {
                     Some(p) => p.iter_mut().zip(&f.values).for_each(|(p, f)| *p *= f),
                 }
             }
+            products.push(product);
+        }
+        if let Some(f) = factors.next() {
+            return Err(ShadowError::Factors { lattice: f.lattice, occluder: f.occluder });
+        }
+        Ok(products)
+    }
+
+    /// The lattices from every occluder's factors ([`ShadowPlan::products`]), as
+    /// [`Scene::with_shadow_maps`] takes them: per object, per light; not refined yet.
+    pub fn combine(
+        &self,
+        scene: &Scene,
+        factors: Vec<Factors>,
+    ) -> Result<Vec<Option<Vec<Option<Transmittance>>>>, ShadowError> {
+        let mut maps: Vec<Option<Vec<Option<Transmittance>>>> =
+            scene.objects().iter().map(|o| o.needs_shadow_maps().then(|| vec![None; scene.lights().len()])).collect();
+        for ((index, lattice), product) in self.lattices.iter().enumerate().zip(self.products(factors)?) {
             if let Some(values) = product {
                 let t = Transmittance::new(lattice.dims, values)
                     .map_err(|_| ShadowError::Factors { lattice: index, occluder: lattice.receiver })?;
@@ -281,8 +333,30 @@ impl ShadowPlan {
                 }
             }
         }
-        if let Some(f) = factors.next() {
-            return Err(ShadowError::Factors { lattice: f.lattice, occluder: f.occluder });
+        Ok(maps)
+    }
+
+    /// `scene`'s maps (the first pass's, attached) with their refined cells, from the factors
+    /// of this refinement pass ([`ShadowPlan::refinement`]) multiplied as
+    /// [`ShadowPlan::combine`] multiplies; fine points no occluder shades are 1.
+    pub fn refine(
+        &self,
+        scene: &Scene,
+        factors: Vec<Factors>,
+    ) -> Result<Vec<Option<Vec<Option<Transmittance>>>>, ShadowError> {
+        let mut maps: Vec<Option<Vec<Option<Transmittance>>>> =
+            scene.objects().iter().map(|o| o.shadow_maps().map(<[_]>::to_vec)).collect();
+        for ((index, lattice), product) in self.lattices.iter().enumerate().zip(self.products(factors)?) {
+            let bad = ShadowError::Factors { lattice: index, occluder: lattice.receiver };
+            if lattice.is_empty() {
+                if product.is_some() {
+                    return Err(bad);
+                }
+                continue;
+            }
+            let slot = maps[lattice.receiver].as_mut().and_then(|m| m[lattice.light].as_mut()).ok_or(bad.clone())?;
+            let fine = product.unwrap_or_else(|| vec![1.0; lattice.len()]);
+            *slot = slot.clone().with_fine(fine).map_err(|_| bad)?;
         }
         Ok(maps)
     }
@@ -392,5 +466,17 @@ pub(crate) fn attach_planned<'a>(
         factors.extend(dataset_factors(scene, plan, d, store)?);
     }
     let maps = plan.combine(scene, factors).expect("factors computed from this plan fit it");
-    Ok((Cow::Owned(scene.with_shadow_maps(maps)), started.elapsed().as_secs_f64()))
+    let mut attached = scene.with_shadow_maps(maps);
+    if plan.refines() {
+        let fine = plan.refinement(&attached);
+        if !fine.is_empty() {
+            let mut factors = Vec::new();
+            for d in fine.datasets_with_work(&attached) {
+                factors.extend(dataset_factors(&attached, &fine, d, store)?);
+            }
+            let maps = fine.refine(&attached, factors).expect("factors computed from this refinement fit it");
+            attached = scene.with_shadow_maps(maps);
+        }
+    }
+    Ok((Cow::Owned(attached), started.elapsed().as_secs_f64()))
 }

@@ -240,6 +240,19 @@ fn lattice_error_of_the_example_scene() {
     let differing =
         a.pixels().iter().zip(b.pixels()).filter(|(p, q)| (0..3).any(|i| (p[i] - q[i]).abs() * 255.0 > 0.5)).count();
     let bytes: usize = ShadowPlan::of(&scene).lattices().iter().map(|l| 4 * l.len()).sum();
+    for (o, object) in coarse.objects().iter().enumerate() {
+        for (l, map) in object.shadow_maps().unwrap_or(&[]).iter().enumerate() {
+            if let Some(t) = map {
+                let cells = t.cells_to_refine().len();
+                eprintln!(
+                    "object {o} light {l}: lattice {:?} ({} points), {cells} cells refined ({} fine points)",
+                    t.dims(),
+                    t.values().len(),
+                    t.fine_values().len()
+                );
+            }
+        }
+    }
     eprintln!(
         "shadows.toml 256²: default lattices {bytes} bytes in all, shadow pass {coarse_s:.3} s (reference: {fine_s:.3} s); \
          images differ by {levels:.2}/255 at most, {differing} of {} pixels by more than half a level",
@@ -322,9 +335,12 @@ fn turning_the_objects_their_lights_and_the_camera_together_leaves_the_shadows_u
     let still = Scene::parse(&turned_text(glam::DMat3::IDENTITY), "still.toml").unwrap();
     let turned = Scene::parse(&turned_text(r), "turned.toml").unwrap();
     let (a, b) = (rendered(&still, Algorithm::PerRay), rendered(&turned, Algorithm::PerRay));
-    // The lattices turn with the boxes they lie on, so only rounding moves.
+    // The lattices turn with the boxes they lie on, so only rounding moves: the values, and
+    // which cells are refined where a cell's corners differ by REFINE_SPREAD give or take
+    // rounding (a cell refined on one side of the turn and not the other moves the image
+    // by a small part of that spread; 1.1e-5 here, against 2e-3 for half an 8-bit level).
     let d = max_difference(&a, &b);
-    assert!(d < 1e-6, "the turned image differs by {d}");
+    assert!(d < 1e-4, "the turned image differs by {d}");
     // And the shadows matter here: without them the image is another.
     let unshadowed =
         Scene::parse(&turned_text(glam::DMat3::IDENTITY).replace("shadows = true", "shadows = false"), "u.toml");

@@ -4,8 +4,6 @@
 //! and ≥ 0 — so that the sampler reads them without checking. The loader (`load.rs`) turns
 //! a refusal into a [`super::SceneErrorKind`] at the key it is about.
 
-use std::sync::Arc;
-
 use glam::DVec3;
 
 /// A finite vector of length 1.
@@ -207,98 +205,6 @@ impl Shading {
     }
 }
 
-/// The transmittance towards one light through the *other* objects of a scene, on a lattice
-/// over one object's box (`render::shadow` computes it): lattice point (i, j, k) lies at box
-/// coordinates (i/(n₀−1), j/(n₁−1), k/(n₂−1)), and a point between them takes the trilinear
-/// blend ([`Transmittance::at`]). Every value is in [0, 1].
-#[derive(Clone, Debug, PartialEq)]
-pub struct Transmittance {
-    dims: [u32; 3],
-    values: Arc<[f32]>,
-}
-
-/// Why a lattice of transmittances is refused.
-#[derive(Clone, Debug, PartialEq, thiserror::Error)]
-pub enum TransmittanceError {
-    /// A side with fewer than two points, or more than [`Transmittance::MAX_SIDE`].
-    #[error("expected 2 to {max} lattice points a side, got {got:?}", max = Transmittance::MAX_SIDE)]
-    Dims {
-        /// The sides given.
-        got: [u32; 3],
-    },
-    /// Not one value per lattice point.
-    #[error("expected {expected} values (one per lattice point), got {got}")]
-    Length {
-        /// Lattice points.
-        expected: usize,
-        /// Values given.
-        got: usize,
-    },
-    /// A value outside [0, 1] (or NaN).
-    #[error("expected transmittances in [0, 1], got {got} at lattice point {index}")]
-    Value {
-        /// Its index.
-        index: usize,
-        /// The value.
-        got: f32,
-    },
-}
-
-impl Transmittance {
-    /// The most lattice points along one side.
-    pub const MAX_SIDE: u32 = 1024;
-
-    /// A lattice of `dims` points whose values are `values`, x fastest.
-    pub fn new(dims: [u32; 3], values: Vec<f32>) -> Result<Transmittance, TransmittanceError> {
-        if dims.iter().any(|&n| !(2..=Transmittance::MAX_SIDE).contains(&n)) {
-            return Err(TransmittanceError::Dims { got: dims });
-        }
-        let expected = dims.iter().map(|&n| n as usize).product();
-        if values.len() != expected {
-            return Err(TransmittanceError::Length { expected, got: values.len() });
-        }
-        if let Some((index, &got)) = values.iter().enumerate().find(|(_, v)| !(0.0..=1.0).contains(*v)) {
-            return Err(TransmittanceError::Value { index, got });
-        }
-        Ok(Transmittance { dims, values: values.into() })
-    }
-
-    /// Lattice points per side.
-    pub fn dims(&self) -> [u32; 3] {
-        self.dims
-    }
-
-    /// The values, x fastest.
-    pub fn values(&self) -> &[f32] {
-        &self.values
-    }
-
-    /// The transmittance at box coordinates `q` (clamped to the box): the trilinear blend of
-    /// the eight lattice points around it.
-    #[inline]
-    pub fn at(&self, q: DVec3) -> f64 {
-        let mut base = [0usize; 3];
-        let mut frac = [0.0f64; 3];
-        for a in 0..3 {
-            let last = f64::from(self.dims[a] - 1);
-            let u = (q[a] * last).clamp(0.0, last);
-            let i = (u.floor() as usize).min(self.dims[a] as usize - 2);
-            base[a] = i;
-            frac[a] = u - i as f64;
-        }
-        let (nx, ny) = (self.dims[0] as usize, self.dims[1] as usize);
-        let at = |i: usize, j: usize, k: usize| f64::from(self.values[i + nx * (j + ny * k)]);
-        let [i, j, k] = base;
-        let [fx, fy, fz] = frac;
-        let lerp = |a: f64, b: f64, f: f64| a + (b - a) * f;
-        let x00 = lerp(at(i, j, k), at(i + 1, j, k), fx);
-        let x10 = lerp(at(i, j + 1, k), at(i + 1, j + 1, k), fx);
-        let x01 = lerp(at(i, j, k + 1), at(i + 1, j, k + 1), fx);
-        let x11 = lerp(at(i, j + 1, k + 1), at(i + 1, j + 1, k + 1), fx);
-        lerp(lerp(x00, x10, fy), lerp(x01, x11, fy), fz)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -324,26 +230,6 @@ mod tests {
         assert!(matches!(Light::new(d, [1e300, 1.0, 1.0], 1e300), Err(LightError::Intensity { .. })));
         let p = LightSource::Point { position: DVec3::new(0.0, f64::NAN, 0.0) };
         assert!(matches!(Light::new(p, [1.0; 3], 1.0), Err(LightError::Position { .. })));
-    }
-
-    #[test]
-    fn transmittance_lattices_blend_trilinearly_and_refuse_bad_values() {
-        // T = (1 + x + 2y + 4z)/8 over a 3 × 2 × 2 lattice is linear, so every blend is exact.
-        let dims = [3, 2, 2];
-        let f = |q: DVec3| (1.0 + q.x + 2.0 * q.y + 4.0 * q.z) / 8.0;
-        let values =
-            (0..12).map(|n| f(DVec3::new((n % 3) as f64 / 2.0, ((n / 3) % 2) as f64, (n / 6) as f64)) as f32).collect();
-        let t = Transmittance::new(dims, values).unwrap();
-        for q in [DVec3::ZERO, DVec3::ONE, DVec3::new(0.3, 0.7, 0.2), DVec3::new(0.75, 0.5, 0.9)] {
-            assert!((t.at(q) - f(q)).abs() < 1e-7, "at {q}: {} vs {}", t.at(q), f(q));
-        }
-        // Outside the box it is clamped to the box.
-        assert_eq!(t.at(DVec3::new(-1.0, 2.0, 0.5)), t.at(DVec3::new(0.0, 1.0, 0.5)));
-        assert!(matches!(Transmittance::new([1, 2, 2], vec![1.0; 4]), Err(TransmittanceError::Dims { .. })));
-        assert!(matches!(Transmittance::new([2, 2, 2], vec![1.0; 7]), Err(TransmittanceError::Length { .. })));
-        let mut bad = vec![1.0; 8];
-        bad[5] = f32::NAN;
-        assert!(matches!(Transmittance::new([2, 2, 2], bad), Err(TransmittanceError::Value { index: 5, .. })));
     }
 
     #[test]

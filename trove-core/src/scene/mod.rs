@@ -14,6 +14,7 @@ mod load;
 mod mappings;
 #[cfg(test)]
 mod tests;
+pub mod transmittance;
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -24,11 +25,10 @@ use crate::interp::Interpolation;
 use crate::mapping::{ColourMap, OpacityMap};
 
 pub use data_root::{DataRoot, DATA_ROOT_ENV};
-pub use effects::{
-    Light, LightError, LightSource, Shading, ShadingField, Transmittance, TransmittanceError, UnitVector,
-};
+pub use effects::{Light, LightError, LightSource, Shading, ShadingField, UnitVector};
 pub use error::{SceneError, SceneErrorKind};
 pub use limits::{MAX_IMAGE_SIDE, MAX_LIGHTS, MAX_OBJECTS, MAX_SAMPLES_PER_PIECE, MAX_SAMPLES_PER_RENDER};
+pub use transmittance::{Transmittance, TransmittanceError};
 
 /// `[image]`: the output raster.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -2,13 +2,16 @@
 //! before any band, each dataset whose objects shade some lattice asks one of its holders
 //! for their factors (`Shadow`), trying the next holder when one fails; the coordinator
 //! multiplies them in object order (`ShadowPlan::combine`, as local mode does, so the maps
-//! are the same f32s) and the job's streams carry the maps with the scene.
+//! are the same f32s). A second round does the same for the fine points of the cells the
+//! first round's maps refine (`ShadowPlan::refinement`, `ShadowPlan::refine`). The job's
+//! streams then carry the maps with the scene.
 
 use std::time::Instant;
 
 use prost::Message;
 use tokio::task::JoinSet;
-use trove_core::render::shadow::{Factors, ShadowPlan};
+use trove_core::render::shadow::{Factors, ShadowError, ShadowPlan};
+use trove_core::scene::Scene;
 use trove_proto::convert;
 use trove_proto::v1 as pb;
 use trove_proto::v1::worker_client::WorkerClient;
@@ -17,8 +20,10 @@ use super::super::registry::WorkerHandle;
 use super::{Driver, JobError};
 
 impl Driver {
-    /// Computes the scene's shadow maps on the workers, when it has shadows; from then on
-    /// the streams carry them with the scene, and the scene's digest covers them.
+    /// Computes the scene's shadow maps on the workers, when it has shadows: the lattices,
+    /// then the fine points of their refined cells (`ShadowPlan::refinement`, a second round
+    /// of requests carrying the first round's maps); from then on the streams carry the maps
+    /// with the scene, and the scene's digest covers them.
     pub(super) async fn shadow_pass(&mut self) -> Result<(), JobError> {
         let scene = self.plan.scene.clone();
         let plan = ShadowPlan::of(&scene);
@@ -26,8 +31,50 @@ impl Driver {
             return Ok(());
         }
         let started = Instant::now();
+        let factors = self.shadow_factors(&scene, &plan, None).await?;
+        let mut maps = plan.combine(&scene, factors).map_err(unfit)?;
+        if plan.refines() {
+            let first = scene.with_shadow_maps(maps.clone());
+            let fine = plan.refinement(&first);
+            if !fine.is_empty() {
+                let factors = self.shadow_factors(&first, &fine, Some(convert::shadow_maps_to_wire(&maps))).await?;
+                maps = fine.refine(&first, factors).map_err(unfit)?;
+            }
+        }
+        let shadow_maps = convert::shadow_maps_to_wire(&maps);
+        let bytes: u64 = shadow_maps.iter().map(|m| m.encoded_len() as u64).sum();
+        let scene_bytes = self.plan.scene_toml.len() + self.plan.headers.iter().map(|h| h.encoded_len()).sum::<usize>();
+        let room = (trove_proto::MAX_MESSAGE_BYTES as u64).saturating_sub(scene_bytes as u64 + (1 << 16));
+        if bytes > room {
+            return Err(JobError::ShadowMaps { bytes, room });
+        }
+        self.scene_digest =
+            convert::scene_digest(&self.plan.scene_toml, &self.plan.scene_name, &self.plan.headers, Some(&shadow_maps))
+                .to_vec();
+        self.shadow_maps = Some(shadow_maps);
+        self.tally.stats.seconds.shadows += started.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// One round of the shadow pass: the factors of `plan` from one holder of each dataset
+    /// with work in it. `first_maps`, in the second round, are the first round's maps, which
+    /// the requests carry (the workers derive the fine points from them).
+    async fn shadow_factors(
+        &mut self,
+        scene: &Scene,
+        plan: &ShadowPlan,
+        first_maps: Option<Vec<pb::ShadowMap>>,
+    ) -> Result<Vec<Factors>, JobError> {
+        let refine = first_maps.is_some();
+        let scene_digest = convert::scene_digest(
+            &self.plan.scene_toml,
+            &self.plan.scene_name,
+            &self.plan.headers,
+            first_maps.as_deref(),
+        )
+        .to_vec();
         let mut asks = JoinSet::new();
-        for d in plan.datasets_with_work(&scene) {
+        for d in plan.datasets_with_work(scene) {
             let holders: Vec<WorkerHandle> = self
                 .registry
                 .holders(&self.plan.dataset_keys[d])
@@ -40,13 +87,13 @@ impl Driver {
                 scene_name: self.plan.scene_name.clone(),
                 dataset: d as u32,
                 headers: self.plan.headers.clone(),
-                scene_digest: self.scene_digest.clone(),
-                shadow_maps: Vec::new(),
-                shadow_maps_computed: false,
+                scene_digest: scene_digest.clone(),
+                shadow_maps: first_maps.clone().unwrap_or_default(),
+                shadow_maps_computed: refine,
             };
             self.tally.wire_to += open.encoded_len() as u64;
             let dataset = scene.datasets()[d].name().to_string();
-            asks.spawn(ask(holders, open, dataset));
+            asks.spawn(ask(holders, pb::ShadowRequest { open: Some(open), refine }, dataset));
         }
         let mut factors = Vec::new();
         while let Some(answer) = asks.join_next().await {
@@ -66,23 +113,15 @@ impl Driver {
                 factors.push(Factors { lattice: f.lattice as usize, occluder: f.occluder as usize, values });
             }
         }
-        let maps = plan.combine(&scene, factors).map_err(|e| JobError::Worker {
-            worker: "(a shadow answer)".into(),
-            failure: Box::new(convert::failure(pb::Reason::BadBatch, false, e.to_string())),
-        })?;
-        let shadow_maps = convert::shadow_maps_to_wire(&maps);
-        let bytes: u64 = shadow_maps.iter().map(|m| m.encoded_len() as u64).sum();
-        let scene_bytes = self.plan.scene_toml.len() + self.plan.headers.iter().map(|h| h.encoded_len()).sum::<usize>();
-        let room = (trove_proto::MAX_MESSAGE_BYTES as u64).saturating_sub(scene_bytes as u64 + (1 << 16));
-        if bytes > room {
-            return Err(JobError::ShadowMaps { bytes, room });
-        }
-        self.scene_digest =
-            convert::scene_digest(&self.plan.scene_toml, &self.plan.scene_name, &self.plan.headers, Some(&shadow_maps))
-                .to_vec();
-        self.shadow_maps = Some(shadow_maps);
-        self.tally.stats.seconds.shadows += started.elapsed().as_secs_f64();
-        Ok(())
+        Ok(factors)
+    }
+}
+
+/// Factors that passed each answer's checks but do not fit the plan together.
+fn unfit(e: ShadowError) -> JobError {
+    JobError::Worker {
+        worker: "(a shadow answer)".into(),
+        failure: Box::new(convert::failure(pb::Reason::BadBatch, false, e.to_string())),
     }
 }
 
@@ -90,14 +129,14 @@ impl Driver {
 /// is passed over, one that refuses the scene fails the job.
 async fn ask(
     holders: Vec<WorkerHandle>,
-    open: pb::CastOpen,
+    request: pb::ShadowRequest,
     dataset: String,
 ) -> Result<(String, pb::ShadowReply), JobError> {
     for worker in holders {
         let mut client = WorkerClient::new(worker.channel.clone())
             .max_decoding_message_size(trove_proto::MAX_MESSAGE_BYTES)
             .max_encoding_message_size(trove_proto::MAX_MESSAGE_BYTES);
-        match client.shadow(pb::ShadowRequest { open: Some(open.clone()) }).await {
+        match client.shadow(request.clone()).await {
             Ok(reply) => return Ok((worker.id, reply.into_inner())),
             Err(status) => match convert::status_failure(&status) {
                 Some(f) if !f.retryable => return Err(JobError::Worker { worker: worker.id, failure: Box::new(f) }),
