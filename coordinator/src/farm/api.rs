@@ -151,16 +151,21 @@ fn spawn_job(farm: Arc<Farm>, job: Arc<Job>, pending: Pending) {
                 }
             } {
                 Some(slot) => {
+                    // The start is written while the job runs, not before: the record only
+                    // changes what a restart reports (a QUEUED or RUNNING job runs again from
+                    // the start either way), and its commit waits on the disk. It is written
+                    // before the end is (awaited below), so it never overwrites the end.
                     let jobs = farm.jobs.clone();
                     let running = job.clone();
-                    match tokio::task::spawn_blocking(move || jobs.started(&running)).await {
+                    let start_written = tokio::task::spawn_blocking(move || jobs.started(&running));
+                    // The driver runs as a task of its own, so that a panic in it fails this
+                    // job (and frees its room) instead of leaving it RUNNING.
+                    let ran = tokio::spawn(driver::run(plan, job.clone(), registry, config)).await;
+                    match start_written.await {
                         Ok(Err(e)) => tracing::error!(job = %job_id, error = %e, "cannot write the job's start"),
                         Err(e) => tracing::error!(job = %job_id, error = %e, "cannot write the job's start"),
                         Ok(Ok(())) => {}
                     }
-                    // The driver runs as a task of its own, so that a panic in it fails this
-                    // job (and frees its room) instead of leaving it RUNNING.
-                    let ran = tokio::spawn(driver::run(plan, job.clone(), registry, config)).await;
                     if let Err(e) = ran {
                         let message = match e.try_into_panic() {
                             Ok(payload) => format!("the job's driver panicked: {}", driver::panic_message(&*payload)),

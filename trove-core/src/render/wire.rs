@@ -77,7 +77,11 @@ fn put_task(out: &mut Vec<u8>, ray: &mut u32, t: &PieceTask) {
     buf[n..n + 2].copy_from_slice(&t.front.to_le_bytes());
     buf[n + 2..n + 10].copy_from_slice(&t.t0.to_le_bytes());
     buf[n + 10..n + 18].copy_from_slice(&t.t1.to_le_bytes());
-    out.extend_from_slice(&buf[..n + 18]);
+    // The whole buffer, then cut back: a copy of a fixed size is a few register moves, where
+    // one of the task's own length is a call to memcpy (2% of the coordinator's CPU).
+    let len = out.len();
+    out.extend_from_slice(&buf);
+    out.truncate(len + n + 18);
 }
 
 /// Tasks written one at a time, as they are decided, into [`encode_tasks`]' form: the

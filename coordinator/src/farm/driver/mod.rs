@@ -263,6 +263,7 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     let outcome = if let Err(e) = shadows {
         Err(e)
     } else {
+        driver.open_early();
         loop {
             // Whatever room was freed before this point, the dispatch below sees.
             room.borrow_and_update();
@@ -335,6 +336,20 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
 impl Driver {
     fn scene(&self) -> &Arc<Scene> {
         &self.plan.scene
+    }
+
+    /// Before any band has a batch: a stream to each worker that holds a dataset of the job
+    /// (for its first such dataset, to the holder the policy picks), carrying the scene, so
+    /// that workers parse the scene while the first bands are planned; the job's other
+    /// streams to them then open by digest as soon as their batches are ready.
+    fn open_early(&mut self) {
+        self.dispatch.refresh(&self.registry, false);
+        for d in self.scene().used_datasets() {
+            let usable = |w: &WorkerHandle| !self.scene_on.contains(&w.id) && !self.scene_on_its_way(&w.id);
+            if let Some(worker) = self.dispatch.pick(d, usable).cloned() {
+                self.open(&worker, d);
+            }
+        }
     }
 
     /// Starts new bands while admission allows, then hands out every batch some worker has
