@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 
 use super::bands::Bands;
 use super::dispatch::Admission;
-use super::intersection::intersect;
+use super::intersection::{intersect, Intersections};
 use super::raster::Canvas;
 use super::schedule::Scheduler;
 use super::workunit::{BatchCaster, PieceRgba};
@@ -39,6 +39,8 @@ const BATCH_TASKS: usize = 1024;
 /// then render in bounded memory instead of holding every piece at once. Each band is
 /// composited into `canvas` before the next one starts. `unload`: each dataset is unloaded
 /// after its turn in the last band (false when the caller keeps `store` for later renders).
+/// `whole`: the whole image's intersections, where the count kept them and the image is one
+/// band, so that it is not intersected again.
 pub(super) fn render<C: Canvas>(
     scene: &Scene,
     store: &VolumeStore,
@@ -46,6 +48,7 @@ pub(super) fn render<C: Canvas>(
     progress: Option<&Progress>,
     (band_rows, band_memory): (u32, u64),
     mut canvas: C,
+    mut whole: Option<Intersections>,
 ) -> Result<Rendered<C>, RenderError> {
     let h = scene.image().height;
     let mut stats = RenderStats { effects: ObjectEffects::listed(scene, Some(0)), ..RenderStats::default() };
@@ -56,7 +59,10 @@ pub(super) fn render<C: Canvas>(
     while let Some((band, rows)) = bands.start_next() {
         // Phase 1: intersection (object level only).
         let started = Instant::now();
-        let inter = intersect(scene, rows.clone());
+        let inter = match whole.take() {
+            Some(inter) if rows == (0..h) => inter,
+            _ => intersect(scene, rows.clone()),
+        };
         stats.segments += inter.segments;
         stats.pieces += inter.pieces() as u64;
         bands.intersected(band, Box::new(Scheduler::new(scene, inter, BATCH_TASKS)?));

@@ -133,14 +133,23 @@ pub fn render_raster(scene: &Scene, options: &RenderOptions, linear: bool) -> Re
 /// Renders onto a canvas of type `C` (`linear`: a raster keeps f32 values).
 fn render_onto<C: Canvas>(scene: &Scene, options: &RenderOptions, linear: bool) -> Result<Rendered<C>, RenderError> {
     let started = std::time::Instant::now();
-    let kept = options.store.is_some();
+    let kept_store = options.store.is_some();
     let store = options.store.clone().unwrap_or_else(|| VolumeStore::new(options.memory_budget));
     store.check_budget(scene)?;
     // A kept store's counts cover every render through it; this render's are the difference.
     let before = store.stats();
     // The work the geometry makes, counted before any is stored (limits.rs); Algorithm 2's
-    // bands are sized from that exact count, so each fits the band memory.
-    let work = limits::Work::count(scene)?;
+    // bands are sized from that exact count, so each fits the band memory. For Algorithm 2
+    // the count intersects the image as one band and keeps it where it fits a quarter of
+    // the band memory: an image that is then one band is intersected once, not counted and
+    // intersected again (the farm's coordinator keeps its count's bands the same way).
+    let band_memory = options.band_memory.unwrap_or(DEFAULT_BAND_MEMORY);
+    let counting = std::time::Instant::now();
+    let (work, kept) = match options.algorithm {
+        Algorithm::Grouped => limits::Work::count_keeping(scene, scene.image().height, band_memory / 4)?,
+        Algorithm::PerRay => (limits::Work::count(scene)?, Vec::new()),
+    };
+    let counting_seconds = counting.elapsed().as_secs_f64();
     // Shadows first (SPEC §6): one visit of each dataset for the other objects' shares.
     let (scene, shadow_seconds) = shadow::attach(scene, &store)?;
     let scene: &Scene = &scene;
@@ -150,11 +159,19 @@ fn render_onto<C: Canvas>(scene: &Scene, options: &RenderOptions, linear: bool) 
             Rendered { image: C::from_image(image, linear), stats }
         }
         Algorithm::Grouped => {
-            let band_memory = options.band_memory.unwrap_or(DEFAULT_BAND_MEMORY);
             let band_rows = work.rows_within(band_memory)?;
             let (w, h) = (scene.image().width, scene.image().height);
             let canvas = C::blank(w, h, linear);
-            grouped::render(scene, &store, !kept, options.progress.as_ref(), (band_rows, band_memory), canvas)?
+            let whole = kept.into_iter().next().filter(|_| band_rows >= h);
+            let counted_whole = whole.is_some();
+            let bands = (band_rows, band_memory);
+            let mut rendered =
+                grouped::render(scene, &store, !kept_store, options.progress.as_ref(), bands, canvas, whole)?;
+            // The count was the intersection, as on the farm.
+            if counted_whole {
+                rendered.stats.seconds.intersection += counting_seconds;
+            }
+            rendered
         }
     };
     let total = started.elapsed().as_secs_f64();
