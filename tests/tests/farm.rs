@@ -106,6 +106,44 @@ fn a_scene_with_shadows_renders_through_the_farm_as_in_local_mode() {
     }
 }
 
+/// The shadow pass's second round derives its points from the first round's maps, so a
+/// worker asked to refine without them refuses by reason instead of answering nothing.
+#[test]
+fn a_worker_refuses_to_refine_shadows_without_the_first_rounds_maps() {
+    let dir = scratch("farm-refine");
+    let root = dir.join("root");
+    std::fs::create_dir_all(&root).unwrap();
+    let farm = TestFarm::start(std::slice::from_ref(&root));
+    let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/shadows.toml")).unwrap();
+    let address = farm.worker_addresses().remove(0);
+    let open = pb::CastOpen {
+        job_id: "refine-test".into(),
+        scene_digest: trove_proto::convert::scene_digest(&text, "shadows.toml", &[], None).to_vec(),
+        scene_toml: text,
+        scene_name: "shadows.toml".into(),
+        dataset: 0,
+        ..Default::default()
+    };
+    let asked = |refine: bool| {
+        let open = open.clone();
+        farm.block_on(async {
+            let channel = tonic::transport::Endpoint::from_shared(format!("http://{address}"))
+                .unwrap()
+                .connect()
+                .await
+                .expect("connect to the worker");
+            let mut worker = pb::worker_client::WorkerClient::new(channel);
+            worker.shadow(pb::ShadowRequest { open: Some(open), refine }).await
+        })
+    };
+    let status = asked(true).expect_err("refused");
+    let failure = trove_proto::convert::status_failure(&status).expect("a typed failure");
+    assert_eq!(failure.reason(), pb::Reason::BadBatch, "{failure:?}");
+    assert!(failure.message.contains("first pass"), "{}", failure.message);
+    // The first round itself is answered (the floor's dataset shades the others' lattices).
+    assert!(asked(false).is_ok());
+}
+
 #[test]
 fn the_farm_writes_the_same_pfm_as_local_mode() {
     let dir = scratch("farm-pfm");
