@@ -24,8 +24,8 @@ use rayon::prelude::*;
 pub const REFINE: u32 = 3;
 
 /// A cell is refined where the lattice bends by more than this inside it
-/// ([`Transmittance::bends`]): its blend is then off by about an eighth of it, so a cell left
-/// coarse moves a pixel by well under SPEC §6's 2/255.
+/// ([`Transmittance::bends`]). Trilinear blending is off by about an eighth of a cell's bend,
+/// so a cell left coarse is off by about 1/255 at most, within SPEC §6's 2/255.
 pub const REFINE_BEND: f32 = 8.0 / 255.0;
 
 /// Points in one refined cell's block: (REFINE + 1)³.
