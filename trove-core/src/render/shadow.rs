@@ -10,13 +10,16 @@
 //!   the surface, where any lattice would blur it;
 //! * the **other objects' factors**, on a lattice over the lit object's box ([`ShadowPlan`]):
 //!   for each (shadowing light, lit object) a lattice with [`POINTS_PER_VOXEL`] points per
-//!   voxel of the finest other object along each side, and for each other object the factor (1 − A) along the shadow ray from every
-//!   lattice point, cast while that object's dataset is resident
-//!   ([`ShadowPlan::factors`]). A sample takes the trilinear blend of the lattice
-//!   ([`crate::scene::Transmittance`]).
+//!   voxel of the finest other object along each side, and for each other object the
+//!   factor (1 − A) along the shadow ray from every lattice point, cast while that object's
+//!   dataset is resident ([`ShadowPlan::factors`]). A sample takes the trilinear blend of
+//!   the lattice ([`crate::scene::Transmittance`]). A second round computes the points of
+//!   the cells where the first round's lattice bends, three times finer
+//!   ([`ShadowPlan::refinement`], `scene::transmittance`): a shadow edge is where blending
+//!   fails.
 //!
-//! So the shadow pass is one more visit of each dataset, before the image's own pass:
-//! locally ([`attach`]) each dataset is loaded once for it, and on a farm each worker
+//! So the shadow pass is one more visit of each dataset per round, before the image's own
+//! pass: locally ([`attach`]) each dataset is loaded once a round, and on a farm each worker
 //! computes the factors of the objects of the datasets it holds, and the coordinator
 //! multiplies them ([`ShadowPlan::combine`], in object order, so that every mode gets the
 //! same f32 values) and hands the lattices to the workers with the scene. Its cost and its
@@ -123,8 +126,8 @@ pub struct Factors {
 }
 
 /// Every lattice a scene's shadows need: one per (light with shadows, shaded object lit by
-/// it), in (object, light) order; and whether the lattices are refined where they are not
-/// flat, in a second pass ([`ShadowPlan::refinement`]).
+/// it), in (object, light) order; and whether the lattices are refined where they bend, in
+/// a second pass ([`ShadowPlan::refinement`]).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct ShadowPlan {
     lattices: Vec<Lattice>,
@@ -134,7 +137,7 @@ pub struct ShadowPlan {
 impl ShadowPlan {
     /// The lattices of `scene` (none without shadows), [`POINTS_PER_VOXEL`] points per
     /// voxel of the finest other object along each side of a lit object's box, refined
-    /// where they are not flat.
+    /// where they bend.
     pub fn of(scene: &Scene) -> ShadowPlan {
         ShadowPlan { refine: true, ..ShadowPlan::with_density(scene, POINTS_PER_VOXEL, MAX_POINTS) }
     }
@@ -189,7 +192,7 @@ impl ShadowPlan {
         ShadowPlan { lattices, refine: false }
     }
 
-    /// Whether a second pass refines the lattices where they are not flat.
+    /// Whether a second pass refines the lattices where they bend.
     pub fn refines(&self) -> bool {
         self.refine
     }
