@@ -242,7 +242,7 @@ impl ShadowPlan {
 
     /// Object `occluder`'s factors on every lattice but its own, cast by `caster` (the object
     /// bound opacity-only, [`opacity_caster`]); lattices it does not shade anywhere (every
-    /// factor 1) are left out. Shadow rays are cast [`CHUNK`] at a time on rayon's threads.
+    /// factor 1) are left out. Shadow rays are cast `CHUNK` at a time on rayon's threads.
     pub fn factors(&self, scene: &Scene, occluder: usize, caster: &ObjectCaster<'_>) -> Vec<Factors> {
         let object = &scene.objects()[occluder];
         let reach_of = Ball::around(object.placement());
@@ -318,7 +318,7 @@ impl ShadowPlan {
         Ok(products)
     }
 
-    /// The lattices from every occluder's factors ([`ShadowPlan::products`]), as
+    /// The lattices from every occluder's factors (`ShadowPlan::products`), as
     /// [`Scene::with_shadow_maps`] takes them: per object, per light; not refined yet.
     pub fn combine(
         &self,

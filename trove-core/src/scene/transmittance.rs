@@ -24,7 +24,7 @@ use rayon::prelude::*;
 pub const REFINE: u32 = 3;
 
 /// A cell is refined where the lattice bends by more than this inside it
-/// ([`Transmittance::bends`]). Trilinear blending is off by about an eighth of a cell's bend,
+/// (`Transmittance::bends`). Trilinear blending is off by about an eighth of a cell's bend,
 /// so a cell left coarse is off by about 1/255 at most, within SPEC §6's 2/255.
 pub const REFINE_BEND: f32 = 8.0 / 255.0;
 
@@ -128,7 +128,7 @@ impl Transmittance {
     }
 
     /// The cells (x fastest) that [`Transmittance::with_fine`] refines: those where the
-    /// lattice bends more than [`REFINE_BEND`] ([`Transmittance::bends`]), in index order;
+    /// lattice bends more than [`REFINE_BEND`] (`Transmittance::bends`), in index order;
     /// where their blocks would pass [`MAX_FINE_POINTS`], the ones that bend most (ties by
     /// index).
     pub fn cells_to_refine(&self) -> Vec<u32> {
