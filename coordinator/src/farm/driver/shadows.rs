@@ -6,6 +6,7 @@
 //! first round's maps refine (`ShadowPlan::refinement`, `ShadowPlan::refine`). The job's
 //! streams then carry the maps with the scene.
 
+use std::collections::HashSet;
 use std::time::Instant;
 
 use prost::Message;
@@ -74,6 +75,10 @@ impl Driver {
         )
         .to_vec();
         let mut asks = JoinSet::new();
+        // The scene (and the first round's maps) go once to each worker asked; its other
+        // requests of the round name them by digest, as a job's cast streams do, so that a
+        // scene of many datasets is not sent once per dataset.
+        let mut carried: HashSet<String> = HashSet::new();
         for d in plan.datasets_with_work(scene) {
             let holders: Vec<WorkerHandle> = self
                 .registry
@@ -81,7 +86,7 @@ impl Driver {
                 .iter()
                 .filter_map(|id| self.registry.handle(id))
                 .collect();
-            let open = pb::CastOpen {
+            let full = pb::CastOpen {
                 job_id: self.job.id.clone(),
                 scene_toml: self.plan.scene_toml.clone(),
                 scene_name: self.plan.scene_name.clone(),
@@ -91,13 +96,27 @@ impl Driver {
                 shadow_maps: first_maps.clone().unwrap_or_default(),
                 shadow_maps_computed: refine,
             };
-            self.tally.wire_to += open.encoded_len() as u64;
+            let by_digest = pb::CastOpen {
+                job_id: self.job.id.clone(),
+                dataset: d as u32,
+                scene_digest: scene_digest.clone(),
+                shadow_maps_computed: refine,
+                ..Default::default()
+            };
+            let digest_first = holders.first().is_some_and(|w| !carried.insert(w.id.clone()));
+            let requests = Requests {
+                full: pb::ShadowRequest { open: Some(full), refine },
+                by_digest: pb::ShadowRequest { open: Some(by_digest), refine },
+                digest_first,
+            };
             let dataset = scene.datasets()[d].name().to_string();
-            asks.spawn(ask(holders, pb::ShadowRequest { open: Some(open), refine }, dataset));
+            asks.spawn(ask(holders, requests, dataset));
         }
         let mut factors = Vec::new();
         while let Some(answer) = asks.join_next().await {
-            let (worker, reply) = answer.map_err(|e| JobError::Internal(format!("a shadow request failed: {e}")))??;
+            let (worker, reply, sent) =
+                answer.map_err(|e| JobError::Internal(format!("a shadow request failed: {e}")))??;
+            self.tally.wire_to += sent;
             self.tally.wire_from += reply.encoded_len() as u64;
             for f in reply.factors {
                 let bad = || JobError::Worker {
@@ -125,23 +144,47 @@ fn unfit(e: ShadowError) -> JobError {
     }
 }
 
-/// `open`'s factors from the first of `holders` that answers; a holder that is lost or busy
-/// is passed over, one that refuses the scene fails the job.
+/// One dataset's request of a round, with the scene or naming it by digest.
+struct Requests {
+    full: pb::ShadowRequest,
+    by_digest: pb::ShadowRequest,
+    /// Whether the first holder was sent the scene by another request of the round.
+    digest_first: bool,
+}
+
+/// The factors of `requests`' dataset from the first of `holders` that answers, and the
+/// bytes sent for them; a holder that is lost or busy is passed over, one that refuses the
+/// scene fails the job. A request by digest that the worker does not know the scene of (its
+/// other request has not arrived yet, or it no longer holds the scene) goes again with it.
 async fn ask(
     holders: Vec<WorkerHandle>,
-    request: pb::ShadowRequest,
+    requests: Requests,
     dataset: String,
-) -> Result<(String, pb::ShadowReply), JobError> {
-    for worker in holders {
+) -> Result<(String, pb::ShadowReply, u64), JobError> {
+    let mut sent = 0u64;
+    for (i, worker) in holders.into_iter().enumerate() {
         let mut client = WorkerClient::new(worker.channel.clone())
             .max_decoding_message_size(trove_proto::MAX_MESSAGE_BYTES)
             .max_encoding_message_size(trove_proto::MAX_MESSAGE_BYTES);
-        match client.shadow(request.clone()).await {
-            Ok(reply) => return Ok((worker.id, reply.into_inner())),
-            Err(status) => match convert::status_failure(&status) {
-                Some(f) if !f.retryable => return Err(JobError::Worker { worker: worker.id, failure: Box::new(f) }),
-                _ => tracing::warn!(worker = %worker.id, %status, "shadow request failed; trying another holder"),
-            },
+        let mut request = if i == 0 && requests.digest_first { &requests.by_digest } else { &requests.full };
+        loop {
+            sent += request.encoded_len() as u64;
+            match client.shadow(request.clone()).await {
+                Ok(reply) => return Ok((worker.id, reply.into_inner(), sent)),
+                Err(status) => match convert::status_failure(&status) {
+                    Some(f) if f.reason() == pb::Reason::SceneUnknown && std::ptr::eq(request, &requests.by_digest) => {
+                        request = &requests.full;
+                        continue;
+                    }
+                    Some(f) if !f.retryable => {
+                        return Err(JobError::Worker { worker: worker.id, failure: Box::new(f) });
+                    }
+                    _ => {
+                        tracing::warn!(worker = %worker.id, %status, "shadow request failed; trying another holder");
+                        break;
+                    }
+                },
+            }
         }
     }
     Err(JobError::NoHolder { dataset })
