@@ -136,11 +136,12 @@ pub fn attach_shadow_maps(
         let mut t =
             trove_core::scene::Transmittance::new(dims, values).map_err(|e| format!("shadow map {o}/{l}: {e}"))?;
         if !m.fine_values.is_empty() {
-            let len = t.fine_points().len();
+            let refinement = t.refinement();
+            let len = refinement.points().len();
             let fine = from_unit_runs(&m.fine_values, len).ok_or_else(|| {
                 format!("shadow map {o}/{l}: {} bytes of fine values that are not {len} values", m.fine_values.len())
             })?;
-            t = t.with_fine(fine).map_err(|e| format!("shadow map {o}/{l}: fine values: {e}"))?;
+            t = t.with_fine(&refinement, fine).map_err(|e| format!("shadow map {o}/{l}: fine values: {e}"))?;
         }
         *slot = Some(t);
     }
@@ -411,10 +412,11 @@ opacity = { type = "ramp", points = [[0.0, 0.0], [1.0, 1.0]] }
             (0..54).map(|n| if n % 6 < 3 { 0.25 } else { 1.0 }).collect(),
         )
         .unwrap();
-        let fine_len = coarse.fine_points().len();
+        let refinement = coarse.refinement();
+        let fine_len = refinement.points().len();
         assert!(fine_len > 0);
         let fine: Vec<f32> = (0..fine_len).map(|i| (i % 7) as f32 / 7.0).collect();
-        let t = coarse.clone().with_fine(fine).unwrap();
+        let t = coarse.clone().with_fine(&refinement, fine).unwrap();
         let wire = shadow_maps_to_wire(&[Some(vec![Some(t.clone())]), None]);
         let attached = attach_shadow_maps(&scene, &wire).unwrap();
         assert_eq!(attached.objects()[0].shadow_maps(), Some(&[Some(t)][..]));

@@ -145,14 +145,11 @@ fn render_onto<C: Canvas>(scene: &Scene, options: &RenderOptions, linear: bool) 
     // intersected again (the farm's coordinator keeps its count's bands the same way).
     let band_memory = options.band_memory.unwrap_or(DEFAULT_BAND_MEMORY);
     let counting = std::time::Instant::now();
-    // An image whose rays alone overflow the band memory is never one band: no keeping.
-    let (w, h) = (u64::from(scene.image().width), u64::from(scene.image().height));
-    let may_be_one_band = w * h * limits::BYTES_PER_BAND_RAY <= band_memory;
+    // (An image too large to keep stops count_keeping at its first rows: its rays' index alone
+    // leaves no room for a task.)
     let (work, kept) = match options.algorithm {
-        Algorithm::Grouped if may_be_one_band => {
-            limits::Work::count_keeping(scene, scene.image().height, band_memory / 4)?
-        }
-        _ => (limits::Work::count(scene)?, Vec::new()),
+        Algorithm::Grouped => limits::Work::count_keeping(scene, scene.image().height, band_memory / 4)?,
+        Algorithm::PerRay => (limits::Work::count(scene)?, Vec::new()),
     };
     let counting_seconds = counting.elapsed().as_secs_f64();
     // Shadows first (SPEC §6): one visit of each dataset for the other objects' shares.

@@ -37,7 +37,7 @@ use super::workunit::BindTarget;
 use super::{RenderError, VolumeStore};
 use crate::geometry::{Placement, Ray};
 use crate::sampling::{self, ObjectCaster, PieceRequest, PieceResult, SHADOW_STOP};
-use crate::scene::transmittance::fine_point;
+use crate::scene::transmittance::{fine_point, Refinement};
 use crate::scene::{Scene, Transmittance};
 
 /// Lattice points per voxel of the finest other object, along each side of a lit object's
@@ -84,17 +84,17 @@ pub struct Lattice {
     pub receiver: usize,
     /// Points per side.
     pub dims: [u32; 3],
-    /// In a refinement pass, the points to compute: the fine points of the lattice's coarse
-    /// values (`Transmittance::fine_points`).
-    pub fine_points: Option<Arc<[u64]>>,
+    /// In a refinement pass, the refinement of the lattice's coarse values
+    /// (`Transmittance::refinement`), whose fine points are the points to compute.
+    pub refinement: Option<Arc<Refinement>>,
 }
 
 impl Lattice {
     /// Points to compute.
     pub fn len(&self) -> usize {
-        match &self.fine_points {
+        match &self.refinement {
             None => self.dims.iter().map(|&n| n as usize).product(),
-            Some(points) => points.len(),
+            Some(r) => r.points().len(),
         }
     }
 
@@ -105,8 +105,8 @@ impl Lattice {
 
     /// Box coordinates of point `n` (x fastest).
     fn box_point(&self, n: usize) -> DVec3 {
-        if let Some(points) = &self.fine_points {
-            return fine_point(self.dims, points[n]);
+        if let Some(r) = &self.refinement {
+            return fine_point(self.dims, r.points()[n]);
         }
         let [nx, ny, nz] = self.dims.map(|d| d as usize);
         let (i, j, k) = (n % nx, (n / nx) % ny, n / (nx * ny));
@@ -185,7 +185,7 @@ impl ShadowPlan {
             let dims = dims_of(receiver);
             for (light, l) in scene.lights().iter().enumerate() {
                 if l.shadows() {
-                    lattices.push(Lattice { light, receiver, dims, fine_points: None });
+                    lattices.push(Lattice { light, receiver, dims, refinement: None });
                 }
             }
         }
@@ -207,8 +207,8 @@ impl ShadowPlan {
             .iter()
             .map(|l| {
                 let map = scene.objects()[l.receiver].shadow_maps().and_then(|m| m[l.light].as_ref());
-                let points = map.map_or_else(Vec::new, Transmittance::fine_points);
-                Lattice { fine_points: Some(points.into()), ..l.clone() }
+                let refinement = map.map_or_else(Refinement::default, Transmittance::refinement);
+                Lattice { refinement: Some(refinement.into()), ..l.clone() }
             })
             .collect();
         ShadowPlan { lattices, refine: false }
@@ -358,8 +358,9 @@ impl ShadowPlan {
                 continue;
             }
             let slot = maps[lattice.receiver].as_mut().and_then(|m| m[lattice.light].as_mut()).ok_or(bad.clone())?;
+            let refinement = lattice.refinement.as_deref().ok_or(bad.clone())?;
             let fine = product.unwrap_or_else(|| vec![1.0; lattice.len()]);
-            *slot = slot.clone().with_fine(fine).map_err(|_| bad)?;
+            *slot = slot.clone().with_fine(refinement, fine).map_err(|_| bad)?;
         }
         Ok(maps)
     }

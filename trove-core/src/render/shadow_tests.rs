@@ -275,13 +275,7 @@ fn lattice_error_of_the_example_scene() {
     let k: f64 = std::env::var("TROVE_SHADOW_DENSITY").ok().and_then(|v| v.parse().ok()).unwrap_or(4.0);
     let (fine, fine_s) = attach_planned(&scene, &ShadowPlan::with_density(&scene, k, 1 << 27), &store).unwrap();
     let (a, b) = (rendered(&coarse, Algorithm::Grouped), rendered(&fine, Algorithm::Grouped));
-    let levels = a
-        .pixels()
-        .iter()
-        .zip(b.pixels())
-        .flat_map(|(p, q)| (0..3).map(move |i| (p[i] - q[i]).abs()))
-        .fold(0.0, f64::max)
-        * 255.0;
+    let levels = max_difference(&a, &b) * 255.0;
     let differing =
         a.pixels().iter().zip(b.pixels()).filter(|(p, q)| (0..3).any(|i| (p[i] - q[i]).abs() * 255.0 > 0.5)).count();
     let bytes: usize = ShadowPlan::of(&scene).lattices().iter().map(|l| 4 * l.len()).sum();

@@ -10,7 +10,7 @@
 //! and a point in such a cell takes the blend of its block instead. The blocks lie on one
 //! lattice [`REFINE`] times finer than the coarse one, so neighbouring blocks share their
 //! points, and a block's points that are coarse points take the coarse values: only the
-//! other points are computed ([`Transmittance::fine_points`]). Which cells are refined is a
+//! other points are computed ([`Transmittance::refinement`]). Which cells are refined is a
 //! function of the coarse values alone ([`Transmittance::cells_to_refine`]), so a farm
 //! worker that holds the coarse lattice knows the fine points to compute without being
 //! told, and a map on the wire carries only the fine values.
@@ -106,6 +106,49 @@ pub fn fine_point(dims: [u32; 3], index: u64) -> DVec3 {
     let p = [index % fx, (index / fx) % fy, index / (fx * fy)];
     let r = u64::from(REFINE);
     DVec3::from_array(std::array::from_fn(|a| p[a] as f64 / (u64::from(dims[a] - 1) * r) as f64))
+}
+
+/// The points of refined cell `cell`'s block of a lattice of `dims` points (x fastest), each
+/// as its index on the lattice [`REFINE`] times finer and, for the block's corners, its index
+/// on the coarse lattice.
+fn block_points(dims: [u32; 3], cell: u32) -> impl Iterator<Item = (u64, Option<usize>)> {
+    let [cx, cy, _] = cell_dims(dims);
+    let [nx, ny, _] = dims.map(|n| n as usize);
+    let [fx, fy, _] = fine_dims(dims);
+    let r = REFINE as usize;
+    let c = cell as usize;
+    let base = [c % cx, (c / cx) % cy, c / (cx * cy)];
+    (0..BLOCK_POINTS).map(move |n| {
+        let sub = [n % (r + 1), (n / (r + 1)) % (r + 1), n / ((r + 1) * (r + 1))];
+        let [x, y, z] = std::array::from_fn(|a| (base[a] * r + sub[a]) as u64);
+        let corner = sub.iter().all(|&s| s % r == 0).then(|| {
+            let [i, j, k] = std::array::from_fn(|a| base[a] + sub[a] / r);
+            i + nx * (j + ny * k)
+        });
+        (x + fx * (y + fy * z), corner)
+    })
+}
+
+/// A lattice's refined cells and the fine points their blocks need
+/// ([`Transmittance::refinement`]).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Refinement {
+    dims: [u32; 3],
+    cells: Vec<u32>,
+    points: Vec<u64>,
+}
+
+impl Refinement {
+    /// The fine points to compute, as indices on the lattice [`REFINE`] times finer
+    /// ([`fine_point`]), in index order.
+    pub fn points(&self) -> &[u64] {
+        &self.points
+    }
+
+    /// The refined cells (x fastest), in index order.
+    pub fn cells(&self) -> &[u32] {
+        &self.cells
+    }
 }
 
 impl Transmittance {
@@ -205,40 +248,32 @@ impl Transmittance {
         bends
     }
 
-    /// The points whose values [`Transmittance::with_fine`] takes: the points of the refined
-    /// cells' blocks on the lattice [`REFINE`] times finer ([`fine_point`]) that are not
-    /// coarse points, each once, in index order.
-    pub fn fine_points(&self) -> Vec<u64> {
-        self.fine_points_of(&self.cells_to_refine())
-    }
-
-    fn fine_points_of(&self, cells: &[u32]) -> Vec<u64> {
-        let [cx, cy, _] = cell_dims(self.dims);
-        let [fx, fy, _] = fine_dims(self.dims);
-        let r = REFINE as usize;
-        let mut points = Vec::with_capacity(cells.len() * (BLOCK_POINTS - 8));
-        for &cell in cells {
-            let cell = cell as usize;
-            let base = [cell % cx, (cell / cx) % cy, cell / (cx * cy)].map(|c| (c * r) as u64);
-            for n in 0..BLOCK_POINTS {
-                let sub = [n % (r + 1), (n / (r + 1)) % (r + 1), n / ((r + 1) * (r + 1))];
-                if sub.iter().all(|&s| s % r == 0) {
-                    continue;
-                }
-                let [x, y, z] = std::array::from_fn(|a| base[a] + sub[a] as u64);
-                points.push(x + fx * (y + fy * z));
-            }
-        }
+    /// Which cells are refined and which fine points their blocks need:
+    /// [`Transmittance::cells_to_refine`], and the points of those cells' blocks on the
+    /// lattice [`REFINE`] times finer ([`fine_point`]) that are not coarse points, each once,
+    /// in index order. Worked out once from the coarse values, for the pass that computes
+    /// the points' values and again for the lattice that takes them
+    /// ([`Transmittance::with_fine`]).
+    pub fn refinement(&self) -> Refinement {
+        let cells = self.cells_to_refine();
+        let mut points: Vec<u64> = cells
+            .iter()
+            .flat_map(|&c| block_points(self.dims, c))
+            .filter_map(|(fine, corner)| corner.is_none().then_some(fine))
+            .collect();
         points.sort_unstable();
         points.dedup();
-        points
+        Refinement { dims: self.dims, cells, points }
     }
 
-    /// This lattice with the blocks of its [`Transmittance::cells_to_refine`]: `values` holds
-    /// one value per point of [`Transmittance::fine_points`], in that order.
-    pub fn with_fine(self, values: Vec<f32>) -> Result<Transmittance, TransmittanceError> {
-        let cells = self.cells_to_refine();
-        let points = self.fine_points_of(&cells);
+    /// This lattice with the blocks of its refined cells: `refinement` is this lattice's
+    /// ([`Transmittance::refinement`]), and `values` holds one value per point of it, in
+    /// its order.
+    pub fn with_fine(self, refinement: &Refinement, values: Vec<f32>) -> Result<Transmittance, TransmittanceError> {
+        if refinement.dims != self.dims && !refinement.cells.is_empty() {
+            return Err(TransmittanceError::Dims { got: refinement.dims });
+        }
+        let Refinement { cells, points, .. } = refinement;
         if values.len() != points.len() {
             return Err(TransmittanceError::Length { expected: points.len(), got: values.len() });
         }
@@ -249,27 +284,14 @@ impl Transmittance {
             return Ok(Transmittance { fine: None, ..self });
         }
         let [cx, cy, cz] = cell_dims(self.dims);
-        let [nx, ny, _] = self.dims.map(|n| n as usize);
-        let [fx, fy, _] = fine_dims(self.dims);
-        let r = REFINE as usize;
         let mut block_of = vec![NO_BLOCK; cx * cy * cz];
         let mut blocks = Vec::with_capacity(cells.len() * BLOCK_POINTS);
         for (b, &c) in cells.iter().enumerate() {
             block_of[c as usize] = b as u32;
-            let c = c as usize;
-            let base = [c % cx, (c / cx) % cy, c / (cx * cy)];
-            for n in 0..BLOCK_POINTS {
-                let sub = [n % (r + 1), (n / (r + 1)) % (r + 1), n / ((r + 1) * (r + 1))];
-                let value = if sub.iter().all(|&s| s % r == 0) {
-                    let [i, j, k] = std::array::from_fn(|a| base[a] + sub[a] / r);
-                    self.values[i + nx * (j + ny * k)]
-                } else {
-                    let [x, y, z] = std::array::from_fn(|a| (base[a] * r + sub[a]) as u64);
-                    let at = points.binary_search(&(x + fx * (y + fy * z))).expect("a block's point is a fine point");
-                    values[at]
-                };
-                blocks.push(value);
-            }
+            blocks.extend(block_points(self.dims, c).map(|(fine, corner)| match corner {
+                Some(i) => self.values[i],
+                None => values[points.binary_search(&fine).expect("a block's point is a fine point")],
+            }));
         }
         Ok(Transmittance {
             fine: Some(Fine { block_of: block_of.into(), values: blocks.into(), given: values.into() }),
@@ -391,7 +413,9 @@ mod tests {
         // two rows of cells of the one layer). Its neighbours bend at one end only.
         assert_eq!(t.cells_to_refine(), vec![2, 7]);
         // Two blocks sharing a face of (R + 1)² points; their 12 coarse corners are not computed.
-        let points = t.fine_points();
+        let refinement = t.refinement();
+        assert_eq!(refinement.cells(), [2, 7]);
+        let points = refinement.points();
         let r = REFINE as usize;
         assert_eq!(points.len(), 2 * BLOCK_POINTS - (r + 1) * (r + 1) - 12);
         assert!(points.windows(2).all(|w| w[0] < w[1]));
@@ -399,7 +423,7 @@ mod tests {
         // The middle of the cell's last sub-cell, past the step.
         let x = 0.6 - 0.1 / f64::from(REFINE);
         let coarse_at = t.at(DVec3::new(x, 0.3, 0.4));
-        let refined = t.with_fine(fine.clone()).unwrap();
+        let refined = t.with_fine(&refinement, fine.clone()).unwrap();
         // In the refined cells the blend is the block's: exact away from the step's sub-cell.
         assert!((refined.at(DVec3::new(x, 0.3, 0.4)) - 1.0).abs() < 1e-7);
         assert!((refined.at(DVec3::new(x, 0.9, 0.1)) - 1.0).abs() < 1e-7);
@@ -424,15 +448,18 @@ mod tests {
     #[test]
     fn fine_values_must_fit_the_cells_the_coarse_values_refine() {
         let t = coarse_edge();
-        let n = t.fine_points().len();
-        let short = t.clone().with_fine(vec![1.0; n - 1]);
+        let refinement = t.refinement();
+        let n = refinement.points().len();
+        let short = t.clone().with_fine(&refinement, vec![1.0; n - 1]);
         assert_eq!(short, Err(TransmittanceError::Length { expected: n, got: n - 1 }));
         let mut bad = vec![1.0; n];
         bad[7] = 1.5;
-        assert!(matches!(t.with_fine(bad), Err(TransmittanceError::Value { index: 7, .. })));
+        assert!(matches!(t.clone().with_fine(&refinement, bad), Err(TransmittanceError::Value { index: 7, .. })));
         // A flat lattice refines nothing and takes no fine values.
         let flat = Transmittance::new([2, 2, 2], vec![0.5; 8]).unwrap();
         assert!(flat.cells_to_refine().is_empty());
-        assert_eq!(flat.clone().with_fine(Vec::new()), Ok(flat));
+        assert_eq!(flat.clone().with_fine(&flat.refinement(), Vec::new()), Ok(flat.clone()));
+        // Another lattice's refinement is refused.
+        assert!(matches!(flat.with_fine(&refinement, vec![1.0; n]), Err(TransmittanceError::Dims { .. })));
     }
 }
