@@ -247,62 +247,16 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
         s.phase = pb::Phase::Intersection as i32;
         s.rows_total = h;
     });
-    let mut cancelled = job.cancelled();
     let deadline = tokio::time::Instant::now() + driver.config.job_deadline;
-    let past_deadline = tokio::time::sleep_until(deadline);
-    tokio::pin!(past_deadline);
-    let mut tick = tokio::time::interval(driver.config.tick);
-    let mut room = driver.registry.watch_room();
-    // Shadows first (SPEC §6): the other objects' shares, from the workers.
-    let job_deadline = driver.config.job_deadline;
-    let shadows = tokio::select! {
-        done = driver.shadow_pass() => done,
-        _ = cancelled.changed() => Err(JobError::Cancelled),
-        _ = &mut past_deadline => Err(JobError::DeadlineExceeded { deadline: job_deadline }),
+    let mut ends = Ends {
+        cancelled: job.cancelled(),
+        past_deadline: Box::pin(tokio::time::sleep_until(deadline)),
+        job_deadline: driver.config.job_deadline,
     };
-    let outcome = if let Err(e) = shadows {
-        Err(e)
-    } else {
-        driver.open_early();
-        loop {
-            // Whatever room was freed before this point, the dispatch below sees.
-            room.borrow_and_update();
-            let step = Instant::now();
-            let advanced = driver.advance();
-            driver.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
-            if let Err(e) = advanced {
-                break Err(e);
-            }
-            if driver.bands.is_done() {
-                break Ok(());
-            }
-            tokio::select! {
-                event = inbox.recv() => {
-                    let Some(event) = event else { break Err(JobError::Internal("the job's event channel closed".into())) };
-                    let step = Instant::now();
-                    let mut handled = driver.handle(event);
-                    // Take whatever else has arrived before dispatching again: one dispatch
-                    // pass serves many answers when they come quickly.
-                    while handled.is_ok() {
-                        let Ok(event) = inbox.try_recv() else { break };
-                        handled = driver.handle(event);
-                    }
-                    driver.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
-                    if let Err(e) = handled {
-                        break Err(e);
-                    }
-                }
-                // Another job's answer (or lost stream) freed room on a worker this job may use.
-                _ = room.changed() => {}
-                _ = cancelled.changed() => break Err(JobError::Cancelled),
-                _ = &mut past_deadline => break Err(JobError::DeadlineExceeded { deadline: driver.config.job_deadline }),
-                _ = tick.tick() => {
-                    let step = Instant::now();
-                    driver.check_workers();
-                    driver.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
-                }
-            }
-        }
+    // Shadows first (SPEC §6): the other objects' shares, from the workers. Then the bands.
+    let outcome = match ends.guard(driver.shadow_pass()).await {
+        Ok(()) => driver.cast(&mut inbox, &mut ends).await,
+        Err(e) => Err(e),
     };
     // Closing every stream tells the workers to drop what they still hold for this job, and
     // gives back to their load counts, shared with other jobs, what this job still had out.
@@ -333,9 +287,77 @@ pub async fn run(plan: JobPlan, job: Arc<Job>, registry: Arc<Registry>, config: 
     }
 }
 
+/// What ends a job before its work does: a cancel, or its deadline.
+struct Ends {
+    cancelled: tokio::sync::watch::Receiver<bool>,
+    past_deadline: std::pin::Pin<Box<tokio::time::Sleep>>,
+    job_deadline: std::time::Duration,
+}
+
+impl Ends {
+    /// Resolves when the job is cancelled or past its deadline, with that error.
+    async fn reached(&mut self) -> JobError {
+        tokio::select! {
+            _ = self.cancelled.changed() => JobError::Cancelled,
+            _ = &mut self.past_deadline => JobError::DeadlineExceeded { deadline: self.job_deadline },
+        }
+    }
+
+    /// `work`, unless the job ends first.
+    async fn guard(&mut self, work: impl std::future::Future<Output = Result<(), JobError>>) -> Result<(), JobError> {
+        tokio::select! {
+            done = work => done,
+            ended = self.reached() => Err(ended),
+        }
+    }
+}
+
 impl Driver {
     fn scene(&self) -> &Arc<Scene> {
         &self.plan.scene
+    }
+
+    /// The job's event loop, from the first stream to the last band composited: bands
+    /// started as admission allows, batches handed out as workers have room, and every
+    /// event handled, until the job is done, fails, is cancelled or runs out of time.
+    async fn cast(&mut self, inbox: &mut mpsc::Receiver<Event>, ends: &mut Ends) -> Result<(), JobError> {
+        let mut tick = tokio::time::interval(self.config.tick);
+        let mut room = self.registry.watch_room();
+        self.open_early();
+        loop {
+            // Whatever room was freed before this point, the dispatch below sees.
+            room.borrow_and_update();
+            let step = Instant::now();
+            let advanced = self.advance();
+            self.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
+            advanced?;
+            if self.bands.is_done() {
+                return Ok(());
+            }
+            tokio::select! {
+                event = inbox.recv() => {
+                    let Some(event) = event else { return Err(JobError::Internal("the job's event channel closed".into())) };
+                    let step = Instant::now();
+                    let mut handled = self.handle(event);
+                    // Take whatever else has arrived before dispatching again: one dispatch
+                    // pass serves many answers when they come quickly.
+                    while handled.is_ok() {
+                        let Ok(event) = inbox.try_recv() else { break };
+                        handled = self.handle(event);
+                    }
+                    self.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
+                    handled?;
+                }
+                // Another job's answer (or lost stream) freed room on a worker this job may use.
+                _ = room.changed() => {}
+                ended = ends.reached() => return Err(ended),
+                _ = tick.tick() => {
+                    let step = Instant::now();
+                    self.check_workers();
+                    self.tally.coordinator.event_loop += step.elapsed().as_secs_f64();
+                }
+            }
+        }
     }
 
     /// Before any band has a batch: a stream to each worker that holds a dataset of the job
