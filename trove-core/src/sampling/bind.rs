@@ -223,12 +223,16 @@ impl<'a> Parts<'a> {
         let maps = JointPiecewise::new(colour, opacity);
         if let (Interpolation::Trilinear, Some(voxel)) = (self.object.interpolation(), self.voxel) {
             // Trilinear over u8 or u16: lines in AVX2 where the path is AVX2 or AVX-512, and
-            // many pieces at once in f32 lanes on every path.
+            // many pieces at once in f32 lanes on every path; over f32, those many pieces
+            // where the channel's range of values is known (its macrocells').
             let interp = Linear::new(self.dims, Identity);
-            let stored = match (U8Voxels::of(voxel), U16LeVoxels::of(voxel)) {
-                (Some(v), _) => Some(Stored::U8(v)),
-                (None, Some(v)) => Some(Stored::U16(v)),
-                (None, None) => None,
+            let stored = match (U8Voxels::of(voxel), U16LeVoxels::of(voxel), F32LeVoxels::of(voxel)) {
+                (Some(v), ..) => Some(Stored::U8(v)),
+                (None, Some(v), _) => Some(Stored::U16(v)),
+                // f32 voxels in lanes unlit only: a gradient of values up to 10³⁰ would
+                // overflow f32 in the normal's length, where the f64 loop's does not.
+                (None, None, Some(v)) if self.lighting.is_none() => Some(Stored::F32(v)),
+                _ => None,
             };
             // A shaded object has the packet loop lit where its box is affine (one normal
             // matrix) and its lighting fits f32, and no AVX2 lines (they are unlit); else
@@ -258,6 +262,7 @@ impl<'a> Parts<'a> {
                     return Ok(match stored {
                         Stored::U8(v) => self.kernel_with_lanes(interp, Read(v), maps, skip, lanes, packets),
                         Stored::U16(v) => self.kernel_with_lanes(interp, Read(v), maps, skip, lanes, packets),
+                        Stored::F32(v) => self.kernel_with_lanes(interp, Read(v), maps, skip, lanes, packets),
                     });
                 }
             }

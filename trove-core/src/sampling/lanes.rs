@@ -67,7 +67,9 @@ impl<'a> Trilinear4<'a> {
     /// map at most [`SMALL_MAP`] break points and the dataset fewer than 2³⁰ voxels (so
     /// indices and their neighbours' fit in i32 lanes).
     pub(super) fn new(interp: &Linear<Identity>, voxels: Stored<'a>, maps: &JointPiecewise) -> Option<Self> {
-        if !has_avx2() {
+        // Its gathers take two or four integer voxels a word; f32 voxels have the packet
+        // loop alone.
+        if !has_avx2() || voxels.is_float() {
             return None;
         }
         let dims = interp.dims();
@@ -83,7 +85,7 @@ impl<'a> Trilinear4<'a> {
             offsets: offsets.map(|o| o as i32),
             nx: nx as i32,
             ny: ny as i32,
-            safe: voxels.safe_corner(offsets[1], offsets[2]),
+            safe: voxels.safe_corner(offsets[0], offsets[1], offsets[2]),
             breaks: breaks.to_vec(),
             tables,
         })

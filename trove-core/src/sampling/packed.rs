@@ -13,14 +13,16 @@
 use std::cmp::Ordering;
 
 use super::simd::Simd;
-use crate::dataset::{U16LeVoxels, U8Voxels, Voxels};
+use crate::dataset::{F32LeVoxels, U16LeVoxels, U8Voxels, Voxels};
 use crate::geometry::LineSamples;
 
-/// The voxel channels the vector loops read: u8 or little-endian u16.
+/// The voxel channels the vector loops read: u8, little-endian u16, or little-endian f32
+/// (the packet loop only: signed data and simulation grids are f32 once loaded).
 #[derive(Clone, Copy, Debug)]
 pub(super) enum Stored<'a> {
     U8(U8Voxels<'a>),
     U16(U16LeVoxels<'a>),
+    F32(F32LeVoxels<'a>),
 }
 
 impl<'a> Stored<'a> {
@@ -28,6 +30,7 @@ impl<'a> Stored<'a> {
         match self {
             Stored::U8(v) => v.bytes(),
             Stored::U16(v) => v.bytes(),
+            Stored::F32(v) => v.bytes(),
         }
     }
 
@@ -36,21 +39,33 @@ impl<'a> Stored<'a> {
         matches!(self, Stored::U16(_))
     }
 
+    /// Whether voxels are f32 bit patterns, which may be non-finite (an integer type's never
+    /// are), read one gather per voxel rather than two or four voxels per gather.
+    pub(super) fn is_float(&self) -> bool {
+        matches!(self, Stored::F32(_))
+    }
+
     /// Voxels `i` and `i + dx` ([`Voxels::pair`]).
     #[inline]
     pub(super) fn pair(&self, i: usize, dx: usize) -> [f64; 2] {
         match self {
             Stored::U8(v) => v.pair(i, dx),
             Stored::U16(v) => v.pair(i, dx),
+            Stored::F32(v) => v.pair(i, dx),
         }
     }
 
     /// The largest lower-corner index whose four rows (`0`, `oy`, `oz`, `oy + oz` voxels
     /// on) a gather of four bytes from each row's corner reads without reaching past the
-    /// channel's end; −1 where none can.
-    pub(super) fn safe_corner(&self, oy: usize, oz: usize) -> i32 {
-        let width = if self.is_wide() { 2 } else { 1 };
-        let reach = (self.bytes().len() as i64 - 4).div_euclid(width) - (oy + oz) as i64;
+    /// channel's end (for f32, also the four bytes of the voxel `ox` past each corner);
+    /// −1 where none can.
+    pub(super) fn safe_corner(&self, ox: usize, oy: usize, oz: usize) -> i32 {
+        let (width, past) = match self {
+            Stored::U8(_) => (1, 0),
+            Stored::U16(_) => (2, 0),
+            Stored::F32(_) => (4, ox),
+        };
+        let reach = (self.bytes().len() as i64 - 4).div_euclid(width) - (oy + oz + past) as i64;
         reach.clamp(-1, i32::MAX as i64) as i32
     }
 }
@@ -364,6 +379,7 @@ impl Grid<'_> {
     /// The four voxels from `at` on along x, as f32.
     #[inline(always)]
     fn four<S: Simd>(&self, s: S, at: S::I) -> [S::F; 4] {
+        debug_assert!(!self.voxels.is_float(), "f32 voxels are not lit in lanes");
         let base = self.voxels.bytes().as_ptr();
         if self.voxels.is_wide() {
             // SAFETY: [`Grid::gradient`] reads only voxels inside the channel.
@@ -383,6 +399,7 @@ impl Grid<'_> {
     /// The two voxels from `at` on along x, as f32.
     #[inline(always)]
     fn two<S: Simd>(&self, s: S, at: S::I) -> [S::F; 2] {
+        debug_assert!(!self.voxels.is_float(), "f32 voxels are not lit in lanes");
         let base = self.voxels.bytes().as_ptr();
         let wide = self.voxels.is_wide();
         // SAFETY: [`Grid::gradient`] reads rows that are neither the channel's last (for u8,
@@ -436,7 +453,17 @@ impl Grid<'_> {
         let rows = [0, oy, oz, oz + oy];
         let wide = self.voxels.is_wide();
         let mut pairs = [[s.splat(0.0); 2]; 4];
-        if s.bits(s.gt_i(index, s.splat_i(self.safe))) == 0 {
+        if s.bits(s.gt_i(index, s.splat_i(self.safe))) == 0 && self.voxels.is_float() {
+            // One gather per voxel: a corner's and the one `ox` past it, their bits as f32.
+            let base = self.voxels.bytes().as_ptr();
+            for (pair, &row) in pairs.iter_mut().zip(&rows) {
+                let at = s.add_i(index, s.splat_i(row));
+                // SAFETY: every lane's corner is at most `safe`, so its row's voxel and the
+                // one `ox` past it lie inside the channel ([`Stored::safe_corner`]).
+                let (v0, v1) = unsafe { (s.gather::<4>(base, at), s.gather::<4>(base, s.add_i(at, s.splat_i(ox)))) };
+                *pair = [s.bits_to_f32(v0), s.bits_to_f32(v1)];
+            }
+        } else if s.bits(s.gt_i(index, s.splat_i(self.safe))) == 0 {
             let mask = s.splat_i(if wide { 0xffff } else { 0xff });
             let shift = 8 * if wide { 2 } else { 1 } * ox as u32;
             let base = self.voxels.bytes().as_ptr();

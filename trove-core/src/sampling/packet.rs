@@ -1,4 +1,4 @@
-//! Many pieces at a time, one per f32 lane, for a trilinear object over u8 or u16 voxels
+//! Many pieces at a time, one per f32 lane, for a trilinear object over u8, u16 or f32 voxels
 //! with a small joint LUT or ramp map when it casts many pieces at once (a batch of
 //! Algorithm 2, a farm batch): [`Packets`]. The loop is written once over a SIMD width
 //! ([`Simd`]) and compiled for each instruction set ([`SimdPath`]): two registers of
@@ -99,11 +99,17 @@ pub(super) struct Packets<'a> {
     shading: Option<LaneShading>,
 }
 
+/// The largest magnitude of f32 voxel values the packet loop takes: differences of two
+/// values, and their trilinear blends, then stay finite in f32, so a sample is non-finite
+/// there exactly where one of its eight voxels is, as in the f64 loops.
+const F32_MAGNITUDE: f64 = 1e30;
+
 impl<'a> Packets<'a> {
     /// The loop for `interp` over `voxels` with `maps` on `path`, where the processor has
     /// it, the map has at most [`SMALL_MAP`] break points and finite f32 forms, and the
     /// dataset fewer than 2³⁰ voxels (so indices and their neighbours' fit in i32 lanes).
-    /// `range` is the channel's range of values where it is known (else its type's).
+    /// `range` is the channel's range of finite values where it is known (else its type's;
+    /// f32 voxels need it, and it must be within [`F32_MAGNITUDE`]).
     pub(super) fn new(
         interp: &Linear<Identity>,
         voxels: Stored<'a>,
@@ -122,15 +128,24 @@ impl<'a> Packets<'a> {
             return None;
         }
         let (rule, offsets) = interp.rule();
-        let type_range = [0.0, if voxels.is_wide() { f64::from(u16::MAX) } else { f64::from(u8::MAX) }];
-        let packed = Packed::new(&rule, dims.voxel_count(), breaks, &tables, range.unwrap_or(type_range))?;
+        let range = match voxels {
+            Stored::U8(_) => range.unwrap_or([0.0, f64::from(u8::MAX)]),
+            Stored::U16(_) => range.unwrap_or([0.0, f64::from(u16::MAX)]),
+            // f32 values have no type's range to fall back on, and must stay where f32
+            // differences of them cannot overflow (the f64 loops' never do).
+            Stored::F32(_) => match range? {
+                [lo, hi] if lo.abs().max(hi.abs()) <= F32_MAGNITUDE => [lo, hi],
+                _ => return None,
+            },
+        };
+        let packed = Packed::new(&rule, dims.voxel_count(), breaks, &tables, range)?;
         let [nx, ny, _] = dims.as_array();
         let grid = Grid {
             voxels,
             offsets: offsets.map(|o| o as i32),
             nx,
             ny,
-            safe: voxels.safe_corner(offsets[1], offsets[2]),
+            safe: voxels.safe_corner(offsets[0], offsets[1], offsets[2]),
         };
         Some(Packets { interp: *interp, grid, packed, breaks: breaks.to_vec(), token, shading: None })
     }
@@ -491,6 +506,7 @@ impl Cast<'_, '_, '_> {
         let one = s.splat(1.0);
         let zero = s.splat(0.0);
         let jumps = !packets.packed.jumps.is_empty();
+        let (float, infinity) = (packets.grid.voxels.is_float(), s.splat(f32::INFINITY));
         // Lanes change pieces only here: the registers are loaded from `lanes`, the loop runs
         // until some lane ends, and its state goes back to `lanes`.
         'refilled: while lanes.active() != 0 {
@@ -503,7 +519,16 @@ impl Cast<'_, '_, '_> {
                 for (h, r) in regs.iter_mut().enumerate() {
                     let live_bits = half(looked.live & active, h, S::LANES);
                     let live = s.mask(live_bits);
-                    let v = looked.value[h];
+                    let mut v = looked.value[h];
+                    // An f32 voxel may be non-finite, and a sample blending one is: it
+                    // contributes nothing (SPEC §4.5) but is looked at, as in the f64 loops.
+                    // It is classified as 0, so that its colour is finite and its weight of
+                    // 0 leaves the sums as they are. (The map's clamps would also give such a
+                    // sample opacity 0, but only through the order of their operands.)
+                    let finite = float.then(|| s.lt(s.abs(v), infinity));
+                    if let Some(finite) = finite {
+                        v = s.select(finite, v, zero);
+                    }
                     let mut segment = packets.packed.segments(s, v);
                     if jumps {
                         let near = packets.packed.near_jumps(s, v, load(s, &lanes.slack, h)) & live_bits;
@@ -511,7 +536,10 @@ impl Cast<'_, '_, '_> {
                             segment = self.exact_segments(s, &lanes, h, near, r.k, segment);
                         }
                     }
-                    let (opacity, mut colour) = packets.packed.map(s, v, segment);
+                    let (mut opacity, mut colour) = packets.packed.map(s, v, segment);
+                    if let Some(finite) = finite {
+                        opacity = s.select(finite, opacity, zero);
+                    }
                     if let (true, Some(shading)) = (LIT, &packets.shading) {
                         // The samples that contribute (opacity > 0), as the f64 loop picks
                         // them; a register with none skips the gradient's gathers.
@@ -706,6 +734,7 @@ impl Cast<'_, '_, '_> {
             let v = match packets.grid.voxels {
                 Stored::U8(voxels) => packets.interp.apply(&at, &voxels),
                 Stored::U16(voxels) => packets.interp.apply(&at, &voxels),
+                Stored::F32(voxels) => packets.interp.apply(&at, &voxels),
             };
             *segment = packets.breaks.iter().filter(|&&b| b <= v).count() as i32;
         }

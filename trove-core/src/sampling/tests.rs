@@ -227,6 +227,9 @@ fn casts_agree_on(object: &Object, volume: &Volume, correction: bool, rays: &[Ra
 /// the same but for one whose f32 position rounds into the next macrocell (which, being
 /// empty there, contributes nothing either way).
 fn agree_to_f32(f32: &PieceResult, f64: &PieceResult) {
+    // `f64::max` passes NaN over: a non-finite result is caught here, not in the difference.
+    let finite = |r: &PieceResult| r.rgba.colour.iter().chain([&r.rgba.alpha]).all(|c| c.is_finite());
+    assert!(finite(f32) && finite(f64), "non-finite results: {f32:?} against {f64:?}");
     let difference = f32
         .rgba
         .colour
@@ -308,9 +311,59 @@ fn every_stored_type_interpolation_and_map_casts_alike_on_every_path() {
     // processor has it, so the comparisons above held its lanes against the general loop.
     let eligible = 2 * 4 * 2;
     assert_eq!(avx2, if has_avx2() { eligible } else { 0 });
-    // And they cast many pieces at a time in f32 lanes on every path, held above against
-    // casting them one by one.
-    assert_eq!(packets, eligible);
+    // They, and the same over f32 le (whose opacity maps here are zero somewhere, so the
+    // channel's range is known from its macrocells), cast many pieces at a time in f32
+    // lanes on every path, held above against casting them one by one.
+    assert_eq!(packets, 3 * 4 * 2);
+}
+
+#[test]
+fn f32_voxels_cast_in_packets_alike_with_negative_fractional_and_non_finite_values() {
+    // Signed data and simulation grids load as f32: values below zero and between integers,
+    // and voxels that are NaN or infinite, which leave out every sample blending them (SPEC
+    // §4.5) in the packet loop as in the f64 loops.
+    let dims = Dims::new([29, 23, 17]).unwrap();
+    let mut values: Vec<f32> = sparse(dims, 5, 5)
+        .iter()
+        .enumerate()
+        .map(|(i, &v)| if v == 0.0 { -50.0 } else { v * 1.37 - 40.0 + (i % 7) as f32 * 0.125 })
+        .collect();
+    let mut non_finite = 0;
+    for (i, v) in values.iter_mut().enumerate() {
+        if *v > 20.0 && i % 41 == 0 {
+            *v = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY][non_finite % 3];
+            non_finite += 1;
+        }
+    }
+    assert!(non_finite >= 20, "{non_finite} non-finite voxels among the data");
+    let (size, at) = (1.0, DVec3::new(-0.5, -0.5, -0.5));
+    let rays = rays(size, at, 160);
+    let signed_ramp = OpacityMap::Ramp(Ramp::new(vec![(-30.0, [0.0]), (-10.0, [0.2]), (100.0, [0.5]), (250.0, [0.9])]));
+    let signed_lut = OpacityMap::Lut(Lut::new(vec![-20.0, 0.5, 60.25], vec![0.0, 0.05, 0.1, 0.3]));
+    let colour_lut =
+        ColourMap::Lut(Lut::new(vec![-5.0, 120.0], vec![[0.0, 0.0, 1.0], [0.3, 0.6, 0.2], [1.0, 0.9, 0.8]]));
+    let cases =
+        [(colour_ramp(), opacity_ramp(), false), (colour_ramp(), signed_ramp, true), (colour_lut, signed_lut, true)];
+    let at_most = |bound: f32| values.iter().map(|&v| if v.abs() > bound { 0.0 } else { v }).collect::<Vec<f32>>();
+    for (colour, opacity, correction) in cases {
+        let vol = volume(dims, vec![(ChannelName::Voxel, channel(VoxelType::F32, Endian::Little, &values, dims))]);
+        let o = object(colour, opacity, Interpolation::Trilinear, affine(size, at), Extent::FULL, dims);
+        assert!(ObjectCaster::new(&o, &vol, correction).unwrap().casts_packets());
+        casts_agree(&o, &vol, correction, &rays);
+        // A finite value beyond 10³⁰ could overflow f32 differences: such a channel keeps
+        // the f64 loops (which the same comparisons then hold to themselves).
+        let mut huge = at_most(f32::MAX);
+        huge[1000] = 3e35;
+        let vol = volume(dims, vec![(ChannelName::Voxel, channel(VoxelType::F32, Endian::Little, &huge, dims))]);
+        assert!(!ObjectCaster::new(&o, &vol, correction).unwrap().casts_packets());
+        casts_agree(&o, &vol, correction, &rays);
+    }
+    // An opacity map that is nowhere zero has no empty-space classification, so no range of
+    // the channel's values: f32 voxels then keep the f64 loops.
+    let everywhere = OpacityMap::Ramp(Ramp::new(vec![(-60.0, [0.01]), (250.0, [0.5])]));
+    let vol = volume(dims, vec![(ChannelName::Voxel, channel(VoxelType::F32, Endian::Little, &values, dims))]);
+    let o = object(colour_ramp(), everywhere, Interpolation::Trilinear, affine(size, at), Extent::FULL, dims);
+    assert!(!ObjectCaster::new(&o, &vol, true).unwrap().casts_packets());
 }
 
 #[test]
