@@ -129,6 +129,13 @@ impl<const N: usize> Piecewise<N> {
         Piecewise { breaks, segments, index }
     }
 
+    /// The map that is `y` everywhere: one constant segment, no break point. For every
+    /// finite value it gives exactly what a constant [`Polynomial`] of `y` gives (both add
+    /// a zero product to `y`), so a constant opacity can join a piecewise colour map.
+    pub(crate) fn constant(y: [f64; N]) -> Piecewise<N> {
+        Piecewise::new(Vec::new(), vec![Segment::constant(y)])
+    }
+
     /// Which segment `v` falls in.
     #[inline(always)]
     fn segment(&self, v: f64) -> usize {
@@ -305,6 +312,11 @@ impl<T: LutValue> Lut<T> {
 pub struct Polynomial(pub Vec<f64>);
 
 impl Polynomial {
+    /// The polynomial's value when it has no power of v (unclamped), else `None`.
+    pub fn as_constant(&self) -> Option<f64> {
+        (self.0.len() <= 1).then(|| self.0.first().copied().unwrap_or(0.0))
+    }
+
     /// p(v).
     #[inline]
     pub fn eval(&self, v: f64) -> f64 {

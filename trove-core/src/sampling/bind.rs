@@ -210,8 +210,16 @@ impl<'a> Parts<'a> {
             (ColourMap::Ramp(c), OpacityMap::Ramp(o)) => self.joint(c.piecewise(), o.piecewise(), skip),
             (ColourMap::Polynomial(c), OpacityMap::Lut(o)) => self.separate(c, o.piecewise(), skip),
             (ColourMap::Polynomial(c), OpacityMap::Ramp(o)) => self.separate(c, o.piecewise(), skip),
-            (ColourMap::Lut(c), OpacityMap::Polynomial(o)) => self.separate(c.piecewise(), o, skip),
-            (ColourMap::Ramp(c), OpacityMap::Polynomial(o)) => self.separate(c.piecewise(), o, skip),
+            // A constant opacity (a floor, a photograph one voxel deep) is a piecewise map
+            // of one segment, so the object takes the joint map's loops, packets included.
+            (ColourMap::Lut(c), OpacityMap::Polynomial(o)) => match o.as_constant() {
+                Some(y) => self.joint(c.piecewise(), &Piecewise::constant([y]), skip),
+                None => self.separate(c.piecewise(), o, skip),
+            },
+            (ColourMap::Ramp(c), OpacityMap::Polynomial(o)) => match o.as_constant() {
+                Some(y) => self.joint(c.piecewise(), &Piecewise::constant([y]), skip),
+                None => self.separate(c.piecewise(), o, skip),
+            },
             (ColourMap::Polynomial(c), OpacityMap::Polynomial(o)) => self.separate(c, o, skip),
             _ => Err(skip),
         }

@@ -367,6 +367,40 @@ fn f32_voxels_cast_in_packets_alike_with_negative_fractional_and_non_finite_valu
 }
 
 #[test]
+fn a_constant_opacity_with_a_piecewise_colour_casts_in_packets_alike() {
+    // Floors and photographs one voxel deep: a constant opacity (opaque, translucent, above
+    // 1, below 0) with a LUT or ramp colour joins the colour's map as a map of one segment.
+    let dims = Dims::new([21, 17, 13]).unwrap();
+    let values = sparse(dims, 3, 2);
+    let (size, at) = (1.0, DVec3::new(-0.5, -0.5, -0.5));
+    let rays = rays(size, at, 60);
+    let lut = || ColourMap::Lut(Lut::new(vec![0.5, 120.0], vec![[0.0, 0.0, 1.0], [0.3, 0.6, 0.2], [1.0, 0.9, 0.8]]));
+    for ty in [VoxelType::U8, VoxelType::U16, VoxelType::F32] {
+        let vol = volume(dims, vec![(ChannelName::Voxel, channel(ty, Endian::Little, &values, dims))]);
+        for (colour, c) in [(colour_ramp(), 1.0), (lut(), 0.3), (colour_ramp(), 1.7), (lut(), -0.2)] {
+            let opacity = OpacityMap::Polynomial(Polynomial(vec![c]));
+            for correction in [false, true] {
+                let o = object(
+                    colour.clone(),
+                    opacity.clone(),
+                    Interpolation::Trilinear,
+                    affine(size, at),
+                    Extent::FULL,
+                    dims,
+                );
+                let caster = ObjectCaster::new(&o, &vol, correction).unwrap();
+                assert!(caster.is_specialised());
+                // f32 voxels have no range without empty-space classification, which a
+                // constant opacity never has: they keep the f64 loops. (An opacity of at
+                // most 0 is a transparent object, whose pieces are never cast at all.)
+                assert_eq!(caster.casts_packets(), ty != VoxelType::F32, "{ty:?}, opacity {c}");
+                casts_agree(&o, &vol, correction, &rays);
+            }
+        }
+    }
+}
+
+#[test]
 fn many_pieces_at_once_skip_alike_in_volumes_of_many_cells() {
     // Hundreds of macrocells (so their bits span many words), sparse data (so lanes jump
     // often and at different times), u8 and u16 under the vector loops' maps.
