@@ -121,6 +121,12 @@ impl Macrocells {
         ranges[c[0] as usize + nx as usize * (c[1] as usize + ny as usize * c[2] as usize)]
     }
 
+    /// `[min, max]` of the channel's finite values (`None` if it has none).
+    pub fn value_range(&self) -> Option<[f64; 2]> {
+        let [lo, hi] = self.coarse.iter().fold(EMPTY, |all, &cell| union(all, cell));
+        (lo <= hi).then_some([f64::from(lo), f64::from(hi)])
+    }
+
     /// The union of the ranges of the cells of `level` within `radius` cells of `c` (per
     /// axis, clipped to the grid): what a stencil reaching beyond its base cell can read.
     pub fn range_around(&self, level: Level, c: [u32; 3], radius: u32) -> [f32; 2] {

@@ -24,6 +24,7 @@ use super::shade::{LaneShading, NoShade, Shaded, Shadows};
 use super::simd::SimdPath;
 use super::skip::Skipper;
 use super::ClassificationCache;
+use crate::dataset::macrocell::Macrocells;
 use crate::dataset::{ChannelReader, F32LeVoxels, U16LeVoxels, U8Voxels};
 use crate::geometry::GradientToWorld;
 use crate::interp::{Cubic, DynInterp, Identity, Interp, Interpolation, Linear, Nearest, NoInterp, Omega};
@@ -41,6 +42,10 @@ pub(super) struct Parts<'a> {
     pub object: &'a Object,
     pub dims: crate::dataset::Dims,
     pub voxel: Option<ChannelReader<'a>>,
+    /// The `voxel` channel's macrocell ranges, where the volume has them: the range of its
+    /// values, which f32 voxels need for the packet loop when no empty-space
+    /// classification gives it.
+    pub voxel_cells: Option<&'a Macrocells>,
     pub raw_rgb: Option<(RawColour, [ChannelReader<'a>; 3])>,
     pub alpha: Option<ChannelReader<'a>>,
     pub correction: bool,
@@ -232,7 +237,7 @@ impl<'a> Parts<'a> {
         if let (Interpolation::Trilinear, Some(voxel)) = (self.object.interpolation(), self.voxel) {
             // Trilinear over u8 or u16: lines in AVX2 where the path is AVX2 or AVX-512, and
             // many pieces at once in f32 lanes on every path; over f32, those many pieces
-            // where the channel's range of values is known (its macrocells').
+            // where the channel's range of values is known (from its macrocells).
             let interp = Linear::new(self.dims, Identity);
             let stored = match (U8Voxels::of(voxel), U16LeVoxels::of(voxel), F32LeVoxels::of(voxel)) {
                 (Some(v), ..) => Some(Stored::U8(v)),
@@ -260,7 +265,11 @@ impl<'a> Parts<'a> {
             if let Some(stored) = stored {
                 let avx2 = matches!(self.path, SimdPath::Avx2 | SimdPath::Avx512) && lit.is_none();
                 let lanes = if avx2 { Trilinear4::new(&interp, stored, &maps) } else { None };
-                let range = skip.as_ref().and_then(Skipper::value_range);
+                let range = skip.as_ref().and_then(Skipper::value_range).or_else(|| match stored {
+                    Stored::F32(_) => self.voxel_cells.and_then(Macrocells::value_range),
+                    // u8 and u16 fall back on their type's range.
+                    Stored::U8(_) | Stored::U16(_) => None,
+                });
                 let packets = Packets::new(&interp, stored, &maps, range, self.path);
                 let packets = match lit {
                     Some(shading) => packets.map(|p| p.lit(shading)),

@@ -331,6 +331,7 @@ impl<'a> ObjectCaster<'a> {
             object,
             dims: volume.dims(),
             voxel: if needs_voxel { Some(reader(ChannelName::Voxel)?) } else { None },
+            voxel_cells: volume.macrocells(ChannelName::Voxel),
             raw_rgb,
             alpha: if matches!(object.opacity(), OpacityMap::Raw) { Some(reader(ChannelName::Alpha)?) } else { None },
             correction: opacity_correction,

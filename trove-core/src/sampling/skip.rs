@@ -184,17 +184,7 @@ impl<'a> Skipper<'a> {
 
     /// The range of the channel's finite values (`None` if it has none).
     pub(super) fn value_range(&self) -> Option<[f64; 2]> {
-        let [nx, ny, nz] = self.cells.cells(Level::Coarse);
-        let [mut lo, mut hi] = [f32::INFINITY, f32::NEG_INFINITY];
-        for z in 0..nz {
-            for y in 0..ny {
-                for x in 0..nx {
-                    let [l, h] = self.cells.range(Level::Coarse, [x, y, z]);
-                    (lo, hi) = (lo.min(l), hi.max(h));
-                }
-            }
-        }
-        (lo <= hi).then_some([f64::from(lo), f64::from(hi)])
+        self.cells.value_range()
     }
 
     /// Whether no sample based in cell `cell` of `level` can contribute.
