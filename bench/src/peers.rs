@@ -1,6 +1,8 @@
-//! TROVE side by side with VTK's fixed-point CPU ray caster (issue 10): the CT head and the
-//! synthetic 256³ u8 volume of `../shared/peers/make_test_volume.py`, with the camera, image
-//! size, step, threads and transfer function of `scenes/peers/*.toml` on both sides.
+//! TROVE side by side with VTK's fixed-point CPU ray caster (issue 10): the CT head, the same
+//! head stored as f32 (as signed scans and simulation grids are once loaded; written from the
+//! shared u16 file when absent), and the synthetic 256³ u8 volume of
+//! `../shared/peers/make_test_volume.py`, with the camera, image size, step, threads and
+//! transfer function of `scenes/peers/*.toml` on both sides.
 //!
 //! Runs alternate (VTK, then TROVE, `rounds` times) so that load from other jobs on a
 //! shared machine falls on both; medians are reported. VTK's re-render (its frame without
@@ -40,7 +42,7 @@ pub struct Args {
     /// The peers folder (vtk_raycast.py).
     #[arg(long, default_value = "../shared/peers")]
     peers: PathBuf,
-    /// The folder of the peers scenes (cthead.toml, synthetic-u8.toml).
+    /// The folder of the peers scenes (cthead.toml, cthead-f32.toml, synthetic-u8.toml).
     #[arg(long, default_value = "scenes/peers")]
     scenes: PathBuf,
     /// The data root of the CT head's key (the shared data).
@@ -70,7 +72,7 @@ struct Peer {
     vtk: &'static [&'static str],
 }
 
-const PEERS: [Peer; 2] = [
+const PEERS: [Peer; 3] = [
     Peer {
         name: "CT head",
         scene: "cthead.toml",
@@ -78,6 +80,39 @@ const PEERS: [Peer; 2] = [
         vtk: &[
             "--nrrd",
             "{data}/cthead_256x256x113_uint16_le.nhdr",
+            "--tf",
+            "{peers}/tf/cthead_tf.json",
+            "--eye",
+            "430",
+            "-380",
+            "20",
+            "--look-at",
+            "127.5",
+            "127.5",
+            "113",
+            "--up",
+            "0",
+            "0",
+            "-1",
+        ],
+    },
+    Peer {
+        name: "CT head as f32",
+        scene: "cthead-f32.toml",
+        shared_data: false,
+        vtk: &[
+            "--raw",
+            "{data}/cthead_f32.raw",
+            "--dims",
+            "256",
+            "256",
+            "113",
+            "--dtype",
+            "float32",
+            "--spacing",
+            "1",
+            "1",
+            "2",
             "--tf",
             "{peers}/tf/cthead_tf.json",
             "--eye",
@@ -144,6 +179,9 @@ pub fn run(args: Args) -> Result<()> {
     let vtk = vtk_available();
     if !vtk {
         println!("Python's `vtk` module is absent (pip install vtk): TROVE is timed alone.");
+    }
+    if let Err(e) = write_f32_head(&args) {
+        println!("The CT head as f32 could not be written ({e:#}): its row is skipped.");
     }
     let pool = rayon::ThreadPoolBuilder::new().num_threads(args.threads).build()?;
     println!("{}, {} threads\n", crate::machine::describe()?, args.threads);
@@ -259,6 +297,32 @@ fn print_row(name: &str, rounds: &[Round], samples: u64, rmse_vtk: Option<f64>, 
 }
 
 /// Where `peer`'s data files are.
+/// The shared u16 CT head's voxels as little-endian f32 (exact: every u16 is an f32), in the
+/// scenes folder's `data/`, unless already there; nothing where the shared head is absent.
+fn write_f32_head(args: &Args) -> Result<()> {
+    let (from, to) = (args.data_root.join(U16_HEAD), args.scenes.join("data").join(F32_HEAD));
+    if to.exists() || !from.exists() {
+        return Ok(());
+    }
+    let u16s = std::fs::read(&from).with_context(|| format!("reading {}", from.display()))?;
+    let f32s = u16_to_f32_le(&u16s);
+    std::fs::create_dir_all(args.scenes.join("data"))?;
+    // Written aside and renamed, so that an interrupted run leaves no short file behind.
+    let part = to.with_extension("part");
+    std::fs::write(&part, f32s).with_context(|| format!("writing {}", part.display()))?;
+    std::fs::rename(&part, &to).with_context(|| format!("writing {}", to.display()))?;
+    Ok(())
+}
+
+/// The shared CT head, and its f32 copy under the peers scenes' `data/`.
+const U16_HEAD: &str = "cthead_256x256x113_uint16_le.raw";
+const F32_HEAD: &str = "cthead_f32.raw";
+
+/// Little-endian u16 voxels as little-endian f32 ones (a trailing odd byte is ignored).
+fn u16_to_f32_le(bytes: &[u8]) -> Vec<u8> {
+    bytes.chunks_exact(2).flat_map(|b| f32::from(u16::from_le_bytes([b[0], b[1]])).to_le_bytes()).collect()
+}
+
 fn data_root(args: &Args, peer: &Peer) -> PathBuf {
     if peer.shared_data {
         args.data_root.clone()
@@ -348,6 +412,14 @@ fn rmse_levels(a: &[u8], b: &[u8]) -> Result<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn u16_voxels_become_the_same_values_as_f32() {
+        let u16s: Vec<u8> = [0u16, 1, 700, 3272, u16::MAX].iter().flat_map(|v| v.to_le_bytes()).collect();
+        let f32s = u16_to_f32_le(&u16s);
+        let back: Vec<f32> = f32s.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+        assert_eq!(back, vec![0.0, 1.0, 700.0, 3272.0, 65535.0]);
+    }
 
     #[test]
     fn rmse_of_equal_images_is_zero_and_of_one_level_off_is_one() {

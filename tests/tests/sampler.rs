@@ -27,11 +27,13 @@ fn the_peers_benchmark_scenes_render_alike_and_skip_empty_space() {
     let dir = repo_root().join("scenes/peers");
     let mut rendered = 0;
     // Each scene's data root (its comment says how to get or make the data). The synthetic
-    // volume is made by a script, not part of the shared data, so its absence is never a
-    // failure, even where missing shared data is.
-    for (name, data, shared) in
-        [("cthead.toml", shared_data_dir(), true), ("synthetic-u8.toml", dir.join("data"), false)]
-    {
+    // volume and the f32 head are made by scripts, not part of the shared data, so their
+    // absence is never a failure, even where missing shared data is.
+    for (name, data, shared) in [
+        ("cthead.toml", shared_data_dir(), true),
+        ("synthetic-u8.toml", dir.join("data"), false),
+        ("cthead-f32.toml", dir.join("data"), false),
+    ] {
         let path = dir.join(name);
         let scene = match Scene::load_in(&path, &DataRoot::Given(data.clone())) {
             Ok(scene) => scene,
@@ -40,7 +42,7 @@ fn the_peers_benchmark_scenes_render_alike_and_skip_empty_space() {
                 if shared {
                     skip(&reason);
                 } else {
-                    eprintln!("SKIPPED: {reason} (made by make_test_volume.py, see the scene's comment)");
+                    eprintln!("SKIPPED: {reason} (made by a script, see the scene's comment)");
                 }
                 continue;
             }

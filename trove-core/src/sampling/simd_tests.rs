@@ -24,6 +24,7 @@ fn scenes() -> Vec<(PathBuf, PathBuf)> {
     files.sort();
     files.push((repo.join("scenes/peers/cthead.toml"), data));
     files.push((repo.join("scenes/peers/synthetic-u8.toml"), repo.join("scenes/peers/data")));
+    files.push((repo.join("scenes/peers/cthead-f32.toml"), repo.join("scenes/peers/data")));
     files
 }
 
@@ -122,9 +123,10 @@ fn every_available_path_renders_every_example_scene_within_a_level_of_the_f64_lo
     for (file, data) in scenes() {
         let scene = match Scene::load_in(&file, &DataRoot::Given(data.clone())) {
             Ok(scene) => scene,
-            // The synthetic volume is made by a script (its scene's comment says how).
+            // The synthetic volume and the f32 head are made by scripts (their scenes'
+            // comments say how).
             Err(SceneError { kind: SceneErrorKind::DataNotFound { .. }, .. })
-                if !required || file.ends_with("synthetic-u8.toml") =>
+                if !required || file.ends_with("synthetic-u8.toml") || file.ends_with("cthead-f32.toml") =>
             {
                 eprintln!("SKIPPED {}: its data is absent under {}", file.display(), data.display());
                 skipped += 1;
