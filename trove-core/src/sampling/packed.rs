@@ -453,7 +453,9 @@ impl Grid<'_> {
         let rows = [0, oy, oz, oz + oy];
         let wide = self.voxels.is_wide();
         let mut pairs = [[s.splat(0.0); 2]; 4];
-        if s.bits(s.gt_i(index, s.splat_i(self.safe))) == 0 && self.voxels.is_float() {
+        // Whether every lane's gathers stay inside the channel ([`Stored::safe_corner`]).
+        let inside = s.bits(s.gt_i(index, s.splat_i(self.safe))) == 0;
+        if inside && self.voxels.is_float() {
             // One gather per voxel: a corner's and the one `ox` past it, their bits as f32.
             let base = self.voxels.bytes().as_ptr();
             for (pair, &row) in pairs.iter_mut().zip(&rows) {
@@ -463,7 +465,7 @@ impl Grid<'_> {
                 let (v0, v1) = unsafe { (s.gather::<4>(base, at), s.gather::<4>(base, s.add_i(at, s.splat_i(ox)))) };
                 *pair = [s.bits_to_f32(v0), s.bits_to_f32(v1)];
             }
-        } else if s.bits(s.gt_i(index, s.splat_i(self.safe))) == 0 {
+        } else if inside {
             let mask = s.splat_i(if wide { 0xffff } else { 0xff });
             let shift = 8 * if wide { 2 } else { 1 } * ox as u32;
             let base = self.voxels.bytes().as_ptr();
