@@ -242,9 +242,9 @@ impl<'a> Parts<'a> {
             let stored = match (U8Voxels::of(voxel), U16LeVoxels::of(voxel), F32LeVoxels::of(voxel)) {
                 (Some(v), ..) => Some(Stored::U8(v)),
                 (None, Some(v), _) => Some(Stored::U16(v)),
-                // f32 voxels in lanes unlit only: a gradient of values up to 10³⁰ would
-                // overflow f32 in the normal's length, where the f64 loop's does not.
-                (None, None, Some(v)) if self.lighting.is_none() => Some(Stored::F32(v)),
+                // Lit f32 voxels' gradients are rescaled before their length is taken
+                // ([`LaneShading::rescaled`]).
+                (None, None, Some(v)) => Some(Stored::F32(v)),
                 _ => None,
             };
             // A shaded object has the packet loop lit where its box is affine (one normal

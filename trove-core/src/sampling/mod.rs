@@ -20,8 +20,8 @@
 //!   the commonest combination: trilinear over u8 or u16 voxels with LUT or ramp maps that
 //!   merge into a small joint map. It runs the generic loop's operations in its order, so
 //!   it changes no sample.
-//! * `packet.rs` casts a batch's straight pieces of such an object (and of an unlit one over
-//!   f32 voxels whose range of values is known and within 10³⁰) many at a time, one per
+//! * `packet.rs` casts a batch's straight pieces of such an object (and of one over f32
+//!   voxels whose range of values is known and within 10³⁰) many at a time, one per
 //!   f32 lane, two registers side by side, pipelined one sample ahead
 //!   ([`ObjectCaster::cast_many`], what `BatchCaster` calls): across rays there is no
 //!   compositing chain to wait on. `packed.rs` holds the f32 forms of the object's grid and
@@ -368,7 +368,7 @@ impl<'a> ObjectCaster<'a> {
 
     /// Whether [`ObjectCaster::cast_many`] casts straight pieces many at a time in f32 lanes
     /// (trilinear over u8 or u16 with a small LUT or ramp map whose numbers fit f32; over f32
-    /// too where the object is unlit and its channel's range is known and within 10³⁰).
+    /// too where its channel's range is known and within 10³⁰).
     pub fn casts_packets(&self) -> bool {
         self.kernel.packet_path().is_some()
     }

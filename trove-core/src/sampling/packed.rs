@@ -379,9 +379,13 @@ impl Grid<'_> {
     /// The four voxels from `at` on along x, as f32.
     #[inline(always)]
     fn four<S: Simd>(&self, s: S, at: S::I) -> [S::F; 4] {
-        debug_assert!(!self.voxels.is_float(), "f32 voxels are not lit in lanes");
         let base = self.voxels.bytes().as_ptr();
-        if self.voxels.is_wide() {
+        if self.voxels.is_float() {
+            // SAFETY: [`Grid::gradient`] reads only voxels inside the channel, and an f32
+            // gather reads exactly its voxel's four bytes.
+            let voxel = |k: i32| unsafe { s.bits_to_f32(s.gather::<4>(base, s.add_i(at, s.splat_i(k)))) };
+            [voxel(0), voxel(1), voxel(2), voxel(3)]
+        } else if self.voxels.is_wide() {
             // SAFETY: [`Grid::gradient`] reads only voxels inside the channel.
             let (a, b) = unsafe { (s.gather::<2>(base, at), s.gather::<2>(base, s.add_i(at, s.splat_i(2)))) };
             let mask = s.splat_i(0xffff);
@@ -399,8 +403,12 @@ impl Grid<'_> {
     /// The two voxels from `at` on along x, as f32.
     #[inline(always)]
     fn two<S: Simd>(&self, s: S, at: S::I) -> [S::F; 2] {
-        debug_assert!(!self.voxels.is_float(), "f32 voxels are not lit in lanes");
         let base = self.voxels.bytes().as_ptr();
+        if self.voxels.is_float() {
+            // SAFETY: as for `four`: the two voxels lie inside the channel.
+            let voxel = |k: i32| unsafe { s.bits_to_f32(s.gather::<4>(base, s.add_i(at, s.splat_i(k)))) };
+            return [voxel(0), voxel(1)];
+        }
         let wide = self.voxels.is_wide();
         // SAFETY: [`Grid::gradient`] reads rows that are neither the channel's last (for u8,
         // whose four bytes reach two voxels past the pair) nor outside it.

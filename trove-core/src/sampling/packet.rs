@@ -153,6 +153,7 @@ impl<'a> Packets<'a> {
     /// The same loop lit by `shading` (SPEC §6): each sample that contributes shaded before
     /// it is composited.
     pub(super) fn lit(self, shading: LaneShading) -> Packets<'a> {
+        let shading = if self.grid.voxels.is_float() { shading.rescaled() } else { shading };
         Packets { shading: Some(shading), ..self }
     }
 

@@ -231,6 +231,10 @@ pub(super) struct LaneShading {
     lights: Vec<LaneLight>,
     /// L of the directional lights whose H lanes keep, in slot order.
     towards: Vec<DVec3>,
+    /// Divide each world gradient by its largest component before its length is taken
+    /// ([`LaneShading::rescaled`]): f32 voxels' gradients can be of any size, where their
+    /// squares would overflow or vanish; u8 and u16 ones cannot.
+    rescale: bool,
 }
 
 /// For a whole-number shininess n up to 64, n and the least f32 x at or above which xⁿ
@@ -303,7 +307,15 @@ impl LaneShading {
             whole_shininess: whole_power(material.shininess()),
             lights: lane_lights,
             towards,
+            rescale: false,
         })
+    }
+
+    /// The same shading for gradients of any finite size (f32 voxels'): each world gradient
+    /// is divided by its largest component (the normal is the same direction) before its
+    /// length is taken, so that no square overflows or vanishes where the f64 loop's does not.
+    pub(super) fn rescaled(self) -> LaneShading {
+        LaneShading { rescale: true, ..self }
     }
 
     /// How many directional lights have their H kept per piece ([`LaneShading::half_vector`]).
@@ -362,6 +374,15 @@ impl LaneShading {
         let mut world = [zero; 3];
         for (r, w) in world.iter_mut().enumerate() {
             *w = dot([s.splat(m[r][0]), s.splat(m[r][1]), s.splat(m[r][2])], g);
+        }
+        if self.rescale {
+            // Largest |component| first: a zero gradient gives 0·∞ = NaN below, which is not
+            // lit, as a non-finite one is not.
+            let big = s.max(s.abs(world[0]), s.max(s.abs(world[1]), s.abs(world[2])));
+            let inv = s.div(one, big);
+            for w in &mut world {
+                *w = s.mul(*w, inv);
+            }
         }
         let len = s.sqrt(dot(world, world));
         // No surface to light (or a gradient that is not a number): false for NaN.

@@ -484,14 +484,30 @@ fn lit_pieces_cast_in_packets_hold_the_f64_lit_loop_on_every_path() {
     let opacity_lut = OpacityMap::Lut(Lut::new(breaks.clone(), (0..7).map(|i| (i / 2) as f64 * 0.08).collect()));
     let colour_lut =
         ColourMap::Lut(Lut::new(breaks, (0..7).map(|i| [i as f64 / 6.0, 0.5, 1.0 - i as f64 / 8.0]).collect()));
+    // f32 voxels at the ball's scale, and scaled far down and up (with the maps' points):
+    // their gradients' squares would vanish or overflow in f32 but for the rescaling.
+    let scaled_ramps = |k: f64| {
+        let colour = ColourMap::Ramp(Ramp::new(vec![
+            (0.0, [0.1, 0.2, 0.3]),
+            (100.0 * k, [0.9, 0.5, 0.1]),
+            (200.0 * k, [1.0, 1.0, 1.0]),
+        ]));
+        let opacity = OpacityMap::Ramp(Ramp::new(vec![(0.5 * k, [0.0]), (150.0 * k, [0.4]), (200.0 * k, [0.9])]));
+        (colour, opacity)
+    };
+    let (tiny_colour, tiny_opacity) = scaled_ramps(1e-20);
+    let (huge_colour, huge_opacity) = scaled_ramps(1e20);
     let cases = [
-        (VoxelType::U8, false, colour_ramp(), opacity_ramp(), material, &lights[..]),
-        (VoxelType::U16, true, colour_ramp(), opacity_ramp(), fractional, &lights[..]),
-        (VoxelType::U8, true, colour_lut, opacity_lut, material, &many[..]),
+        (VoxelType::U8, false, colour_ramp(), opacity_ramp(), material, &lights[..], 1.0),
+        (VoxelType::U16, true, colour_ramp(), opacity_ramp(), fractional, &lights[..], 1.0),
+        (VoxelType::U8, true, colour_lut, opacity_lut, material, &many[..], 1.0),
+        (VoxelType::F32, true, colour_ramp(), opacity_ramp(), material, &lights[..], 1.0),
+        (VoxelType::F32, false, tiny_colour, tiny_opacity, fractional, &lights[..], 1e-20),
+        (VoxelType::F32, true, huge_colour, huge_opacity, material, &many[..], 1e20),
     ];
     let rays = rays(size, at, 120);
-    let values = smooth_ball(dims);
-    for (ty, correction, colour, opacity, material, lights) in cases {
+    for (ty, correction, colour, opacity, material, lights, scale) in cases {
+        let values: Vec<f32> = smooth_ball(dims).iter().map(|&v| (f64::from(v) * scale) as f32).collect();
         let vol = volume(dims, vec![(ChannelName::Voxel, channel(ty, Endian::Little, &values, dims))]);
         let unlit = object(colour, opacity, Interpolation::Trilinear, shape.clone(), Extent::FULL, dims);
         let lit = respecified(&unlit, Interpolation::Trilinear, 0.0).lit_for_tests(material, lights);
