@@ -67,73 +67,64 @@ struct Peer {
     /// The scene's data root: the shared data (`--data-root`), or the scenes folder's `data/`,
     /// where `make_test_volume.py` writes the synthetic volume.
     shared_data: bool,
-    /// `vtk_raycast.py` arguments; `{data}` stands for the scene's data root, `{peers}` for
-    /// the peers folder.
-    vtk: &'static [&'static str],
+    /// `vtk_raycast.py` arguments, in parts laid end to end; `{data}` stands for the scene's
+    /// data root, `{peers}` for the peers folder.
+    vtk: &'static [&'static [&'static str]],
 }
+
+/// VTK's view of the CT head, and its transfer function: the same for the head as u16 and
+/// as f32.
+const CTHEAD_VIEW: &[&str] = &[
+    "--tf",
+    "{peers}/tf/cthead_tf.json",
+    "--eye",
+    "430",
+    "-380",
+    "20",
+    "--look-at",
+    "127.5",
+    "127.5",
+    "113",
+    "--up",
+    "0",
+    "0",
+    "-1",
+];
 
 const PEERS: [Peer; 3] = [
     Peer {
         name: "CT head",
         scene: "cthead.toml",
         shared_data: true,
-        vtk: &[
-            "--nrrd",
-            "{data}/cthead_256x256x113_uint16_le.nhdr",
-            "--tf",
-            "{peers}/tf/cthead_tf.json",
-            "--eye",
-            "430",
-            "-380",
-            "20",
-            "--look-at",
-            "127.5",
-            "127.5",
-            "113",
-            "--up",
-            "0",
-            "0",
-            "-1",
-        ],
+        vtk: &[&["--nrrd", "{data}/cthead_256x256x113_uint16_le.nhdr"], CTHEAD_VIEW],
     },
     Peer {
         name: "CT head as f32",
         scene: "cthead-f32.toml",
         shared_data: false,
         vtk: &[
-            "--raw",
-            "{data}/cthead_f32.raw",
-            "--dims",
-            "256",
-            "256",
-            "113",
-            "--dtype",
-            "float32",
-            "--spacing",
-            "1",
-            "1",
-            "2",
-            "--tf",
-            "{peers}/tf/cthead_tf.json",
-            "--eye",
-            "430",
-            "-380",
-            "20",
-            "--look-at",
-            "127.5",
-            "127.5",
-            "113",
-            "--up",
-            "0",
-            "0",
-            "-1",
+            &[
+                "--raw",
+                "{data}/cthead_f32.raw",
+                "--dims",
+                "256",
+                "256",
+                "113",
+                "--dtype",
+                "float32",
+                "--spacing",
+                "1",
+                "1",
+                "2",
+            ],
+            CTHEAD_VIEW,
         ],
     },
     Peer {
         name: "synthetic 256³ u8",
         scene: "synthetic-u8.toml",
         shared_data: false,
-        vtk: &[
+        vtk: &[&[
             "--raw",
             "{data}/sphere256_u8.raw",
             "--dims",
@@ -156,7 +147,7 @@ const PEERS: [Peer; 3] = [
             "0",
             "1",
             "0",
-        ],
+        ]],
     },
 ];
 
@@ -342,7 +333,7 @@ fn run_vtk(args: &Args, peer: &Peer, out: &Path) -> Result<(f64, f64)> {
     let fill = |a: &str| a.replace("{data}", &data.to_string_lossy()).replace("{peers}", &args.peers.to_string_lossy());
     let output = Command::new("python3")
         .arg(args.peers.join("vtk_raycast.py"))
-        .args(peer.vtk.iter().map(|a| fill(a)))
+        .args(peer.vtk.iter().flat_map(|part| part.iter()).map(|a| fill(a)))
         .args(VTK_COMMON)
         .arg(if args.shade { "on" } else { "off" })
         .args(["--threads", &args.threads.to_string(), "--repeat", &args.vtk_repeat.to_string()])

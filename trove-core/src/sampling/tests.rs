@@ -344,24 +344,26 @@ fn f32_voxels_cast_in_packets_alike_with_negative_fractional_and_non_finite_valu
         ColourMap::Lut(Lut::new(vec![-5.0, 120.0], vec![[0.0, 0.0, 1.0], [0.3, 0.6, 0.2], [1.0, 0.9, 0.8]]));
     let cases =
         [(colour_ramp(), opacity_ramp(), false), (colour_ramp(), signed_ramp, true), (colour_lut, signed_lut, true)];
-    let at_most = |bound: f32| values.iter().map(|&v| if v.abs() > bound { 0.0 } else { v }).collect::<Vec<f32>>();
+    let f32_volume = |values: &[f32]| {
+        volume(dims, vec![(ChannelName::Voxel, channel(VoxelType::F32, Endian::Little, values, dims))])
+    };
     for (colour, opacity, correction) in cases {
-        let vol = volume(dims, vec![(ChannelName::Voxel, channel(VoxelType::F32, Endian::Little, &values, dims))]);
+        let vol = f32_volume(&values);
         let o = object(colour, opacity, Interpolation::Trilinear, affine(size, at), Extent::FULL, dims);
         assert!(ObjectCaster::new(&o, &vol, correction).unwrap().casts_packets());
         casts_agree(&o, &vol, correction, &rays);
         // A finite value beyond 10³⁰ could overflow f32 differences: such a channel keeps
         // the f64 loops (which the same comparisons then hold to themselves).
-        let mut huge = at_most(f32::MAX);
+        let mut huge = values.clone();
         huge[1000] = 3e35;
-        let vol = volume(dims, vec![(ChannelName::Voxel, channel(VoxelType::F32, Endian::Little, &huge, dims))]);
+        let vol = f32_volume(&huge);
         assert!(!ObjectCaster::new(&o, &vol, correction).unwrap().casts_packets());
         casts_agree(&o, &vol, correction, &rays);
     }
     // An opacity map that is nowhere zero has no empty-space classification: the channel's
     // range comes from its macrocells alone, and the packets hold the f64 loops as above.
     let everywhere = OpacityMap::Ramp(Ramp::new(vec![(-60.0, [0.01]), (250.0, [0.5])]));
-    let vol = volume(dims, vec![(ChannelName::Voxel, channel(VoxelType::F32, Endian::Little, &values, dims))]);
+    let vol = f32_volume(&values);
     let o = object(colour_ramp(), everywhere, Interpolation::Trilinear, affine(size, at), Extent::FULL, dims);
     assert!(ObjectCaster::new(&o, &vol, true).unwrap().casts_packets());
     casts_agree(&o, &vol, true, &rays);
