@@ -76,25 +76,19 @@ impl Raster {
     pub fn composite_rows(&mut self, first_row: u32, scheduler: &Scheduler, background: [f64; 3]) {
         let values = self.band_values(first_row, scheduler);
         let rgb8 = &mut self.rgb8[values.clone()];
-        let put8 = |px: &mut [u8], c: [f64; 3]| px.copy_from_slice(&c.map(quantize_inline));
         // Runs of pixels per parallel item, each pixel composited as alone: the same bytes,
         // without a rayon item (and its splitting) per pixel.
         const RUN: usize = 256;
         match &mut self.rgb32f {
-            Some(all) => rgb8.par_chunks_mut(3 * RUN).zip(all[values].par_chunks_mut(3 * RUN)).enumerate().for_each(
-                |(run, (run8, run32))| {
-                    for (i, (px8, px32)) in run8.chunks_exact_mut(3).zip(run32.chunks_exact_mut(3)).enumerate() {
-                        let c = composite(scheduler, run * RUN + i, background);
-                        put8(px8, c);
-                        px32.copy_from_slice(&c.map(|v| v as f32));
-                    }
-                },
-            ),
-            None => rgb8.par_chunks_mut(3 * RUN).enumerate().for_each(|(run, run8)| {
-                for (i, px) in run8.chunks_exact_mut(3).enumerate() {
-                    put8(px, composite(scheduler, run * RUN + i, background));
-                }
-            }),
+            Some(all) => rgb8
+                .par_chunks_mut(3 * RUN)
+                .zip(all[values].par_chunks_mut(3 * RUN))
+                .enumerate()
+                .for_each(|(run, (run8, run32))| composite_run(scheduler, run * RUN, background, run8, Some(run32))),
+            None => rgb8
+                .par_chunks_mut(3 * RUN)
+                .enumerate()
+                .for_each(|(run, run8)| composite_run(scheduler, run * RUN, background, run8, None)),
         }
     }
 
@@ -158,6 +152,34 @@ fn quantize_inline(c: f64) -> u8 {
 /// Whether `path` names a PFM (else a PNG is written).
 pub(super) fn is_pfm(path: &Path) -> bool {
     path.extension().is_some_and(|e| e.eq_ignore_ascii_case("pfm"))
+}
+
+/// The pixels of rays `first..` (as many as `rgb8` holds) composited into `rgb8`, and
+/// into `rgb32f` as f32 where given: one run of [`Raster::composite_rows`], a loop of its
+/// own rather than the body of rayon's closure.
+#[inline(never)]
+fn composite_run(
+    scheduler: &Scheduler,
+    first: usize,
+    background: [f64; 3],
+    rgb8: &mut [u8],
+    rgb32f: Option<&mut [f32]>,
+) {
+    let pixel = |i: usize| composite(scheduler, first + i, background);
+    match rgb32f {
+        Some(rgb32f) => {
+            for (i, (px8, px32)) in rgb8.chunks_exact_mut(3).zip(rgb32f.chunks_exact_mut(3)).enumerate() {
+                let c = pixel(i);
+                px8.copy_from_slice(&c.map(quantize_inline));
+                px32.copy_from_slice(&c.map(|v| v as f32));
+            }
+        }
+        None => {
+            for (i, px) in rgb8.chunks_exact_mut(3).enumerate() {
+                px.copy_from_slice(&pixel(i).map(quantize_inline));
+            }
+        }
+    }
 }
 
 /// Ray `r`'s pixel: its pieces front to back over `background`.

@@ -435,6 +435,7 @@ impl Scheduler {
 
     /// Region ray `r`'s colour and opacity: its pieces front to back (co-located objects
     /// combined first, SPEC §4.4) until it is opaque. Call once [`Scheduler::is_complete`].
+    #[inline]
     pub fn composite_ray(&self, r: usize) -> Rgba {
         debug_assert!(self.is_complete(), "composite before every task is cast");
         let (acc, _) =
