@@ -242,9 +242,9 @@ impl Scheduler {
             .map(|waves| Lane { cursor: waves.first().map_or(0, |&s| s as usize), waves, ..Lane::default() })
             .collect();
         Ok(Scheduler {
-            known: vec![KnownFront::default(); inter.rays()],
-            status: vec![Status::Pending; n],
-            results: vec![[0.0; 4]; n],
+            known: kept::filled(inter.rays(), KnownFront::default()),
+            status: kept::filled(n, Status::Pending),
+            results: kept::filled(n, [0.0; 4]),
             progress: Progress { total: n as u64, ..Progress::default() },
             inter,
             dataset_of_object,
@@ -265,8 +265,13 @@ impl Scheduler {
     }
 
     /// The region's intersections, given back (to [`super::intersection::recycle`] them
-    /// once the region is composited).
+    /// once the region is composited); the scheduler's own lists are kept for the next
+    /// scheduler ([`kept`]).
     pub fn into_intersections(self) -> Intersections {
+        kept::keep(self.known);
+        kept::keep(self.status);
+        kept::keep(self.results);
+        kept::keep(self.queue);
         self.inter
     }
 
@@ -649,7 +654,7 @@ fn plan(inter: &Intersections, dataset_of_object: &[u32], datasets: usize) -> Pl
     let rays = inter.rays();
     let n = inter.tasks.len();
     // Each chunk's rays, and its tasks' keys: chunks of rays own disjoint runs of tasks.
-    let mut keys = vec![0u32; n];
+    let mut keys = kept::filled(n, 0u32);
     let mut chunks = Vec::with_capacity(rays.div_ceil(RAYS_PER_SURVEY));
     let mut rest = keys.as_mut_slice();
     for first in (0..rays).step_by(RAYS_PER_SURVEY) {
@@ -694,12 +699,13 @@ fn plan(inter: &Intersections, dataset_of_object: &[u32], datasets: usize) -> Pl
         starts.push(at);
     }
     debug_assert_eq!(at as usize, n, "every task is in one wave");
-    let mut queue = vec![0u32; n];
+    let mut queue = kept::filled(n, 0u32);
     for (t, &key) in keys.iter().enumerate() {
         let cursor = &mut next[(slot[(key >> RANK_BITS) as usize] + (key & RANK_MASK)) as usize];
         queue[*cursor as usize] = t as u32;
         *cursor += 1;
     }
+    kept::keep(keys);
     Plan { order, queue, waves }
 }
 
@@ -890,5 +896,6 @@ fn greedy_order(nodes: &[usize], votes: &HashMap<(usize, usize), u64>, depth: &[
     front
 }
 
+mod kept;
 #[cfg(test)]
 mod tests;
