@@ -38,7 +38,7 @@ pub(super) trait Cast: Send + Sync {
     /// Casts many pieces, `(slot, walk, alpha_in, stop_at)`, each result into `out[slot]`:
     /// the same results as [`Cast::cast`] one by one, which is what this does unless the
     /// loop can cast several pieces at once ([`Cast::casts_packets`]).
-    fn cast_many(&self, pieces: Vec<(usize, SampleWalk<'_>, f64, f64)>, out: &mut [PieceResult]);
+    fn cast_many(&self, pieces: &mut dyn Iterator<Item = (usize, SampleWalk<'_>, f64, f64)>, out: &mut [PieceResult]);
     /// Whether this loop is a specialised one (for tests).
     fn is_specialised(&self) -> bool;
     /// Whether empty-space skipping is on (for tests).
@@ -405,6 +405,15 @@ impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Kernel<'_, I, V, M, S> {
     }
 }
 
+thread_local! {
+    /// A batch's straight pieces, kept from batch to batch on each thread: a batch's list
+    /// (some 150 KB for 1024 pieces) is above the size from which the allocator maps and
+    /// unmaps memory for each, depending on what it has freed before, and each unmapping
+    /// stops the other threads to flush their address translations, then each page faults
+    /// again (a third more casting time on Table 1's scene where that happened).
+    static LINES: std::cell::RefCell<Vec<Line>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
 impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Cast for Kernel<'_, I, V, M, S> {
     fn cast(&self, walk: SampleWalk<'_>, alpha_in: f64, stop_at: f64) -> PieceResult {
         if let Some(line) = walk.line() {
@@ -451,23 +460,25 @@ impl<I: Interp, V: VoxelSource, M: Maps, S: Shade> Cast for Kernel<'_, I, V, M, 
         PieceResult { rgba: acc, samples, shaded }
     }
 
-    fn cast_many(&self, pieces: Vec<(usize, SampleWalk<'_>, f64, f64)>, out: &mut [PieceResult]) {
+    fn cast_many(&self, pieces: &mut dyn Iterator<Item = (usize, SampleWalk<'_>, f64, f64)>, out: &mut [PieceResult]) {
         let Some(packets) = &self.packets else {
             for (slot, walk, alpha_in, stop_at) in pieces {
                 out[slot] = self.cast(walk, alpha_in, stop_at);
             }
             return;
         };
-        // Straight pieces in lanes; the others (exact distorted walks, lines too long for
-        // f32 indices) one by one.
-        let mut lines = Vec::with_capacity(pieces.len());
-        for (slot, walk, alpha_in, stop_at) in pieces {
-            match walk.line().filter(Line::fits) {
-                Some(line) => lines.push(Line { slot, line, world: walk.world_points(), alpha_in, stop_at }),
-                None => out[slot] = self.cast(walk, alpha_in, stop_at),
+        LINES.with_borrow_mut(|lines| {
+            // Straight pieces in lanes; the others (exact distorted walks, lines too long for
+            // f32 indices) one by one.
+            lines.clear();
+            for (slot, walk, alpha_in, stop_at) in pieces {
+                match walk.line().filter(Line::fits) {
+                    Some(line) => lines.push(Line { slot, line, world: walk.world_points(), alpha_in, stop_at }),
+                    None => out[slot] = self.cast(walk, alpha_in, stop_at),
+                }
             }
-        }
-        packets.cast(self.skip.as_ref(), self.correction, &lines, out);
+            packets.cast(self.skip.as_ref(), self.correction, lines, out);
+        });
     }
 
     fn is_specialised(&self) -> bool {

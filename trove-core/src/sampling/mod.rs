@@ -407,17 +407,21 @@ impl<'a> ObjectCaster<'a> {
     /// If `out` is shorter than `pieces`.
     pub fn cast_many(&self, pieces: &[PieceRequest], out: &mut [PieceResult]) {
         assert!(out.len() >= pieces.len(), "{} results for {} pieces", out.len(), pieces.len());
-        let sampling_distance = self.object.sampling_distance();
-        let mut walks = Vec::with_capacity(pieces.len());
+        // Pieces with nothing to cast first; the rest are walked as the kernel takes them,
+        // not gathered into a list of their own.
+        let skipped = |p: &PieceRequest| self.transparent || p.alpha_in >= p.stop_at;
         for (slot, p) in pieces.iter().enumerate() {
-            if self.transparent || p.alpha_in >= p.stop_at {
+            if skipped(p) {
                 out[slot] = PieceResult::default();
-            } else {
-                let walk = self.object.placement().walk(&p.ray, p.t0, p.t1, sampling_distance);
-                walks.push((slot, walk, p.alpha_in, p.stop_at));
             }
         }
-        self.kernel.cast_many(walks, out);
+        let (placement, sampling_distance) = (self.object.placement(), self.object.sampling_distance());
+        let mut walks = pieces
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| !skipped(p))
+            .map(|(slot, p)| (slot, placement.walk(&p.ray, p.t0, p.t1, sampling_distance), p.alpha_in, p.stop_at));
+        self.kernel.cast_many(&mut walks, out);
     }
 }
 
