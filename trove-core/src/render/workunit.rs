@@ -181,6 +181,14 @@ pub struct BatchCaster<'a> {
     objects: Vec<Option<(ObjectCaster<'a>, f64)>>,
 }
 
+thread_local! {
+    /// A batch's piece requests and their results, kept from batch to batch on each
+    /// thread: for a farm batch of 4096 tasks they are some 320 and 200 KB, sizes the
+    /// allocator may map and unmap for each batch (see `sampling::kernel`'s list of lines).
+    static SCRATCH: std::cell::RefCell<(Vec<PieceRequest>, Vec<PieceResult>)> =
+        const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
+}
+
 impl<'a> BatchCaster<'a> {
     /// Binds every object of `dataset` to `volume`, that dataset's voxels. Cells are
     /// classified when a ray first enters them ([`ObjectCaster::new`]), unless the volume
@@ -274,36 +282,37 @@ impl<'a> BatchCaster<'a> {
         let (w, h) = (scene.image().width, scene.image().height);
         let termination = scene.render().termination;
         let mut samples = 0;
-        let (mut pieces, mut results) = (Vec::new(), Vec::new());
-        // Runs of consecutive tasks of one object are cast together (several at a time).
-        let mut start = 0;
-        for tasks in tasks.chunk_by(|a, b| a.object == b.object) {
-            let out = &mut out[start..start + tasks.len()];
-            start += tasks.len();
-            let Some((caster, _)) = &self.objects[tasks[0].object as usize] else {
-                unreachable!("checked above: the object belongs to this dataset")
-            };
-            pieces.clear();
-            pieces.extend(tasks.iter().map(|task| PieceRequest {
-                ray: scene.camera().ray(task.ray % w, task.ray / w, w, h),
-                t0: task.t0,
-                t1: task.t1,
-                alpha_in: task.front_alpha(),
-                stop_at: task.stop_at(termination),
-            }));
-            results.clear();
-            results.resize(pieces.len(), PieceResult::default());
-            caster.cast_many(&pieces, &mut results);
-            let mut object_shaded = 0;
-            for (r, out) in results.iter().zip(out) {
-                samples += r.samples;
-                object_shaded += r.shaded;
-                *out = r.rgba.into();
+        SCRATCH.with_borrow_mut(|(pieces, results)| {
+            // Runs of consecutive tasks of one object are cast together (several at a time).
+            let mut start = 0;
+            for tasks in tasks.chunk_by(|a, b| a.object == b.object) {
+                let out = &mut out[start..start + tasks.len()];
+                start += tasks.len();
+                let Some((caster, _)) = &self.objects[tasks[0].object as usize] else {
+                    unreachable!("checked above: the object belongs to this dataset")
+                };
+                pieces.clear();
+                pieces.extend(tasks.iter().map(|task| PieceRequest {
+                    ray: scene.camera().ray(task.ray % w, task.ray / w, w, h),
+                    t0: task.t0,
+                    t1: task.t1,
+                    alpha_in: task.front_alpha(),
+                    stop_at: task.stop_at(termination),
+                }));
+                results.clear();
+                results.resize(pieces.len(), PieceResult::default());
+                caster.cast_many(pieces, results);
+                let mut object_shaded = 0;
+                for (r, out) in results.iter().zip(out) {
+                    samples += r.samples;
+                    object_shaded += r.shaded;
+                    *out = r.rgba.into();
+                }
+                if let Some(count) = shaded.get_mut(tasks[0].object as usize) {
+                    *count += object_shaded;
+                }
             }
-            if let Some(count) = shaded.get_mut(tasks[0].object as usize) {
-                *count += object_shaded;
-            }
-        }
+        });
         Ok(samples)
     }
 
