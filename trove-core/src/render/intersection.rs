@@ -175,11 +175,15 @@ fn take_region(first_ray: u32) -> Intersections {
 }
 
 /// Makes empty `list` hold `n` items: a kept buffer too small is replaced, not grown, since
-/// growing would copy its stale contents.
+/// growing would copy its stale contents; one much larger is cut down to about `n`, so that
+/// the bytes a region's holder counts (`Scheduler::heap_bytes`, for memory bounds and the
+/// farm simulation's inputs) stay what the region needs.
 fn room_for<T>(list: &mut Vec<T>, n: usize) {
     debug_assert!(list.is_empty());
     if list.capacity() < n {
         *list = Vec::with_capacity(n);
+    } else if list.capacity() > n + n / 8 {
+        list.shrink_to(n);
     }
 }
 
@@ -614,7 +618,12 @@ mod tests {
             for (i, (s, rows)) in
                 [(&small, 2..15), (&large, 0..61), (&large, 30..31), (&small, 0..19)].into_iter().enumerate()
             {
-                assert_eq!(key(&intersect(s, rows)), key(&fresh[i]), "round {round}, region {i}");
+                let again = intersect(s, rows);
+                assert_eq!(key(&again), key(&fresh[i]), "round {round}, region {i}");
+                // A kept list much larger than the region needs was cut down: what its holder
+                // counts is about what it needs.
+                let n = again.tasks.len();
+                assert!(again.tasks.capacity() <= n + n / 8, "round {round}, region {i}: {}", again.tasks.capacity());
             }
         }
         assert!(fresh[1].tasks.len() > fresh[0].tasks.len() && fresh[1].pieces() > 100, "{}", fresh[1].pieces());

@@ -62,12 +62,15 @@ fn bytes<T>(list: &Vec<T>) -> usize {
     list.capacity() * size_of::<T>()
 }
 
-/// `n` copies of `value`: in a kept list with room for them where there is one, else in a
-/// new one.
+/// `n` copies of `value`: in the smallest kept list with room for them where there is one
+/// (cut down to about `n` if it is much longer, so that a scheduler's
+/// [`heap_bytes`](super::Scheduler::heap_bytes), which memory bounds and the farm
+/// simulation's inputs count, stays what its own lists need), else in a new one.
 pub(super) fn filled<T: Element>(n: usize, value: T) -> Vec<T> {
     let mut kept = kept();
     let stack = T::stack(&mut kept);
-    let Some(i) = stack.iter().position(|list| list.capacity() >= n) else {
+    let best = stack.iter().enumerate().filter(|(_, l)| l.capacity() >= n).min_by_key(|(_, l)| l.capacity());
+    let Some(i) = best.map(|(i, _)| i) else {
         drop(kept);
         return vec![value; n];
     };
@@ -75,6 +78,9 @@ pub(super) fn filled<T: Element>(n: usize, value: T) -> Vec<T> {
     kept.bytes -= bytes(&list);
     drop(kept);
     list.clear();
+    if list.capacity() > n + n / 8 {
+        list.shrink_to(n);
+    }
     list.resize(n, value);
     list
 }
@@ -110,5 +116,16 @@ mod tests {
             let known = filled(n, KnownFront::default());
             assert!(known.len() == n && known.iter().all(|k| k.pieces == 0 && k.alpha == 0.0));
         }
+    }
+
+    /// A list much longer than asked for is cut down, so that the bytes a scheduler counts
+    /// are about what it needs (other tests may keep lists meanwhile: any list it gets is
+    /// within an eighth of `n`, or new).
+    #[test]
+    fn a_much_longer_kept_list_is_cut_down() {
+        keep(vec![0u32; 1 << 20]);
+        let list = filled(1000, 0u32);
+        assert!(list.capacity() <= 1000 + 1000 / 8, "{}", list.capacity());
+        keep(list);
     }
 }
