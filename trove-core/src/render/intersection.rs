@@ -16,6 +16,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
 use rayon::prelude::*;
 
+use super::kept;
 use super::limits::LimitError;
 use super::workunit::PieceTask;
 use crate::geometry::{
@@ -84,7 +85,6 @@ impl Intersections {
 }
 
 /// One band of rows, intersected on one thread.
-#[derive(Default)]
 struct Band {
     tasks: Vec<PieceTask>,
     tasks_per_piece: Vec<u32>,
@@ -93,110 +93,28 @@ struct Band {
 }
 
 impl Band {
-    fn heap_bytes(&self) -> usize {
-        self.tasks.capacity() * std::mem::size_of::<PieceTask>()
-            + (self.tasks_per_piece.capacity() + self.pieces_per_ray.capacity()) * 4
+    /// An empty band of `rays` rays, its lists kept from earlier bands where there are some
+    /// ([`kept`]; a ray makes about one piece and task, so that is their room to start with).
+    fn new(rays: usize) -> Band {
+        let (tasks, tasks_per_piece, pieces_per_ray) = (kept::growing(rays), kept::growing(rays), kept::growing(rays));
+        Band { tasks, tasks_per_piece, pieces_per_ray, segments: 0 }
+    }
+
+    /// Keeps its lists for later bands, once copied out.
+    fn keep(self) {
+        kept::keep(self.tasks);
+        kept::keep(self.tasks_per_piece);
+        kept::keep(self.pieces_per_ray);
     }
 }
 
-/// Buffers of finished intersections, kept for the next ones: the bands' lists, which
-/// every intersection fills and copies out, and whole [`Intersections`] handed back with
-/// [`recycle`] once their region is composited. Memory the allocator handed out fresh is
-/// zero-filled by the kernel page by page as it is first written (a coordinator spent about
-/// a tenth of its time in those page faults); memory kept here is written again without.
-/// At most [`POOL_BYTES`] are kept; every buffer is emptied before it is used again.
-struct Pool {
-    bands: Vec<Band>,
-    regions: Vec<Intersections>,
-    bytes: usize,
-}
-
-static POOL: std::sync::Mutex<Pool> = std::sync::Mutex::new(Pool { bands: Vec::new(), regions: Vec::new(), bytes: 0 });
-
-/// The most bytes of buffers [`POOL`] keeps.
-const POOL_BYTES: usize = 96 << 20;
-
-fn pool() -> std::sync::MutexGuard<'static, Pool> {
-    // A panic while holding the lock leaves only buffers behind, which are emptied anyway.
-    POOL.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-/// An empty band, with kept buffers when there are some.
-fn take_band() -> Band {
-    let mut pool = pool();
-    match pool.bands.pop() {
-        Some(band) => {
-            pool.bytes -= band.heap_bytes();
-            band
-        }
-        None => Band::default(),
-    }
-}
-
-/// Keeps the buffers of `bands` for later bands, as far as the pool has room.
-fn keep_bands(bands: impl IntoIterator<Item = Band>) {
-    let mut pool = pool();
-    for mut band in bands {
-        let bytes = band.heap_bytes();
-        if pool.bytes + bytes > POOL_BYTES {
-            continue;
-        }
-        band.tasks.clear();
-        band.tasks_per_piece.clear();
-        band.pieces_per_ray.clear();
-        band.segments = 0;
-        pool.bytes += bytes;
-        pool.bands.push(band);
-    }
-}
-
-/// The bytes `region`'s lists hold, used or not.
-fn capacity_bytes(region: &Intersections) -> usize {
-    region.tasks.capacity() * std::mem::size_of::<PieceTask>()
-        + (region.piece_start.capacity() + region.ray_start.capacity()) * std::mem::size_of::<usize>()
-}
-
-/// An empty region for `first_ray`, with kept buffers when there are some.
-fn take_region(first_ray: u32) -> Intersections {
-    let mut pool = pool();
-    match pool.regions.pop() {
-        Some(mut region) => {
-            pool.bytes -= capacity_bytes(&region);
-            drop(pool);
-            region.tasks.clear();
-            region.piece_start.clear();
-            region.ray_start.clear();
-            region.first_ray = first_ray;
-            region.segments = 0;
-            region
-        }
-        None => Intersections { first_ray, ..Intersections::default() },
-    }
-}
-
-/// Makes empty `list` hold `n` items: a kept buffer too small is replaced, not grown, since
-/// growing would copy its stale contents; one much larger is cut down to about `n`, so that
-/// the bytes a region's holder counts (`Scheduler::heap_bytes`, for memory bounds and the
-/// farm simulation's inputs) stay what the region needs.
-fn room_for<T>(list: &mut Vec<T>, n: usize) {
-    debug_assert!(list.is_empty());
-    if list.capacity() < n {
-        *list = Vec::with_capacity(n);
-    } else if list.capacity() > n + n / 8 {
-        list.shrink_to(n);
-    }
-}
-
-/// Hands the buffers of intersections that are no longer needed (their region is
-/// composited) to later intersections, which then write them without the kernel's page
-/// faults of fresh memory. What does not fit the pool is freed.
+/// Hands the lists of intersections that are no longer needed (their region is
+/// composited) to later intersections and schedulers ([`kept`]), which then write them
+/// without the kernel's page faults of fresh memory.
 pub fn recycle(region: Intersections) {
-    let mut pool = pool();
-    let bytes = capacity_bytes(&region);
-    if pool.bytes + bytes <= POOL_BYTES {
-        pool.bytes += bytes;
-        pool.regions.push(region);
-    }
+    kept::keep(region.tasks);
+    kept::keep(region.piece_start);
+    kept::keep(region.ray_start);
 }
 
 /// Per object of a scene, the pixels whose rays can meet it (the projected bounding
@@ -431,7 +349,7 @@ pub fn intersect_within(
         .into_par_iter()
         .step_by(BAND_ROWS)
         .map(|first_row| {
-            let mut band = take_band();
+            let mut band = Band::new(BAND_ROWS * w as usize);
             let mut scratch = RayScratch::default();
             // The shared total is added to once a row, not once a ray: `known` is what it
             // held after this thread's last addition (it only grows), `row_tasks` this row's
@@ -479,10 +397,13 @@ pub fn intersect_within(
 
     let n_tasks = bands.iter().map(|b| b.tasks.len()).sum();
     let n_pieces = bands.iter().map(|b| b.tasks_per_piece.len()).sum::<usize>();
-    let mut out = take_region(rows.start * w);
-    room_for(&mut out.tasks, n_tasks);
-    room_for(&mut out.piece_start, n_pieces + 1);
-    room_for(&mut out.ray_start, w as usize * rows.len() + 1);
+    let mut out = Intersections {
+        first_ray: rows.start * w,
+        tasks: kept::with_room(n_tasks),
+        piece_start: kept::with_room(n_pieces + 1),
+        ray_start: kept::with_room(w as usize * rows.len() + 1),
+        segments: 0,
+    };
     out.piece_start.push(0);
     out.ray_start.push(0);
     for band in &bands {
@@ -499,7 +420,7 @@ pub fn intersect_within(
             last
         }));
     }
-    keep_bands(bands);
+    bands.into_iter().for_each(Band::keep);
     Ok(out)
 }
 

@@ -26,6 +26,7 @@ mod error;
 mod grouped;
 mod image;
 pub mod intersection;
+mod kept;
 pub mod limits;
 mod per_ray;
 mod raster;

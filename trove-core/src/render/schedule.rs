@@ -42,6 +42,7 @@ use std::collections::HashMap;
 
 use super::error::ScheduleError;
 use super::intersection::Intersections;
+use super::kept;
 use super::wire::TaskWriter;
 use super::workunit::{PieceRgba, PieceTask};
 use crate::composite::Rgba;
@@ -266,7 +267,7 @@ impl Scheduler {
 
     /// The region's intersections, given back (to [`super::intersection::recycle`] them
     /// once the region is composited); the scheduler's own lists are kept for the next
-    /// scheduler ([`kept`]).
+    /// scheduler ([`super::kept`]).
     pub fn into_intersections(self) -> Intersections {
         kept::keep(self.known);
         kept::keep(self.status);
@@ -664,15 +665,9 @@ fn plan(inter: &Intersections, dataset_of_object: &[u32], datasets: usize) -> Pl
         chunks.push((chunk, head));
         rest = tail;
     }
-    // Where every object shows one dataset (a single volume, the commonest scene), a task's
-    // rank is its piece's place along its ray, and there is no order to vote on.
-    let one = dataset_of_object.split_first().filter(|(d, rest)| rest.iter().all(|r| r == *d)).map(|(&d, _)| d);
     let surveys: Vec<Survey> = chunks
         .into_par_iter()
-        .map(|(chunk, keys)| match one {
-            Some(d) => Survey::of_one(inter, d as usize, datasets, chunk, keys),
-            None => Survey::of(inter, dataset_of_object, datasets, chunk, keys),
-        })
+        .map(|(chunk, keys)| Survey::of(inter, dataset_of_object, datasets, chunk, keys))
         .collect();
     let mut all = Survey::empty(datasets);
     for survey in surveys {
@@ -798,33 +793,6 @@ impl Survey {
         survey
     }
 
-    /// [`Survey::of`] where every object shows dataset `d`: a piece's rank is its place
-    /// along its ray (each of its pieces is `d`'s), no ray meets two datasets, so none
-    /// votes, and the depths, which only break ties between datasets, are not summed.
-    fn of_one(
-        inter: &Intersections,
-        d: usize,
-        datasets: usize,
-        rays: std::ops::Range<usize>,
-        keys: &mut [u32],
-    ) -> Survey {
-        let mut survey = Survey::empty(datasets);
-        let first_task = inter.piece_start[inter.ray_start[rays.start]];
-        let lane = &mut survey.waves[d];
-        for r in rays {
-            for (rank, p) in inter.pieces_of(r).enumerate() {
-                let tasks = inter.tasks_of(p);
-                if lane.len() <= rank {
-                    lane.resize(rank + 1, 0);
-                }
-                lane[rank] += tasks.len() as u32;
-                keys[tasks.start - first_task..tasks.end - first_task].fill((d as u32) << RANK_BITS | rank as u32);
-            }
-        }
-        survey.count[d] = keys.len() as u64;
-        survey
-    }
-
     /// `rays` votes of rays that met datasets `met`, in that order.
     fn vote(&mut self, met: &[usize], rays: u64) {
         for pair in met.windows(2) {
@@ -896,6 +864,5 @@ fn greedy_order(nodes: &[usize], votes: &HashMap<(usize, usize), u64>, depth: &[
     front
 }
 
-mod kept;
 #[cfg(test)]
 mod tests;

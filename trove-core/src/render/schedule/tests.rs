@@ -497,3 +497,22 @@ fn encoded_batches_are_the_batches_encoded() {
     }
     assert!(batches > 200, "{batches} batches");
 }
+
+/// The scheduler's own list types come back from the kept lists holding exactly `n` copies
+/// of the value asked for, whatever they held and however long they were (other tests may
+/// take them first: each case holds either way).
+#[test]
+fn kept_lists_come_back_refilled_whole() {
+    use crate::render::kept::{filled, keep};
+    for (len, n) in [(100, 60), (60, 60), (10, 200)] {
+        keep(vec![7u32; len]);
+        assert_eq!(filled(n, 0u32), vec![0; n]);
+        keep(vec![Status::Done; len]);
+        assert!(filled(n, Status::Pending).iter().all(|&s| s == Status::Pending));
+        keep(vec![[1.0f32; 4]; len]);
+        assert_eq!(filled(n, [0.0f32; 4]), vec![[0.0; 4]; n]);
+        keep(vec![KnownFront { pieces: 3, alpha: 0.5 }; len]);
+        let known = filled(n, KnownFront::default());
+        assert!(known.len() == n && known.iter().all(|k| k.pieces == 0 && k.alpha == 0.0));
+    }
+}
