@@ -216,10 +216,12 @@ pub enum ScheduleError {
         /// Position of the result in the batch.
         index: usize,
     },
-    /// A region with more tasks than a scheduler indexes (2³² − 1); use smaller regions.
-    #[error("{tasks} piece tasks in one region; at most 4294967295 are supported")]
+    /// A region with more tasks than a scheduler indexes; use smaller regions.
+    #[error("{tasks} piece tasks in one region; at most {max} are supported")]
     TooManyTasks {
         /// Tasks in the region.
         tasks: u64,
+        /// The most a scheduler indexes (2³¹).
+        max: u64,
     },
 }

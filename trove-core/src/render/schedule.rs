@@ -200,8 +200,8 @@ pub struct Scheduler {
     /// which the allocator hands out as fresh zeroed pages instead of writing them here.
     results: Vec<[f32; 4]>,
     order: Vec<usize>,
-    /// Every task index once, dataset by dataset and wave by wave ([`Plan::queue`]).
-    queue: Vec<u32>,
+    /// Every task once, dataset by dataset and wave by wave ([`Plan::queue`]).
+    queue: Vec<Queued>,
     lanes: Vec<Lane>,
     in_flight: HashMap<u64, InFlight>,
     next_id: u64,
@@ -231,8 +231,8 @@ impl Scheduler {
     /// batches of at most `batch_tasks` tasks.
     pub fn new(scene: &Scene, inter: Intersections, batch_tasks: usize) -> Result<Scheduler, ScheduleError> {
         let n = inter.tasks.len();
-        if u32::try_from(n).is_err() {
-            return Err(ScheduleError::TooManyTasks { tasks: n as u64 });
+        if n > Queued::MAX_TASKS {
+            return Err(ScheduleError::TooManyTasks { tasks: n as u64, max: Queued::MAX_TASKS as u64 });
         }
         let dataset_of_object: Vec<u32> = scene.objects().iter().map(|o| o.dataset() as u32).collect();
         let gains: Vec<f32> = scene.objects().iter().map(|o| o.colour_gain() as f32).collect();
@@ -359,31 +359,26 @@ impl Scheduler {
             // The candidates are read in place from the queue (or the retried list), which
             // is moved out for the loop so that deciding may update the scheduler.
             let queue = std::mem::take(&mut self.queue);
-            let candidates: &[u32] = match &retry {
-                Some(list) => list,
-                None => {
-                    let chunk = lane.cursor..(lane.cursor + self.batch_tasks).min(end);
-                    lane.cursor = chunk.end;
-                    &queue[chunk]
-                }
-            };
-            let mut cast = Vec::with_capacity(candidates.len());
-            sink.reserve(candidates.len());
-            for &t in candidates {
-                match self.decide(t as usize, first_wave) {
-                    Decision::Cull => {
-                        self.status[t as usize] = Status::Culled;
-                        self.progress.culled += 1;
+            let mut cast;
+            match &retry {
+                // A retried batch's tasks come without their flags: each is decided in full.
+                Some(list) => {
+                    cast = Vec::with_capacity(list.len());
+                    sink.reserve(list.len());
+                    for &t in list {
+                        self.take(t, false, first_wave, sink, &mut cast);
                     }
-                    Decision::Cast(front) => {
-                        let mut task = self.inter.tasks[t as usize];
-                        // A task is intersected with a clear front (or as whole), which is
-                        // what setting 0 would write: most tasks skip the rounding.
-                        if front > 0.0 {
-                            task.set_front_alpha(front);
+                }
+                None => {
+                    let chunk = &queue[lane.cursor..(lane.cursor + self.batch_tasks).min(end)];
+                    lane.cursor += chunk.len();
+                    cast = Vec::with_capacity(chunk.len());
+                    sink.reserve(chunk.len());
+                    for (i, q) in chunk.iter().enumerate() {
+                        if let Some(ahead) = chunk.get(i + PREFETCH_AHEAD) {
+                            prefetch(&self.inter.tasks[ahead.task() as usize]);
                         }
-                        sink.push(&task);
-                        cast.push(t);
+                        self.take(q.task(), q.leads(), first_wave, sink, &mut cast);
                     }
                 }
             }
@@ -396,6 +391,31 @@ impl Scheduler {
             self.lanes[d].outstanding += 1;
             self.in_flight.insert(id, InFlight { dataset: d, attempt, tasks: cast });
             return Some((id, attempt));
+        }
+    }
+
+    /// Decides task `t` ([`Scheduler::decide`]) and culls it, or writes it to `sink` and
+    /// `cast`. `leads`: its piece is its ray's first ([`Queued::leads`]), so nothing lies in
+    /// front and it is cast with a clear front without looking: reading the ray's pieces to
+    /// learn that was most of a batch's time (BENCHMARKS.md, issue 21).
+    #[inline(always)]
+    fn take(&mut self, t: u32, leads: bool, first_wave: bool, sink: &mut impl TaskSink, cast: &mut Vec<u32>) {
+        let decision = if leads { Decision::Cast(0.0) } else { self.decide(t as usize, first_wave) };
+        match decision {
+            Decision::Cull => {
+                self.status[t as usize] = Status::Culled;
+                self.progress.culled += 1;
+            }
+            Decision::Cast(front) => {
+                let mut task = self.inter.tasks[t as usize];
+                // A task is intersected with a clear front (or as whole), which is what
+                // setting 0 would write: most tasks skip the rounding.
+                if front > 0.0 {
+                    task.set_front_alpha(front);
+                }
+                sink.push(&task);
+                cast.push(t);
+            }
         }
     }
 
@@ -612,6 +632,26 @@ impl Scheduler {
     }
 }
 
+/// How many candidates ahead [`Scheduler::hand_out`] asks for a task's line.
+const PREFETCH_AHEAD: usize = 8;
+
+/// Asks the processor to start loading `x`'s cache line. A wave's tasks are spread over the
+/// band's list (other datasets' tasks lie between them) and the band was intersected long
+/// before, so the first read of each task in `decide` waited on memory: a fifth of
+/// `next_batch_encoded`'s time (BENCHMARKS.md, issue 21). A hint only: it changes no value.
+#[inline(always)]
+fn prefetch<T>(x: &T) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        // SAFETY: SSE is in x86-64's baseline, and a prefetch reads nothing a program can
+        // see and never faults, whatever the address.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>((x as *const T).cast()) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = x;
+}
+
 /// The opacity of `behind` laid behind an accumulation of opacity `front`: `Rgba::over`'s
 /// opacity, the same operations.
 #[inline]
@@ -631,10 +671,10 @@ fn plausible(r: &PieceRgba, gain: f32) -> bool {
 struct Plan {
     /// The datasets that have tasks, front to back as far as the scene allows.
     order: Vec<usize>,
-    /// Every task index once: the datasets in `order`, each one's waves in turn, each wave in
-    /// task (so ray) order. One flat list instead of a list per wave, so that planning makes
+    /// Every task once: the datasets in `order`, each one's waves in turn, each wave in task
+    /// (so ray) order. One flat list instead of a list per wave, so that planning makes
     /// three allocations whatever the number of waves, and needs no merge.
-    queue: Vec<u32>,
+    queue: Vec<Queued>,
     /// Per dataset (scene index): where each of its waves starts in `queue`, then where the
     /// last one ends; empty for a dataset without tasks.
     waves: Vec<Vec<u32>>,
@@ -694,23 +734,52 @@ fn plan(inter: &Intersections, dataset_of_object: &[u32], datasets: usize) -> Pl
         starts.push(at);
     }
     debug_assert_eq!(at as usize, n, "every task is in one wave");
-    let mut queue = kept::filled(n, 0u32);
+    let mut queue = kept::filled(n, Queued::default());
     for (t, &key) in keys.iter().enumerate() {
         let cursor = &mut next[(slot[(key >> RANK_BITS) as usize] + (key & RANK_MASK)) as usize];
-        queue[*cursor as usize] = t as u32;
+        queue[*cursor as usize] = Queued::new(t as u32, key & LEADS != 0);
         *cursor += 1;
     }
     kept::keep(keys);
     Plan { order, queue, waves }
 }
 
-/// A task's key in [`plan`]'s counting sort: its dataset above [`RANK_BITS`] bits of its
-/// rank. A scene holds at most [`crate::scene::MAX_OBJECTS`] (4096) objects, so datasets fit
-/// the upper 16 bits, and a ray crosses at most 4096 segments, which make at most 8191
-/// pieces: a rank fits 16 bits.
+/// A task's key in [`plan`]'s counting sort: its dataset above [`RANK_BITS`] bits, which hold
+/// its rank and, in the top one, whether it [`Queued::leads`]. A scene holds at most
+/// [`crate::scene::MAX_OBJECTS`] (4096) objects, so datasets fit the upper 16 bits, and a ray
+/// crosses at most 4096 segments, which make at most 8191 pieces: a rank fits 15 bits.
 const RANK_BITS: u32 = 16;
-const RANK_MASK: u32 = (1 << RANK_BITS) - 1;
-const _: () = assert!(2 * crate::scene::MAX_OBJECTS < 1 << RANK_BITS);
+const LEADS: u32 = 1 << (RANK_BITS - 1);
+const RANK_MASK: u32 = LEADS - 1;
+const _: () = assert!(2 * crate::scene::MAX_OBJECTS < LEADS as usize);
+
+/// A task in a scheduler's queue: its index, and whether its piece is its ray's first
+/// ([`Queued::leads`]), in the top bit. Which is why a region holds at most
+/// [`Queued::MAX_TASKS`] tasks.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct Queued(u32);
+
+impl Queued {
+    const LEADS: u32 = 1 << 31;
+    /// The most tasks a region may hold.
+    const MAX_TASKS: usize = Queued::LEADS as usize;
+
+    fn new(task: u32, leads: bool) -> Queued {
+        debug_assert!((task as usize) < Queued::MAX_TASKS);
+        Queued(task | if leads { Queued::LEADS } else { 0 })
+    }
+
+    /// The task's index.
+    fn task(self) -> u32 {
+        self.0 & !Queued::LEADS
+    }
+
+    /// Whether the task's piece is the first of its ray: nothing lies in front of it, so it
+    /// is never culled and its front is clear.
+    fn leads(self) -> bool {
+        self.0 & Queued::LEADS != 0
+    }
+}
 
 /// What a chunk of rays tells [`plan`], per dataset: how many of its tasks each wave holds
 /// (wave k: the tasks of the k-th piece of a ray that the dataset covers), how many tasks
@@ -754,7 +823,10 @@ impl Survey {
         let (mut run, mut run_len): (Vec<usize>, u64) = (Vec::new(), 0);
         for r in rays {
             seen.clear();
-            for p in inter.pieces_of(r) {
+            let pieces = inter.pieces_of(r);
+            let first = pieces.start;
+            for p in pieces {
+                let leads = if p == first { LEADS } else { 0 };
                 for t in inter.tasks_of(p) {
                     let task = &inter.tasks[t];
                     let d = dataset_of_object[task.object as usize] as usize;
@@ -772,7 +844,7 @@ impl Survey {
                             0
                         }
                     };
-                    keys[t - first_task] = (d as u32) << RANK_BITS | rank as u32;
+                    keys[t - first_task] = (d as u32) << RANK_BITS | leads | rank as u32;
                     let lane = &mut survey.waves[d];
                     if lane.len() <= rank {
                         lane.resize(rank + 1, 0);

@@ -257,7 +257,8 @@ fn datasets_go_front_to_back_and_waves_follow_each_ray() {
     for k in 0..2 {
         let wave = &queue[waves[0][k] as usize..waves[0][k + 1] as usize];
         assert_eq!(wave.len(), 16);
-        for &t in wave {
+        for q in wave {
+            let t = q.task();
             let task = inter.tasks[t as usize];
             assert_eq!(task.object, [0, 2][k], "wave {k}");
             assert_eq!(inter.piece_of(t as usize), inter.ray_start[task.ray as usize] + k + 1);
@@ -369,7 +370,14 @@ fn the_plan_lists_the_waves_and_the_order_of_its_definition() {
                 expected_queue.extend_from_slice(wave);
             }
         }
-        assert_eq!(got.queue, expected_queue, "seed {seed}");
+        let tasks: Vec<u32> = got.queue.iter().map(|q| q.task()).collect();
+        assert_eq!(tasks, expected_queue, "seed {seed}");
+        // A task leads when its piece is its ray's first: nothing lies in front of it.
+        for q in &got.queue {
+            let t = q.task() as usize;
+            let first = inter.pieces_of(inter.local_ray(inter.tasks[t].ray)).start;
+            assert_eq!(q.leads(), inter.piece_of(t) == first, "seed {seed}, task {t}");
+        }
         shared_pieces += inter.tasks.len() - inter.pieces();
     }
     assert!(shared_pieces > 100, "the scenes overlap: {shared_pieces}");
