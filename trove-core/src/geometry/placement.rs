@@ -324,9 +324,26 @@ impl GradientToWorld<'_> {
 #[inline]
 pub fn sample_count(world_len: f64, sampling_distance: f64, vc_len: f64) -> u64 {
     let x = if sampling_distance > 0.0 { world_len / sampling_distance } else { vc_len };
-    let half = (x * 2.0).round() / 2.0;
+    let half = round_half_away(x * 2.0) / 2.0;
     let x = if (x - half).abs() <= 1e-9 * x.abs().max(1.0) { half } else { x };
-    (x.round() as u64).max(1)
+    (round_half_away(x) as u64).max(1)
+}
+
+/// `x.round()` (half away from zero) to the bit, without a call: x86-64's baseline has no
+/// rounding instruction, so `f64::round` is a call into libm, and [`sample_count`] makes two
+/// for every piece a worker casts (and every task the coordinator culls). At and above 2⁵²
+/// every f64 is an integer, and NaN and the infinities round to themselves; below, the
+/// truncation `(x as i64) as f64` and the fraction `x − t` are exact.
+#[inline]
+fn round_half_away(x: f64) -> f64 {
+    const INTEGRAL: f64 = 4_503_599_627_370_496.0; // 2⁵²
+    if !(x.abs() < INTEGRAL) {
+        return x;
+    }
+    let t = (x as i64) as f64;
+    let r = if (x - t).abs() >= 0.5 { t + 1f64.copysign(x) } else { t };
+    // A zero keeps x's sign, as `f64::round`'s does.
+    r.copysign(x)
 }
 
 /// A ray origin in an affine box's coordinates, with what the slab test derives from it.
@@ -733,5 +750,52 @@ mod tests {
         assert_eq!(sample_count(2.4, 1.0, 0.0), 2);
         assert_eq!(sample_count(0.1, 1.0, 0.0), 1);
         assert_eq!(sample_count(1.0, 0.0, 3.5), 4);
+    }
+
+    #[test]
+    fn rounding_without_a_call_is_f64_round_to_the_bit() {
+        let two52 = 4_503_599_627_370_496.0f64;
+        let mut cases = vec![
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.5,
+            2.5,
+            -2.5,
+            0.49999999999999994,
+            -0.49999999999999994,
+            two52 - 0.5,
+            two52 - 1.5,
+            two52,
+            two52 + 1.0,
+            1e300,
+            f64::MAX,
+            f64::MIN_POSITIVE,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+        ];
+        // Every half step and its neighbours up to 2000.
+        for k in 0..4000 {
+            let h = k as f64 / 2.0;
+            cases.extend([h, -h, f64::from_bits(h.to_bits() + 1), f64::from_bits(h.to_bits().saturating_sub(1))]);
+        }
+        for x in cases {
+            assert_eq!(round_half_away(x).to_bits(), x.round().to_bits(), "{x:e}");
+        }
+    }
+
+    proptest! {
+        #[test]
+        fn rounding_without_a_call_matches_on_any_bits(bits in any::<u64>()) {
+            let x = f64::from_bits(bits);
+            prop_assert_eq!(round_half_away(x).to_bits(), x.round().to_bits(), "{:e}", x);
+        }
+
+        #[test]
+        fn rounding_without_a_call_matches_on_sample_counts(x in -1e7f64..1e7f64) {
+            prop_assert_eq!(round_half_away(x).to_bits(), x.round().to_bits(), "{:e}", x);
+        }
     }
 }
