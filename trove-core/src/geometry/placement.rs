@@ -337,7 +337,7 @@ pub fn sample_count(world_len: f64, sampling_distance: f64, vc_len: f64) -> u64 
 #[inline]
 fn round_half_away(x: f64) -> f64 {
     const INTEGRAL: f64 = 4_503_599_627_370_496.0; // 2⁵²
-    if !(x.abs() < INTEGRAL) {
+    if x.is_nan() || x.abs() >= INTEGRAL {
         return x;
     }
     let t = (x as i64) as f64;
