@@ -18,7 +18,9 @@ pub(in crate::sampling) struct Scalar;
 
 type F = [f32; LANES];
 type I = [i32; LANES];
-type M = [bool; LANES];
+/// A lane of ones (−1) where set, zeros where not, as a vector compare writes it: a select
+/// is then three bitwise operations on a register rather than a test per lane.
+type M = [i32; LANES];
 
 #[inline(always)]
 fn each(a: F, f: impl Fn(f32) -> f32) -> F {
@@ -49,9 +51,9 @@ fn pair_i(a: I, b: I, f: impl Fn(i32, i32) -> i32) -> I {
 
 #[inline(always)]
 fn test(a: F, b: F, f: impl Fn(f32, f32) -> bool) -> M {
-    let mut out = [false; LANES];
+    let mut out = [0; LANES];
     for ((o, a), b) in out.iter_mut().zip(a).zip(b) {
-        *o = f(a, b);
+        *o = -i32::from(f(a, b));
     }
     out
 }
@@ -198,9 +200,8 @@ impl Simd for Scalar {
     fn select(self, m: M, a: F, b: F) -> F {
         let mut out = b;
         for ((o, m), a) in out.iter_mut().zip(m).zip(a) {
-            if m {
-                *o = a;
-            }
+            let m = m as u32;
+            *o = f32::from_bits((a.to_bits() & m) | (o.to_bits() & !m));
         }
         out
     }
@@ -258,9 +259,9 @@ impl Simd for Scalar {
     }
     #[inline(always)]
     fn gt_i(self, a: I, b: I) -> M {
-        let mut out = [false; LANES];
+        let mut out = [0; LANES];
         for ((o, a), b) in out.iter_mut().zip(a).zip(b) {
-            *o = a > b;
+            *o = -i32::from(a > b);
         }
         out
     }
@@ -268,7 +269,7 @@ impl Simd for Scalar {
     fn count_i(self, a: I, m: M) -> I {
         let mut out = a;
         for (o, m) in out.iter_mut().zip(m) {
-            *o += i32::from(m);
+            *o -= m;
         }
         out
     }
@@ -283,11 +284,11 @@ impl Simd for Scalar {
     }
     #[inline(always)]
     fn bits(self, m: M) -> u32 {
-        m.iter().enumerate().fold(0, |bits, (l, &m)| bits | u32::from(m) << l)
+        m.iter().enumerate().fold(0, |bits, (l, &m)| bits | (m as u32 >> 31) << l)
     }
     #[inline(always)]
     fn mask(self, bits: u32) -> M {
-        std::array::from_fn(|l| bits >> l & 1 == 1)
+        std::array::from_fn(|l| -((bits >> l & 1) as i32))
     }
     #[inline(always)]
     fn and_m(self, a: M, b: M) -> M {
