@@ -396,8 +396,8 @@ impl Scheduler {
 
     /// Decides task `t` ([`Scheduler::decide`]) and culls it, or writes it to `sink` and
     /// `cast`. `leads`: its piece is its ray's first ([`Queued::leads`]), so nothing lies in
-    /// front and it is cast with a clear front without looking: reading the ray's pieces to
-    /// learn that was most of a batch's time (BENCHMARKS.md, issue 21).
+    /// front and it is cast with a clear front without `decide` reading the ray's pieces
+    /// (three dependent reads per task, which missed the cache on a coordinator's bands).
     #[inline(always)]
     fn take(&mut self, t: u32, leads: bool, first_wave: bool, sink: &mut impl TaskSink, cast: &mut Vec<u32>) {
         let decision = if leads { Decision::Cast(0.0) } else { self.decide(t as usize, first_wave) };
