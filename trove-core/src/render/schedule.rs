@@ -359,28 +359,23 @@ impl Scheduler {
             // The candidates are read in place from the queue (or the retried list), which
             // is moved out for the loop so that deciding may update the scheduler.
             let queue = std::mem::take(&mut self.queue);
-            let mut cast;
-            match &retry {
-                // A retried batch's tasks come without their flags: each is decided in full.
-                Some(list) => {
-                    cast = Vec::with_capacity(list.len());
-                    sink.reserve(list.len());
-                    for &t in list {
-                        self.take(t, false, first_wave, sink, &mut cast);
-                    }
+            let chunk: &[Queued] = match &retry {
+                Some(_) => &[],
+                None => &queue[lane.cursor..(lane.cursor + self.batch_tasks).min(end)],
+            };
+            lane.cursor += chunk.len();
+            let n = retry.as_ref().map_or(chunk.len(), Vec::len);
+            let mut cast = Vec::with_capacity(n);
+            sink.reserve(n);
+            // A retried batch's tasks come without their flags: each is decided in full.
+            for &t in retry.iter().flatten() {
+                self.take(t, false, first_wave, sink, &mut cast);
+            }
+            for (i, q) in chunk.iter().enumerate() {
+                if let Some(ahead) = chunk.get(i + PREFETCH_AHEAD) {
+                    prefetch(&self.inter.tasks[ahead.task() as usize]);
                 }
-                None => {
-                    let chunk = &queue[lane.cursor..(lane.cursor + self.batch_tasks).min(end)];
-                    lane.cursor += chunk.len();
-                    cast = Vec::with_capacity(chunk.len());
-                    sink.reserve(chunk.len());
-                    for (i, q) in chunk.iter().enumerate() {
-                        if let Some(ahead) = chunk.get(i + PREFETCH_AHEAD) {
-                            prefetch(&self.inter.tasks[ahead.task() as usize]);
-                        }
-                        self.take(q.task(), q.leads(), first_wave, sink, &mut cast);
-                    }
-                }
+                self.take(q.task(), q.leads(), first_wave, sink, &mut cast);
             }
             self.queue = queue;
             if cast.is_empty() {
@@ -395,13 +390,10 @@ impl Scheduler {
     }
 
     /// Decides task `t` ([`Scheduler::decide`]) and culls it, or writes it to `sink` and
-    /// `cast`. `leads`: its piece is its ray's first ([`Queued::leads`]), so nothing lies in
-    /// front and it is cast with a clear front without `decide` reading the ray's pieces
-    /// (three dependent reads per task, which missed the cache on a coordinator's bands).
+    /// `cast`.
     #[inline(always)]
     fn take(&mut self, t: u32, leads: bool, first_wave: bool, sink: &mut impl TaskSink, cast: &mut Vec<u32>) {
-        let decision = if leads { Decision::Cast(0.0) } else { self.decide(t as usize, first_wave) };
-        match decision {
+        match self.decide(t as usize, first_wave, leads) {
             Decision::Cull => {
                 self.status[t as usize] = Status::Culled;
                 self.progress.culled += 1;
@@ -571,7 +563,10 @@ impl Scheduler {
 
     /// Cull task `t`, or cast it with the deterministic front (module documentation).
     /// `first_wave`: `t` is in its dataset's first wave, so no piece in front is the
-    /// dataset's and that front is clear without looking.
+    /// dataset's and that front is clear without looking. `leads`: `t`'s piece is its ray's
+    /// first ([`Queued::leads`]), so nothing lies in front: cast with a clear front, without
+    /// reading the ray's pieces (three dependent reads per task, which missed the cache on a
+    /// coordinator's bands).
     ///
     /// Both use opacities only, laid over each other as `Rgba::over` lays them
     /// ([`over_alpha`]), so they are the bits the full composite would give.
@@ -579,7 +574,10 @@ impl Scheduler {
     /// Inlined into both of `hand_out`'s instances: called from two, the compiler kept it
     /// out of line, a call per task.
     #[inline(always)]
-    fn decide(&mut self, t: usize, first_wave: bool) -> Decision {
+    fn decide(&mut self, t: usize, first_wave: bool, leads: bool) -> Decision {
+        if leads {
+            return Decision::Cast(0.0);
+        }
         let task = &self.inter.tasks[t];
         let r = self.inter.local_ray(task.ray);
         let ray_start = self.inter.ray_start[r];
