@@ -196,8 +196,9 @@ pub struct Scheduler {
     termination: f64,
     batch_tasks: usize,
     status: Vec<Status>,
-    /// Each task's result as [r, g, b, α] (a `PieceRgba`'s fields): all-zero f32 arrays,
-    /// which the allocator hands out as fresh zeroed pages instead of writing them here.
+    /// Each task's result as [r, g, b, α] (a `PieceRgba`'s fields), read only once its
+    /// status is `Done`: until then it holds whatever a kept list held
+    /// ([`kept::for_overwrite`]), or zeros.
     results: Vec<[f32; 4]>,
     order: Vec<usize>,
     /// Every task once, dataset by dataset and wave by wave ([`Plan::queue`]).
@@ -245,7 +246,7 @@ impl Scheduler {
         Ok(Scheduler {
             known: kept::filled(inter.rays(), KnownFront::default()),
             status: kept::filled(n, Status::Pending),
-            results: kept::filled(n, [0.0; 4]),
+            results: kept::for_overwrite(n),
             progress: Progress { total: n as u64, ..Progress::default() },
             inter,
             dataset_of_object,
@@ -693,7 +694,7 @@ fn plan(inter: &Intersections, dataset_of_object: &[u32], datasets: usize) -> Pl
     let rays = inter.rays();
     let n = inter.tasks.len();
     // Each chunk's rays, and its tasks' keys: chunks of rays own disjoint runs of tasks.
-    let mut keys = kept::filled(n, 0u32);
+    let mut keys = kept::for_overwrite::<u32>(n);
     let mut chunks = Vec::with_capacity(rays.div_ceil(RAYS_PER_SURVEY));
     let mut rest = keys.as_mut_slice();
     for first in (0..rays).step_by(RAYS_PER_SURVEY) {
@@ -732,7 +733,7 @@ fn plan(inter: &Intersections, dataset_of_object: &[u32], datasets: usize) -> Pl
         starts.push(at);
     }
     debug_assert_eq!(at as usize, n, "every task is in one wave");
-    let mut queue = kept::filled(n, Queued::default());
+    let mut queue = kept::for_overwrite::<Queued>(n);
     for (t, &key) in keys.iter().enumerate() {
         let cursor = &mut next[(slot[(key >> RANK_BITS) as usize] + (key & RANK_MASK)) as usize];
         queue[*cursor as usize] = Queued::new(t as u32, key & LEADS != 0);
