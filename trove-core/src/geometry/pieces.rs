@@ -55,8 +55,9 @@ impl PieceScratch {
     /// Whether the segments of non-zero length lie apart (touching at most): then each is
     /// one piece of its own, front to back, which is what the sweep makes of them, and
     /// `apart` lists them in that order. Sorts the segments, not their twice as many end
-    /// points, and needs no sweep: most rays of a scene of many objects cross several that
-    /// do not overlap (the sweep was a seventh of a coordinator's core stages, Table 1).
+    /// points, and needs no sweep: rays of a scene of many objects often cross several
+    /// that do not overlap (splitting into pieces was a seventh of the instructions of
+    /// Table 1's core stages, BENCHMARKS.md).
     fn sort_apart(&mut self, segments: &[Segment]) -> bool {
         self.apart.clear();
         self.apart.extend(segments.iter().zip(0u32..).filter(|(s, _)| long(s)).map(|(s, i)| (s.t_near, i)));
@@ -77,10 +78,11 @@ fn long(s: &Segment) -> bool {
 /// from one ray's segments. Pieces of zero length are dropped; the buffers are cleared
 /// first so a thread can reuse them for every ray.
 ///
-/// The end points are swept once in order with the set of segments covering the window
-/// kept as it changes, so a ray of k segments costs O(k log k) plus its cover, rather than
-/// a pass over every segment per piece (k = 4096 disjoint objects on one ray would cost
-/// 2k² tests per ray that way).
+/// Segments that lie apart are their own pieces, found by sorting their starts
+/// ([`PieceScratch::sort_apart`]). Otherwise the end points are swept once in order with
+/// the set of segments covering the window kept as it changes. Either way a ray of k
+/// segments costs O(k log k) plus its cover, rather than a pass over every segment per
+/// piece (k = 4096 disjoint objects on one ray would cost 2k² tests per ray that way).
 pub fn split_into_pieces(
     segments: &[Segment],
     scratch: &mut PieceScratch,

@@ -7,10 +7,11 @@
 //! per-ray lists ([`super::Scheduler::into_intersections`]).
 //!
 //! A list handed out is empty, or refilled whole ([`filled`]), so nothing a band left
-//! shows, except from [`for_overwrite`], whose caller writes every item before reading it
-//! (and so skips a fill that would be overwritten at once); one much longer than asked for is cut down to about the size needed, so that
-//! the bytes its holder counts (`Scheduler::heap_bytes`, which memory bounds and the farm
-//! simulation's inputs read) stay what it needs. At most [`KEPT_BYTES`] are kept.
+//! shows, except from [`for_overwrite`], whose caller writes every item before it reads
+//! one (and so skips a fill that would be overwritten at once). One much longer than asked
+//! for is cut down to about the size needed, so that the bytes its holder counts
+//! (`Scheduler::heap_bytes`, which memory bounds and the farm simulation's inputs read)
+//! stay what it needs. At most [`KEPT_BYTES`] are kept.
 
 use std::any::{Any, TypeId};
 use std::sync::{Mutex, MutexGuard, PoisonError};
@@ -104,7 +105,8 @@ pub(super) fn filled<T: Clone + Send + 'static>(n: usize, value: T) -> Vec<T> {
 /// `n` items for a caller that writes every one before it reads it: a kept list's old
 /// items as they are (any bits are a valid `T`: it is `Copy` and was written before), the
 /// rest `T::default()`. Saves [`filled`]'s pass over memory that is written again at once
-/// (a coordinator's plan wrote its keys and queue twice: the fill was 2–3% of its CPU).
+/// (the plan's keys and queue, the scheduler's results: 24 bytes a task, filled and then
+/// written; the fills were about 1% of a coordinator's CPU, BENCHMARKS.md).
 pub(super) fn for_overwrite<T: Copy + Default + Send + 'static>(n: usize) -> Vec<T> {
     match take_room(n) {
         Some(mut list) => {
@@ -124,7 +126,8 @@ pub(super) fn growing<T: Send + 'static>(hint: usize) -> Vec<T> {
     list
 }
 
-/// Keeps `list` for a later [`with_room`], [`filled`] or [`growing`], as far as there is room.
+/// Keeps `list` for a later [`with_room`], [`filled`], [`for_overwrite`] or [`growing`], as
+/// far as there is room.
 pub(super) fn keep<T: Send + 'static>(list: Vec<T>) {
     let (capacity, bytes) = (list.capacity(), list.capacity() * size_of::<T>());
     let mut kept = kept();
