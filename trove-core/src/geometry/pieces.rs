@@ -240,15 +240,30 @@ mod tests {
             .collect()
     }
 
-    #[test]
-    fn one_or_two_segments_apart_make_what_the_sweep_makes() {
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut next = |n: u64| {
+    /// A generator of numbers below `n`, from `seed` (a linear congruential one: the tests
+    /// need many cases, the same every run).
+    fn numbers(seed: u64) -> impl FnMut(u64) -> u64 {
+        let mut state = seed;
+        move |n| {
             state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
             (state >> 33) % n
-        };
-        let mut scratch = PieceScratch::default();
+        }
+    }
+
+    /// `split_into_pieces` and `count_pieces` give what the sweep alone gives.
+    fn assert_as_swept(segments: &[Segment], scratch: &mut PieceScratch) {
         let (mut fast, mut swept) = ((vec![], vec![]), (vec![], vec![]));
+        split_into_pieces(segments, scratch, &mut fast.0, &mut fast.1);
+        sweep_into_pieces(segments, scratch, &mut swept.0, &mut swept.1);
+        assert_eq!(fast, swept, "{segments:?}");
+        let counted = count_pieces(segments, scratch);
+        assert_eq!(counted, (swept.0.len() as u64, swept.1.len() as u64), "{segments:?}");
+    }
+
+    #[test]
+    fn one_or_two_segments_apart_make_what_the_sweep_makes() {
+        let mut next = numbers(0x2545_f491_4f6c_dd1d);
+        let mut scratch = PieceScratch::default();
         for _ in 0..5000 {
             // Coincident, touching, empty and overlapping segments, in either order.
             let segments: Vec<Segment> = (0..1 + next(2))
@@ -257,11 +272,7 @@ mod tests {
                     Segment { object: i as u32 * 3, t_near: a, t_far: a + next(4) as f64 * 0.25 }
                 })
                 .collect();
-            split_into_pieces(&segments, &mut scratch, &mut fast.0, &mut fast.1);
-            sweep_into_pieces(&segments, &mut scratch, &mut swept.0, &mut swept.1);
-            assert_eq!(fast, swept, "{segments:?}");
-            let counted = count_pieces(&segments, &mut scratch);
-            assert_eq!(counted, (swept.0.len() as u64, swept.1.len() as u64), "{segments:?}");
+            assert_as_swept(&segments, &mut scratch);
         }
     }
 
@@ -270,13 +281,8 @@ mod tests {
     /// pieces and counts of the sweep, whichever path makes them.
     #[test]
     fn many_segments_apart_make_what_the_sweep_makes() {
-        let mut state = 0x51_7cc1_b727_220au64;
-        let mut next = |n: u64| {
-            state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
-            (state >> 33) % n
-        };
+        let mut next = numbers(0x51_7cc1_b727_220a);
         let mut scratch = PieceScratch::default();
-        let (mut fast, mut swept) = ((vec![], vec![]), (vec![], vec![]));
         let (mut took_apart, mut overlapped) = (0, 0);
         for _ in 0..5000 {
             let k = 3 + next(14);
@@ -300,10 +306,7 @@ mod tests {
             for i in (1..segments.len()).rev() {
                 segments.swap(i, next(i as u64 + 1) as usize);
             }
-            split_into_pieces(&segments, &mut scratch, &mut fast.0, &mut fast.1);
-            sweep_into_pieces(&segments, &mut scratch, &mut swept.0, &mut swept.1);
-            assert_eq!(fast, swept, "{segments:?}");
-            assert_eq!(count_pieces(&segments, &mut scratch), (swept.0.len() as u64, swept.1.len() as u64));
+            assert_as_swept(&segments, &mut scratch);
             if scratch.sort_apart(&segments) {
                 took_apart += 1;
             } else {
@@ -315,11 +318,7 @@ mod tests {
 
     #[test]
     fn the_sweep_makes_the_pieces_of_the_definition() {
-        let mut state = 0x9e37_79b9_7f4a_7c15u64;
-        let mut next = |n: u64| {
-            state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
-            (state >> 33) % n
-        };
+        let mut next = numbers(0x9e37_79b9_7f4a_7c15);
         for _ in 0..500 {
             let k = 1 + next(12);
             // End points on a coarse grid, so that many coincide; some segments are empty.

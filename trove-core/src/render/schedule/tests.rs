@@ -509,7 +509,8 @@ fn encoded_batches_are_the_batches_encoded() {
 /// Lists written before they are read ([`kept::for_overwrite`]: the plan's keys and queue,
 /// the results) may hold a former band's values: with kept lists full of them (opaque
 /// results, which a read would take for a ray opaque in front, and keys and queue entries
-/// out of range) the same batches and the same pixels, bit for bit. (Other tests may take those lists first; most runs give them to this one.)
+/// out of range) the same batches and the same pixels, bit for bit. (Other tests may take
+/// those lists first; most runs give them to this one.)
 #[test]
 fn stale_kept_lists_change_no_batch_and_no_pixel() {
     /// Each batch's dataset and tasks, and the pixels' bits.
