@@ -466,7 +466,7 @@ mod tests {
         let path = dir.join("scene.toml");
         std::fs::write(&path, text).unwrap();
         let scene = Scene::load(&path).unwrap();
-        let fine = converged(&scene, &DataRoot::Given(dir.clone())).unwrap();
+        let fine = converged(&scene, &DataRoot::Given(dir.to_path_buf())).unwrap();
         assert_eq!(fine.objects()[0].sampling_distance(), 0.05);
         // Four samples of the quartered opacity let through what one of the original did.
         let a = fine.objects()[0].opacity().map(1.0).unwrap();

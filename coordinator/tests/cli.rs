@@ -8,7 +8,7 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use trove_tests::{read_pfm, scratch, Header};
+use trove_tests::{read_pfm, scratch, Header, Scratch};
 
 /// The `trove` binary that cargo built for these tests.
 fn trove() -> &'static Path {
@@ -217,7 +217,7 @@ fn ball_raw() -> Vec<u8> {
 
 /// A scene in `DIR/scenes` whose key `ball.raw` is in `DIR/data`, and the PNG it renders to
 /// when the file lies beside it instead (the scene-folder default, SPEC §1).
-fn data_root_fixture(name: &str) -> (PathBuf, PathBuf, PathBuf, Vec<u8>) {
+fn data_root_fixture(name: &str) -> (Scratch, PathBuf, PathBuf, Vec<u8>) {
     let dir = scratch(name);
     let (scenes, data, beside) = (dir.join("scenes"), dir.join("data"), dir.join("beside"));
     for d in [&scenes, &data, &beside] {

@@ -10,8 +10,10 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
+use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::{Duration, Instant};
 use trove_tests::process::trove_worker_beside;
+use trove_tests::scratch;
 
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
@@ -264,10 +266,10 @@ fn help_flags(program: &Program) -> Result<BTreeSet<String>, String> {
 }
 
 /// Runs `command` to its end, its output piped to files (so that no pipe fills), killing it
-/// past `limit`.
+/// past `limit`. Each call has a folder of its own: tests run it from several threads.
 fn output_within(command: &mut Command, limit: Duration) -> Output {
-    let dir = std::env::temp_dir().join(format!("trove-test-{}-deploy-help", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    static CALLS: AtomicU32 = AtomicU32::new(0);
+    let dir = scratch(&format!("deploy-help-{}", CALLS.fetch_add(1, Ordering::Relaxed)));
     let (stdout, stderr) = (dir.join("stdout"), dir.join("stderr"));
     let mut child = command
         .stdin(Stdio::null())

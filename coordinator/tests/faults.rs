@@ -29,7 +29,7 @@ use trove_proto::v1 as pb;
 use trove_tests::farm::{data_root, spawn_server};
 use trove_tests::process::trove_worker_beside;
 use trove_tests::scenes::{many_objects, nested_boxes};
-use trove_tests::scratch;
+use trove_tests::{scratch, Scratch};
 
 fn trove() -> &'static Path {
     Path::new(env!("CARGO_BIN_EXE_trove"))
@@ -135,11 +135,12 @@ fn local_png(text: &str, dir: &Path) -> Vec<u8> {
 
 /// A coordinator and three workers over data roots that each hold two of the three files.
 struct Farm {
-    dir: PathBuf,
     coordinator: Server,
     url: String,
     workers: Vec<Server>,
     runtime: tokio::runtime::Runtime,
+    /// Removed last, once the processes that write into it are gone.
+    dir: Scratch,
 }
 
 impl Farm {
@@ -435,7 +436,7 @@ fn cli_render(dir: &Path, url: &str, name: &str, text: &str, output: &str) -> st
 fn hostile_scenes_through_the_cli_are_refused_naming_the_limit_and_the_coordinator_serves_on() {
     let _serial = serial();
     let farm = Farm::start("faults-hostile", &[]);
-    let dir = farm.dir.clone();
+    let dir = farm.dir.to_path_buf();
     let huge_pfm = scene(16384, "", 0.5);
     let hostile: [(&str, String, &str, &str); 4] = [
         ("nested.toml", nested_boxes(300, 512, "1e9"), "out.png", "limit on piece tasks per render is 536870912"),

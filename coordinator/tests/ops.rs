@@ -81,7 +81,7 @@ fn config() -> FarmConfig {
 /// A farm of one worker over an empty root.
 fn one_worker_farm(name: &str, config: FarmConfig) -> TestFarm {
     let dir = scratch(name);
-    TestFarm::start_with(&[data_root(&dir.join("w0"), &dir, &[])], config, None)
+    TestFarm::start_with(&[data_root(&dir.join("w0"), &dir, &[])], config, None).holding(dir)
 }
 
 /// A loopback URL nothing listens on (a port bound, then let go).

@@ -30,6 +30,9 @@ pub struct TestFarm {
     /// What [`TestFarm::add_worker`] gives each worker.
     worker_security: WorkerSecurity,
     max_streams: usize,
+    /// A scratch folder the farm's data roots lie in, removed after the farm (the last
+    /// field, so dropped after the runtime has stopped every server).
+    scratch: Option<crate::Scratch>,
 }
 
 /// TLS for a test farm: one certificate (for `127.0.0.1`) that the coordinator and every
@@ -80,6 +83,12 @@ pub const RENDER_DEADLINE: Duration = Duration::from_secs(120);
 pub const TEST_HEARTBEAT: Duration = Duration::from_millis(100);
 
 impl TestFarm {
+    /// This farm, holding `scratch` (where its data roots lie) until it is dropped.
+    pub fn holding(mut self, scratch: crate::Scratch) -> TestFarm {
+        self.scratch = Some(scratch);
+        self
+    }
+
     /// A coordinator and one worker per data root; returns once every worker is registered.
     pub fn start(roots: &[PathBuf]) -> TestFarm {
         TestFarm::start_with(roots, FarmConfig { heartbeat: TEST_HEARTBEAT, ..FarmConfig::default() }, None)
@@ -134,6 +143,7 @@ impl TestFarm {
             connector,
             worker_security,
             max_streams,
+            scratch: None,
         };
         for root in roots {
             farm.add_worker(root, budget);

@@ -19,6 +19,7 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::{Arc, OnceLock};
 
+use crate::{scratch, Scratch};
 use prost::Message;
 use trove_coordinator::farm::DriverConfig;
 use trove_core::dataset::{Catalog, DatasetError, FileInfo, FileKind, FsCatalog, Volume};
@@ -79,23 +80,22 @@ pub fn scene(bytes: &[u8]) -> Result<Scene, SceneError> {
 }
 
 /// A data root of this thread's own (the proptests run on several threads), holding a
-/// 512-byte `data.raw` that a detached NRRD header may name.
+/// 512-byte `data.raw` that a detached NRRD header may name; removed when the thread ends.
 fn data_root() -> PathBuf {
     thread_local! {
-        static ROOT: RefCell<Option<PathBuf>> = const { RefCell::new(None) };
+        static ROOT: RefCell<Option<Scratch>> = const { RefCell::new(None) };
     }
     ROOT.with(|root| {
         root.borrow_mut()
             .get_or_insert_with(|| {
                 static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
                 let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                let dir = std::env::temp_dir().join(format!("trove-fuzz-{}-{n}", std::process::id()));
-                std::fs::create_dir_all(&dir).expect("create the fuzzing data root");
+                let dir = scratch(&format!("fuzz-{n}"));
                 let raw: Vec<u8> = (0..512u32).map(|i| (i * 7) as u8).collect();
                 std::fs::write(dir.join("data.raw"), raw).expect("write data.raw");
                 dir
             })
-            .clone()
+            .to_path_buf()
     })
 }
 

@@ -35,11 +35,47 @@ use trove_core::Rgba;
 use trove_core::{CastOptions, ObjectCaster};
 
 /// A fresh scratch folder under the system temp dir, unique to this test.
-pub fn scratch(name: &str) -> PathBuf {
+pub fn scratch(name: &str) -> Scratch {
     let dir = std::env::temp_dir().join(format!("trove-test-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).expect("create scratch folder");
-    dir
+    Scratch(dir)
+}
+
+/// A test's scratch folder ([`scratch`]), removed when the test is done with it, so that
+/// test runs do not pile folders up in the temp dir; a failing test's folder (dropped
+/// while its thread panics) stays, for looking at what it wrote.
+#[must_use = "the folder is removed when this is dropped"]
+#[derive(Debug)]
+pub struct Scratch(PathBuf);
+
+impl Scratch {
+    /// The folder's path.
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl std::ops::Deref for Scratch {
+    type Target = Path;
+
+    fn deref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl AsRef<Path> for Scratch {
+    fn as_ref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
 }
 
 /// The `[image]` and `[camera]` tables a test scene starts with. [`Header::new`] fixes
@@ -417,13 +453,35 @@ mod tests {
     }
 
     #[test]
+    fn a_scratch_folder_is_removed_when_dropped_and_kept_when_its_test_fails() {
+        let done = scratch("scratch-done");
+        std::fs::write(done.join("file"), b"x").unwrap();
+        let path = done.to_path_buf();
+        drop(done);
+        assert!(!path.exists(), "a finished test's folder is left behind");
+
+        let failed = std::thread::spawn(|| {
+            let dir = scratch("scratch-failed");
+            std::fs::write(dir.join("file"), b"x").unwrap();
+            let path = dir.to_path_buf();
+            std::panic::panic_any(path);
+        })
+        .join()
+        .expect_err("the thread panics");
+        let path = failed.downcast::<PathBuf>().expect("the folder's path");
+        assert!(path.join("file").exists(), "a failed test's folder is gone");
+        std::fs::remove_dir_all(*path).unwrap();
+    }
+
+    #[test]
     fn a_saved_pfm_reads_back_to_f32_precision_with_row_zero_on_top() {
         let img = Image::new(
             2,
             3,
             vec![[0.1, 0.2, 0.3], [0.4, 0.5, 0.6], [0.7, 0.8, 0.9], [1.5, -0.5, 0.0], [0.0; 3], [1.0; 3]],
         );
-        let path = scratch("pfm").join("img.pfm");
+        let dir = scratch("pfm");
+        let path = dir.join("img.pfm");
         img.save(&path).expect("save");
         let back = read_pfm(&path);
         assert_eq!((back.width(), back.height()), (2, 3));

@@ -186,7 +186,8 @@ fn samples_skipped_counts_every_sample_position_hidden_behind_an_opaque_object()
         + "[render]\ntermination = 0.999\n"
         + &constant_slab("front", "a", 1.0, 0.2, 1.0, 0.05)
         + &constant_slab("back", "b", 0.0, depth, 0.1, step);
-    let scene = parse(&scratch("alg-skipped"), &text);
+    let dir = scratch("alg-skipped");
+    let scene = parse(&dir, &text);
     let s = (fov.to_radians() / 2.0).tan();
     let mut expected = 0u64;
     for row in 0..side {
@@ -236,7 +237,8 @@ fn budget_scene(dir: &Path) -> (Scene, u64) {
 
 #[test]
 fn with_no_budget_each_dataset_is_loaded_once() {
-    let (scene, total) = budget_scene(&scratch("alg-nobudget"));
+    let dir = scratch("alg-nobudget");
+    let (scene, total) = budget_scene(&dir);
     let (a, b) = both(&scene, None);
     for r in [&a, &b] {
         assert_eq!(r.stats.dataset_loads, 4, "{}", r.stats.algorithm);
@@ -253,7 +255,8 @@ fn with_no_budget_each_dataset_is_loaded_once() {
 
 #[test]
 fn a_short_budget_makes_per_ray_reload_while_grouped_loads_each_voxel_once() {
-    let (scene, total) = budget_scene(&scratch("alg-budget"));
+    let dir = scratch("alg-budget");
+    let (scene, total) = budget_scene(&dir);
     let one = total / 4;
     let budget = one + one / 2; // one dataset and a half: never two at once
     let (a, b) = both(&scene, Some(budget));
@@ -279,7 +282,8 @@ fn a_budget_of_exactly_one_dataset_renders_on_many_threads_without_deadlock() {
     // repetitions give the thread interleavings a chance to show it.
     let (done_tx, done_rx) = std::sync::mpsc::channel();
     std::thread::spawn(move || {
-        let (scene, total) = budget_scene(&scratch("alg-tight"));
+        let dir = scratch("alg-tight");
+        let (scene, total) = budget_scene(&dir);
         let budget = total / 4;
         let pool = rayon::ThreadPoolBuilder::new().num_threads(4).build().unwrap();
         for _ in 0..5 {
@@ -317,7 +321,8 @@ fn side_by_side(size: u32) -> (String, usize) {
 fn a_kept_store_serves_a_second_render_of_many_datasets_on_many_threads() {
     use trove_core::render::{render, RenderOptions, VolumeStore};
     let (text, count) = side_by_side(40);
-    let scene = parse(&scratch("alg-kept"), &text);
+    let dir = scratch("alg-kept");
+    let scene = parse(&dir, &text);
     let pool = rayon::ThreadPoolBuilder::new().num_threads(4).build().unwrap();
     let store = VolumeStore::new(None);
     let kept = RenderOptions { store: Some(store.clone()), ..Default::default() };
@@ -341,7 +346,8 @@ fn a_kept_store_serves_a_second_render_of_many_datasets_on_many_threads() {
 
 #[test]
 fn a_budget_smaller_than_a_dataset_is_a_clear_error() {
-    let (scene, total) = budget_scene(&scratch("alg-small"));
+    let dir = scratch("alg-small");
+    let (scene, total) = budget_scene(&dir);
     for algorithm in [Algorithm::PerRay, Algorithm::Grouped] {
         match render_with(&scene, algorithm, Some(total / 4 - 1)) {
             Err(RenderError::Store(StoreError::BudgetTooSmall { name, needed, budget })) => {
@@ -375,7 +381,8 @@ fn under_a_budget_a_mapped_raw_file_is_read_into_memory_and_counted() {
 
 #[test]
 fn stats_json_has_the_spec_keys_and_the_new_ones() {
-    let (scene, _) = budget_scene(&scratch("alg-json"));
+    let dir = scratch("alg-json");
+    let (scene, _) = budget_scene(&dir);
     let r = render_with(&scene, Algorithm::Grouped, None).unwrap();
     let json = serde_json::to_value(&r.stats).unwrap();
     for key in [

@@ -33,7 +33,7 @@ fn local_limit(text: &str) -> LimitError {
 /// A farm of one worker over an empty root (the scenes here are generated).
 fn farm(name: &str, config: FarmConfig) -> TestFarm {
     let dir = scratch(name);
-    TestFarm::start_with(&[data_root(&dir.join("w0"), &dir, &[])], config, None)
+    TestFarm::start_with(&[data_root(&dir.join("w0"), &dir, &[])], config, None).holding(dir)
 }
 
 fn config() -> FarmConfig {

@@ -285,7 +285,7 @@ fn a_worker_refuses_no_coordinator_and_one_listed_twice() {
     let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
     runtime.block_on(async {
         for coordinators in [vec![], vec!["http://127.0.0.1:9".to_string(), "http://127.0.0.1:9".to_string()]] {
-            let mut config = WorkerConfig::new("http://127.0.0.1:9", &dir);
+            let mut config = WorkerConfig::new("http://127.0.0.1:9", dir.path());
             config.coordinators = coordinators.clone();
             let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
             let ended = tokio::time::timeout(Duration::from_secs(10), trove_worker::run(listener, async {}, config))

@@ -22,6 +22,8 @@ pub mod mapping;
 pub mod render;
 pub(crate) mod sampling;
 pub mod scene;
+#[cfg(test)]
+mod scratch;
 
 // The sampler's and compositor's internals stay inside the crate; these are what callers
 // (the farm, the tests that hold the sampler to closed forms) need of them.

@@ -470,8 +470,7 @@ mod tests {
 
     #[test]
     fn finished_jobs_are_served_from_the_store_across_restarts_until_swept() {
-        let dir = std::env::temp_dir().join(format!("trove-jobs-store-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
+        let dir = trove_tests::scratch("jobs-store");
         let options = pb::JobOptions::default();
         let (first_id, ids) = {
             let store = Arc::new(StateStore::open(&dir).unwrap());

@@ -301,10 +301,8 @@ impl StateStore {
 mod tests {
     use super::*;
 
-    fn folder(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("trove-state-{name}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        dir
+    fn folder(name: &str) -> trove_tests::Scratch {
+        trove_tests::scratch(&format!("state-{name}"))
     }
 
     fn record(id: &str, seq: u64, state: pb::JobState) -> JobRecord {

@@ -18,6 +18,7 @@ use crate::dataset::{
 };
 use crate::geometry::hexahedron::HexahedronError;
 use crate::geometry::{CameraError, CameraField};
+use crate::scratch::TempDir;
 
 /// The scene file's name in every message checked here.
 const NAME: &str = "bad-input-scene.toml";
@@ -94,12 +95,9 @@ fn nowhere() -> PathBuf {
     std::env::temp_dir().join("trove-scene-tests-no-files")
 }
 
-/// A fresh scratch folder for a test that writes dataset files.
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("trove-scene-tests-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("create scratch folder");
-    dir
+/// A fresh scratch folder for a test that writes dataset files, removed when dropped.
+fn scratch(name: &str) -> TempDir {
+    TempDir::new(&format!("scene-{name}"))
 }
 
 /// Parses `text` as `dir/NAME`; it must be valid.
@@ -732,12 +730,12 @@ fn keys_resolve_under_the_data_root_given() {
     let gen = "generator = { kind = \"sphere\", radius = 0.4 }";
     let text = with(&[(gen, "raw = \"ball.raw\"\ntype = \"u8\"")]);
     let path = scenes.join(NAME);
-    for root in [DataRoot::Given(data.clone()), DataRoot::Environment(data.clone())] {
+    for root in [DataRoot::Given(data.to_path_buf()), DataRoot::Environment(data.to_path_buf())] {
         let scene = Scene::parse_in(&text, &path, &root).unwrap_or_else(|e| panic!("{root:?}: {e}"));
         assert_eq!(scene.path(), path, "messages still name the scene file");
     }
     std::fs::write(&path, &text).unwrap();
-    assert!(Scene::load_in(&path, &DataRoot::Given(data.clone())).is_ok());
+    assert!(Scene::load_in(&path, &DataRoot::Given(data.to_path_buf())).is_ok());
     // The scene's folder does not hold it, and a root given replaces that folder.
     let e = Scene::load(&path).unwrap_err();
     let looked = scenes.join("ball.raw");

@@ -4,43 +4,23 @@
 
 use std::io;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU32, Ordering};
 
 use super::*;
 use crate::dataset::Encoding;
-
-/// A fresh folder under the system temp folder, removed on drop.
-struct TempDir(PathBuf);
-
-impl TempDir {
-    fn new(name: &str) -> TempDir {
-        static N: AtomicU32 = AtomicU32::new(0);
-        let n = N.fetch_add(1, Ordering::Relaxed);
-        let dir = std::env::temp_dir().join(format!("trove-catalog-{}-{n}-{name}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).expect("create temp folder");
-        TempDir(dir)
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
+use crate::scratch::TempDir;
 
 /// `base/root/` (the data root) holding `data/v.raw` (8 bytes), `data/v.nhdr` (detached,
 /// data `v.raw`) and `photo.png` (3×2 RGB); and beside the root, `base/outside/secret.raw`
 /// (8 bytes) and `base/outside/secret.nhdr`.
 fn tree(name: &str) -> (TempDir, PathBuf) {
     let base = TempDir::new(name);
-    let root = base.0.join("root");
+    let root = base.join("root");
     std::fs::create_dir_all(root.join("data")).unwrap();
-    std::fs::create_dir_all(base.0.join("outside")).unwrap();
+    std::fs::create_dir_all(base.join("outside")).unwrap();
     std::fs::write(root.join("data/v.raw"), [7u8; 8]).unwrap();
     std::fs::write(root.join("data/v.nhdr"), nhdr("v.raw")).unwrap();
-    std::fs::write(base.0.join("outside/secret.raw"), [1u8; 8]).unwrap();
-    std::fs::write(base.0.join("outside/secret.nhdr"), nhdr("secret.raw")).unwrap();
+    std::fs::write(base.join("outside/secret.raw"), [1u8; 8]).unwrap();
+    std::fs::write(base.join("outside/secret.nhdr"), nhdr("secret.raw")).unwrap();
     let rgb: Vec<u8> = (0..18).collect();
     image::save_buffer(root.join("photo.png"), &rgb, 3, 2, image::ExtendedColorType::Rgb8).unwrap();
     (base, root)
@@ -98,7 +78,7 @@ fn describes_each_kind_from_headers_and_lengths() {
 #[test]
 fn a_sandboxed_root_that_does_not_exist_is_an_error() {
     let base = TempDir::new("no-root");
-    let e = FsCatalog::sandboxed(base.0.join("absent")).unwrap_err();
+    let e = FsCatalog::sandboxed(base.join("absent")).unwrap_err();
     assert!(matches!(e, DatasetError::Io { .. }), "{e:?}");
 }
 
@@ -135,7 +115,7 @@ fn trusting_catalogs_take_any_path() {
     let (base, root) = tree("trusting");
     let catalog = FsCatalog::trusting(&root);
     assert!(matches!(catalog.describe("../outside/secret.raw", FileKind::Raw), Ok(FileInfo::Raw { bytes: 8, .. })));
-    let absolute = base.0.join("outside/secret.nhdr");
+    let absolute = base.join("outside/secret.nhdr");
     assert!(matches!(catalog.describe(absolute.to_str().unwrap(), FileKind::Volume), Ok(FileInfo::Volume { .. })));
 }
 
@@ -151,7 +131,7 @@ mod symlinks {
         symlink("data/v.raw", root.join("inside.raw")).unwrap();
         symlink("data", root.join("inside-dir")).unwrap();
         symlink("../outside/secret.raw", root.join("out.raw")).unwrap();
-        symlink(base.0.join("outside/secret.raw"), root.join("out-absolute.raw")).unwrap();
+        symlink(base.join("outside/secret.raw"), root.join("out-absolute.raw")).unwrap();
         symlink("../outside", root.join("out-dir")).unwrap();
         symlink("../outside/secret.nhdr", root.join("out.nhdr")).unwrap();
         symlink("../out.raw", root.join("data/chain.raw")).unwrap();
@@ -184,7 +164,7 @@ mod symlinks {
     #[test]
     fn an_nhdr_data_file_outside_the_root_is_refused() {
         let (base, root) = tree("data-file");
-        let outside = base.0.join("outside/secret.raw");
+        let outside = base.join("outside/secret.raw");
         symlink("../../outside/secret.raw", root.join("data/link.raw")).unwrap();
         std::fs::write(root.join("climbs.nhdr"), nhdr("../outside/secret.raw")).unwrap();
         std::fs::write(root.join("absolute.nhdr"), nhdr(outside.to_str().unwrap())).unwrap();
