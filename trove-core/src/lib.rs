@@ -23,7 +23,7 @@ pub mod render;
 pub(crate) mod sampling;
 pub mod scene;
 #[cfg(test)]
-mod scratch;
+mod testing;
 
 // The sampler's and compositor's internals stay inside the crate; these are what callers
 // (the farm, the tests that hold the sampler to closed forms) need of them.

@@ -196,6 +196,7 @@ fn sweep(events: &[(f64, u32, bool)], mut f: impl FnMut(f64, f64, Option<(u32, b
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testing::numbers;
 
     fn split(segs: &[(u32, f64, f64)]) -> Vec<(f64, f64, Vec<u32>)> {
         let segs: Vec<Segment> =
@@ -238,16 +239,6 @@ mod tests {
             })
             .filter(|(_, _, c)| !c.is_empty())
             .collect()
-    }
-
-    /// A generator of numbers below `n`, from `seed` (a linear congruential one: the tests
-    /// need many cases, the same every run).
-    fn numbers(seed: u64) -> impl FnMut(u64) -> u64 {
-        let mut state = seed;
-        move |n| {
-            state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
-            (state >> 33) % n
-        }
     }
 
     /// `split_into_pieces` and `count_pieces` give what the sweep alone gives.

@@ -15,7 +15,7 @@ use std::path::Path;
 use rayon::prelude::*;
 
 use super::error::{OutputError, RenderError};
-use super::image::{encode_pfm, encode_png, Image};
+use super::image::{encode_pfm, encode_png, quantize, Image};
 use super::schedule::Scheduler;
 
 /// Pixels, row 0 at the top: 8-bit RGB, and linear f32 RGB when asked for.
@@ -137,18 +137,6 @@ impl Raster {
     }
 }
 
-/// [`quantize`](super::quantize) without a call: on x86-64's baseline (no SSE4.1) `f64::round` is a call
-/// into libm, once per channel of every pixel of a band. Round half away from zero of
-/// `x` ∈ [0, 255] is its integer part, plus one when the fraction is at least ½; the
-/// fraction `x − ⌊x⌋` is exact in f64, so this is `quantize` for every input (NaN: 0, as
-/// `quantize` gives), which the tests check on every half-step boundary.
-#[inline]
-fn quantize_inline(c: f64) -> u8 {
-    let x = 255.0 * c.clamp(0.0, 1.0);
-    let whole = x as u32;
-    (whole + u32::from(x - whole as f64 >= 0.5)) as u8
-}
-
 /// Whether `path` names a PFM (else a PNG is written).
 pub(super) fn is_pfm(path: &Path) -> bool {
     path.extension().is_some_and(|e| e.eq_ignore_ascii_case("pfm"))
@@ -170,13 +158,13 @@ fn composite_run(
         Some(rgb32f) => {
             for (i, (px8, px32)) in rgb8.chunks_exact_mut(3).zip(rgb32f.chunks_exact_mut(3)).enumerate() {
                 let c = pixel(i);
-                px8.copy_from_slice(&c.map(quantize_inline));
+                px8.copy_from_slice(&c.map(quantize));
                 px32.copy_from_slice(&c.map(|v| v as f32));
             }
         }
         None => {
             for (i, px) in rgb8.chunks_exact_mut(3).enumerate() {
-                px.copy_from_slice(&pixel(i).map(quantize_inline));
+                px.copy_from_slice(&pixel(i).map(quantize));
             }
         }
     }
@@ -296,33 +284,6 @@ mod tests {
     }
 
     /// A PNG render's image costs 3 bytes a pixel, a PFM render's 15; the f64 image, 24.
-    #[test]
-    fn quantising_inline_is_quantize_for_every_input() {
-        let mut values = vec![f64::NAN, f64::INFINITY, f64::NEG_INFINITY, -0.0, 0.0, -1.0, 2.0, f64::MIN_POSITIVE];
-        // Every level and every half-step boundary of 255·c, with its neighbours in c.
-        for k in 0..=510 {
-            let c = k as f64 / 510.0;
-            let mut lo = c;
-            let mut hi = c;
-            for _ in 0..4 {
-                values.extend([lo, hi]);
-                lo = f64::from_bits(lo.to_bits().saturating_sub(1));
-                hi = f64::from_bits(hi.to_bits() + 1);
-            }
-            // Inputs whose scaled value lies next to a half-step, whatever c rounds to.
-            let half = (k as f64) / 2.0;
-            values.extend([half / 255.0, (half - 1e-12) / 255.0, (half + 1e-12) / 255.0]);
-        }
-        let mut state = 0x853c_49e6_748f_ea9bu64;
-        for _ in 0..200_000 {
-            state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
-            values.push((state >> 11) as f64 / (1u64 << 53) as f64 * 1.2 - 0.1);
-        }
-        for c in values {
-            assert_eq!(quantize_inline(c), crate::render::quantize(c), "{c:e}");
-        }
-    }
-
     #[test]
     fn a_raster_holds_three_bytes_a_pixel_and_floats_only_when_asked() {
         let scene = spheres(64, 48);

@@ -18,7 +18,7 @@ use crate::dataset::{
 };
 use crate::geometry::hexahedron::HexahedronError;
 use crate::geometry::{CameraError, CameraField};
-use crate::scratch::TempDir;
+use crate::testing::TempDir;
 
 /// The scene file's name in every message checked here.
 const NAME: &str = "bad-input-scene.toml";

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use super::*;
 use crate::dataset::Encoding;
-use crate::scratch::TempDir;
+use crate::testing::TempDir;
 
 /// `base/root/` (the data root) holding `data/v.raw` (8 bytes), `data/v.nhdr` (detached,
 /// data `v.raw`) and `photo.png` (3×2 RGB); and beside the root, `base/outside/secret.raw`

@@ -315,11 +315,7 @@ fn plan_by_definition(inter: &Intersections, dataset_of: &[u32], datasets: usize
 /// A scene of random boxes of random datasets, some overlapping along the rays, rendered to
 /// opacity `termination`, and its intersections.
 fn random_scene(seed: u64, width: u32, height: u32, termination: f64) -> (Scene, Intersections) {
-    let mut state = seed | 1;
-    let mut next = |n: u64| {
-        state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
-        (state >> 33) % n
-    };
+    let mut next = crate::testing::numbers(seed | 1);
     let datasets = 1 + next(5);
     let mut text = format!(
         "[image]\nwidth = {width}\nheight = {height}\nbackground = [0, 0, 0]\n\
