@@ -327,6 +327,9 @@ impl Grid<'_> {
         // lane is inside, so the grid has at least four voxels along every axis.
         let x0 = [s.select(inside, x0[0], one), s.select(inside, x0[1], one), s.select(inside, x0[2], one)];
         let index = packed.index(s, x0, self.nx, self.ny);
+        // Only the lit lanes read voxels (so that lanes whose samples are clear bring no
+        // cache line in).
+        let m = Some(s.mask(lit));
         let [_, oy, oz] = self.offsets;
         let rows = [0, oy, oz, oz + oy];
         // Per row (y₀, z₀), (y₀ + 1, z₀), (y₀, z₀ + 1), (y₀ + 1, z₀ + 1) of the cell: the
@@ -335,7 +338,7 @@ impl Grid<'_> {
         let mut corner = [[one; 2]; 4];
         let mut d = [[one; 2]; 4];
         for r in 0..4 {
-            let [before, c0, c1, after] = self.four(s, s.add_i(index, s.splat_i(rows[r] - 1)));
+            let [before, c0, c1, after] = self.four(s, s.add_i(index, s.splat_i(rows[r] - 1)), m);
             d[r] = [s.sub(c1, before), s.sub(after, c0)];
             corner[r] = [c0, c1];
         }
@@ -344,8 +347,8 @@ impl Grid<'_> {
         // own. Along y, rows r0 = (y₀, z) and r1 = (y₀ + 1, z) for z = z₀, z₀ + 1.
         for side in 0..2 {
             let (r0, r1, at) = (2 * side, 2 * side + 1, oz * side as i32);
-            let below = self.two(s, s.add_i(index, s.splat_i(at - oy)));
-            let above = self.two(s, s.add_i(index, s.splat_i(at + 2 * oy)));
+            let below = self.two(s, s.add_i(index, s.splat_i(at - oy)), m);
+            let above = self.two(s, s.add_i(index, s.splat_i(at + 2 * oy)), m);
             d[r0] = [s.sub(corner[r1][0], below[0]), s.sub(corner[r1][1], below[1])];
             d[r1] = [s.sub(above[0], corner[r0][0]), s.sub(above[1], corner[r0][1])];
         }
@@ -353,8 +356,8 @@ impl Grid<'_> {
         // Along z, rows r0 = (y, z₀) and r1 = (y, z₀ + 1) for y = y₀, y₀ + 1.
         for side in 0..2 {
             let (r0, r1, at) = (side, side + 2, oy * side as i32);
-            let below = self.two(s, s.add_i(index, s.splat_i(at - oz)));
-            let above = self.two(s, s.add_i(index, s.splat_i(at + 2 * oz)));
+            let below = self.two(s, s.add_i(index, s.splat_i(at - oz)), m);
+            let above = self.two(s, s.add_i(index, s.splat_i(at + 2 * oz)), m);
             d[r0] = [s.sub(corner[r1][0], below[0]), s.sub(corner[r1][1], below[1])];
             d[r1] = [s.sub(above[0], corner[r0][0]), s.sub(above[1], corner[r0][1])];
         }
@@ -376,37 +379,38 @@ impl Grid<'_> {
         s.mul(lerp(s, lerp(s, x00, x10, h[1]), lerp(s, x01, x11, h[1]), h[2]), s.splat(0.5))
     }
 
-    /// The four voxels from `at` on along x, as f32.
+    /// The four voxels from `at` on along x, as f32, in the lanes of `m` (0 in the others).
     #[inline(always)]
-    fn four<S: Simd>(&self, s: S, at: S::I) -> [S::F; 4] {
+    fn four<S: Simd>(&self, s: S, at: S::I, m: Option<S::M>) -> [S::F; 4] {
         let base = self.voxels.bytes().as_ptr();
         if self.voxels.is_float() {
             // SAFETY: [`Grid::gradient`] reads only voxels inside the channel, and an f32
             // gather reads exactly its voxel's four bytes.
-            let voxel = |k: i32| unsafe { s.bits_to_f32(s.gather::<4>(base, s.add_i(at, s.splat_i(k)))) };
+            let voxel = |k: i32| unsafe { s.bits_to_f32(fetch::<S, 4>(s, base, s.add_i(at, s.splat_i(k)), m)) };
             [voxel(0), voxel(1), voxel(2), voxel(3)]
         } else if self.voxels.is_wide() {
             // SAFETY: [`Grid::gradient`] reads only voxels inside the channel.
-            let (a, b) = unsafe { (s.gather::<2>(base, at), s.gather::<2>(base, s.add_i(at, s.splat_i(2)))) };
+            let (a, b) =
+                unsafe { (fetch::<S, 2>(s, base, at, m), fetch::<S, 2>(s, base, s.add_i(at, s.splat_i(2)), m)) };
             let mask = s.splat_i(0xffff);
             let part = |w: S::I, shift: u32| s.to_f32(s.and_i(s.shr_i(w, shift), mask));
             [part(a, 0), part(a, 16), part(b, 0), part(b, 16)]
         } else {
             // SAFETY: as above: the four bytes are four voxels inside the channel.
-            let w = unsafe { s.gather::<1>(base, at) };
+            let w = unsafe { fetch::<S, 1>(s, base, at, m) };
             let mask = s.splat_i(0xff);
             let part = |shift: u32| s.to_f32(s.and_i(s.shr_i(w, shift), mask));
             [part(0), part(8), part(16), part(24)]
         }
     }
 
-    /// The two voxels from `at` on along x, as f32.
+    /// The two voxels from `at` on along x, as f32, in the lanes of `m` (0 in the others).
     #[inline(always)]
-    fn two<S: Simd>(&self, s: S, at: S::I) -> [S::F; 2] {
+    fn two<S: Simd>(&self, s: S, at: S::I, m: Option<S::M>) -> [S::F; 2] {
         let base = self.voxels.bytes().as_ptr();
         if self.voxels.is_float() {
             // SAFETY: as for `four`: the two voxels lie inside the channel.
-            let voxel = |k: i32| unsafe { s.bits_to_f32(s.gather::<4>(base, s.add_i(at, s.splat_i(k)))) };
+            let voxel = |k: i32| unsafe { s.bits_to_f32(fetch::<S, 4>(s, base, s.add_i(at, s.splat_i(k)), m)) };
             return [voxel(0), voxel(1)];
         }
         let wide = self.voxels.is_wide();
@@ -414,9 +418,9 @@ impl Grid<'_> {
         // whose four bytes reach two voxels past the pair) nor outside it.
         let w = unsafe {
             if wide {
-                s.gather::<2>(base, at)
+                fetch::<S, 2>(s, base, at, m)
             } else {
-                s.gather::<1>(base, at)
+                fetch::<S, 1>(s, base, at, m)
             }
         };
         let (mask, shift) = if wide { (s.splat_i(0xffff), 16) } else { (s.splat_i(0xff), 8) };
@@ -442,7 +446,19 @@ impl Grid<'_> {
     #[inline(always)]
     fn value_at<S: Simd>(&self, s: S, packed: &Packed, u: [S::F; 3]) -> S::F {
         let (x0, h) = packed.cells(s, u);
-        self.trilinear(s, packed.index(s, x0, self.nx, self.ny), h)
+        self.trilinear(s, packed.index(s, x0, self.nx, self.ny), h, None)
+    }
+}
+
+/// [`Simd::gather`] in the lanes of `m`, or in every lane.
+///
+/// # Safety
+/// As [`Simd::gather`], for the lanes gathered.
+#[inline(always)]
+unsafe fn fetch<S: Simd, const SCALE: i32>(s: S, base: *const u8, at: S::I, m: Option<S::M>) -> S::I {
+    match m {
+        Some(m) => s.gather_in::<SCALE>(base, at, m),
+        None => s.gather::<SCALE>(base, at),
     }
 }
 
@@ -454,23 +470,29 @@ fn lerp<S: Simd>(s: S, v0: S::F, v1: S::F, h: S::F) -> S::F {
 
 impl Grid<'_> {
     /// The trilinear value at lower corners `index` with weights `h`, in f32:
-    /// `Linear::apply`'s lerps in its order, each v0 − h·(v0 − v1).
+    /// `Linear::apply`'s lerps in its order, each v0 − h·(v0 − v1). `wanted`: the lanes
+    /// (as bits) whose values are used, where some are not (a sample in empty space, an
+    /// idle lane): the others read no voxel, so that they bring no cache line in, and their
+    /// values are not the field's; `None`: every lane.
     #[inline(always)]
-    pub(super) fn trilinear<S: Simd>(&self, s: S, index: S::I, h: [S::F; 3]) -> S::F {
+    pub(super) fn trilinear<S: Simd>(&self, s: S, index: S::I, h: [S::F; 3], wanted: Option<u32>) -> S::F {
         let [ox, oy, oz] = self.offsets;
         let rows = [0, oy, oz, oz + oy];
         let wide = self.voxels.is_wide();
         let mut pairs = [[s.splat(0.0); 2]; 4];
-        // Whether every lane's gathers stay inside the channel ([`Stored::safe_corner`]).
-        let inside = s.bits(s.gt_i(index, s.splat_i(self.safe))) == 0;
+        let m = wanted.map(|bits| s.mask(bits));
+        // Whether every wanted lane's gathers stay inside the channel
+        // ([`Stored::safe_corner`]).
+        let inside = s.bits(s.gt_i(index, s.splat_i(self.safe))) & wanted.unwrap_or(u32::MAX) == 0;
         if inside && self.voxels.is_float() {
             // One gather per voxel: a corner's and the one `ox` past it, their bits as f32.
             let base = self.voxels.bytes().as_ptr();
             for (pair, &row) in pairs.iter_mut().zip(&rows) {
                 let at = s.add_i(index, s.splat_i(row));
-                // SAFETY: every lane's corner is at most `safe`, so its row's voxel and the
-                // one `ox` past it lie inside the channel ([`Stored::safe_corner`]).
-                let (v0, v1) = unsafe { (s.gather::<4>(base, at), s.gather::<4>(base, s.add_i(at, s.splat_i(ox)))) };
+                // SAFETY: every wanted lane's corner is at most `safe`, so its row's voxel
+                // and the one `ox` past it lie inside the channel ([`Stored::safe_corner`]).
+                let (v0, v1) =
+                    unsafe { (fetch::<S, 4>(s, base, at, m), fetch::<S, 4>(s, base, s.add_i(at, s.splat_i(ox)), m)) };
                 *pair = [s.bits_to_f32(v0), s.bits_to_f32(v1)];
             }
         } else if inside {
@@ -479,13 +501,13 @@ impl Grid<'_> {
             let base = self.voxels.bytes().as_ptr();
             for (pair, &row) in pairs.iter_mut().zip(&rows) {
                 let at = s.add_i(index, s.splat_i(row));
-                // SAFETY: every lane's corner is at most `safe`, so its row's four bytes lie
-                // inside the channel.
+                // SAFETY: every wanted lane's corner is at most `safe`, so its row's four
+                // bytes lie inside the channel.
                 let words = unsafe {
                     if wide {
-                        s.gather::<2>(base, at)
+                        fetch::<S, 2>(s, base, at, m)
                     } else {
-                        s.gather::<1>(base, at)
+                        fetch::<S, 1>(s, base, at, m)
                     }
                 };
                 let v0 = s.and_i(words, mask);

@@ -242,6 +242,12 @@ pub(super) trait Simd: Copy + Send + Sync + 'static {
     /// # Safety
     /// Each lane's four bytes must lie inside one allocation that `base` points into.
     unsafe fn gather<const SCALE: i32>(self, base: *const u8, i: Self::I) -> Self::I;
+    /// [`Simd::gather`] in the lanes of `m` only: the others are 0 and read no memory, so
+    /// that a lane whose value is not wanted brings no cache line in.
+    ///
+    /// # Safety
+    /// As [`Simd::gather`], for the lanes of `m`.
+    unsafe fn gather_in<const SCALE: i32>(self, base: *const u8, i: Self::I, m: Self::M) -> Self::I;
     /// `table[i]` per lane, for indices below `used` ≤ 32.
     fn lookup(self, table: &[f32; 32], used: usize, i: Self::I) -> Self::F;
 

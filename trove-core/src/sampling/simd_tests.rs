@@ -279,3 +279,42 @@ fn trove_simd_forces_a_path_and_refuses_one_the_processor_lacks() {
         assert!(stdout.contains("1 passed"), "TROVE_SIMD={value:?}: the child ran no test: {stdout}");
     }
 }
+
+/// `gather_in` on `s`: the wanted lanes' words as `gather` reads them, 0 in the others,
+/// for several masks (none, one lane, every other lane, all).
+fn gathers_in_the_wanted_lanes_only<S: simd::Simd>(s: S) {
+    let bytes: Vec<u8> = (0..64u32).map(|i| (i * 37 + 11) as u8).collect();
+    let index: Vec<i32> = (0..S::LANES as i32).map(|l| (l * 7) % 50).collect();
+    let mut all = [0i32; 16];
+    // SAFETY: at scale 1 a lane's four bytes start at its index, at most 49, and end
+    // inside the 64 bytes.
+    s.store_i(&mut all, unsafe { s.gather::<1>(bytes.as_ptr(), s.load_i(&index)) });
+    let full = ((1u64 << S::LANES) - 1) as u32;
+    for wanted in [0, 1, 0x5555_5555 & full, full] {
+        let mut got = [0i32; 16];
+        // SAFETY: as above.
+        s.store_i(&mut got, unsafe { s.gather_in::<1>(bytes.as_ptr(), s.load_i(&index), s.mask(wanted)) });
+        for l in 0..S::LANES {
+            let expected = if wanted >> l & 1 == 1 { all[l] } else { 0 };
+            assert_eq!(got[l], expected, "lane {l} of {wanted:#x}");
+        }
+    }
+}
+
+#[test]
+fn a_masked_gather_reads_the_wanted_lanes_on_every_path_the_processor_has() {
+    use simd::Simd;
+    gathers_in_the_wanted_lanes_only(simd::scalar::Scalar);
+    #[cfg(target_arch = "x86_64")]
+    if let Some(s) = simd::avx2::Avx2::detect() {
+        gathers_in_the_wanted_lanes_only(s);
+    }
+    #[cfg(target_arch = "x86_64")]
+    if let Some(s) = simd::avx512::Avx512::detect() {
+        gathers_in_the_wanted_lanes_only(s);
+    }
+    #[cfg(target_arch = "aarch64")]
+    if let Some(s) = simd::neon::Neon::detect() {
+        gathers_in_the_wanted_lanes_only(s);
+    }
+}

@@ -197,6 +197,10 @@ mod imp {
             _mm256_i32gather_epi32::<SCALE>(base.cast(), i)
         }
         #[inline(always)]
+        unsafe fn gather_in<const SCALE: i32>(self, base: *const u8, i: __m256i, m: __m256) -> __m256i {
+            _mm256_mask_i32gather_epi32::<SCALE>(_mm256_setzero_si256(), base.cast(), i, _mm256_castps_si256(m))
+        }
+        #[inline(always)]
         fn lookup(self, table: &[f32; 32], used: usize, i: __m256i) -> __m256 {
             // Eight entries per permute; a lane takes the permute of its block of eight.
             unsafe {

@@ -200,6 +200,10 @@ mod imp {
             _mm512_i32gather_epi32::<SCALE>(i, base.cast())
         }
         #[inline(always)]
+        unsafe fn gather_in<const SCALE: i32>(self, base: *const u8, i: __m512i, m: __mmask16) -> __m512i {
+            _mm512_mask_i32gather_epi32::<SCALE>(_mm512_setzero_si512(), m, i, base.cast())
+        }
+        #[inline(always)]
         fn lookup(self, table: &[f32; 32], _used: usize, i: __m512i) -> __m512 {
             unsafe {
                 _mm512_permutex2var_ps(_mm512_loadu_ps(table.as_ptr()), i, _mm512_loadu_ps(table.as_ptr().add(16)))

@@ -204,6 +204,20 @@ mod imp {
             vld1q_s32(lanes.as_ptr())
         }
         #[inline(always)]
+        unsafe fn gather_in<const SCALE: i32>(self, base: *const u8, i: int32x4_t, m: uint32x4_t) -> int32x4_t {
+            let (mut lanes, mut wanted) = ([0i32; 4], [0u32; 4]);
+            vst1q_s32(lanes.as_mut_ptr(), i);
+            vst1q_u32(wanted.as_mut_ptr(), m);
+            for (l, &w) in lanes.iter_mut().zip(&wanted) {
+                *l = if w != 0 {
+                    i32::from_le(base.offset(SCALE as isize * *l as isize).cast::<i32>().read_unaligned())
+                } else {
+                    0
+                };
+            }
+            vld1q_s32(lanes.as_ptr())
+        }
+        #[inline(always)]
         fn lookup(self, table: &[f32; 32], _used: usize, i: int32x4_t) -> float32x4_t {
             let mut lanes = [0i32; 4];
             unsafe { vst1q_s32(lanes.as_mut_ptr(), i) };

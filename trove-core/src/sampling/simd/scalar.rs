@@ -279,6 +279,17 @@ impl Simd for Scalar {
         i.map(|i| i32::from_le(unsafe { base.offset(SCALE as isize * i as isize).cast::<i32>().read_unaligned() }))
     }
     #[inline(always)]
+    unsafe fn gather_in<const SCALE: i32>(self, base: *const u8, i: I, m: M) -> I {
+        // SAFETY: the caller's promise, for the lanes read.
+        std::array::from_fn(|l| {
+            if m[l] != 0 {
+                i32::from_le(unsafe { base.offset(SCALE as isize * i[l] as isize).cast::<i32>().read_unaligned() })
+            } else {
+                0
+            }
+        })
+    }
+    #[inline(always)]
     fn lookup(self, table: &[f32; 32], _used: usize, i: I) -> F {
         i.map(|i| table[i as usize & 31])
     }
