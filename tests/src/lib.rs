@@ -1,5 +1,5 @@
 //! Helpers shared by the integration tests: scratch folders, rendering scene text, and the
-//! location of the shared real data; [`reference`] holds the scenes with closed-form ray
+//! location of the shared real data; [`reference`](mod@reference) holds the scenes with closed-form ray
 //! integrals that the accuracy tests and `trove-bench accuracy` measure the renderer against.
 //! None of this belongs in `trove-core`: the library ships only what renders.
 //!

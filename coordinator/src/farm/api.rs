@@ -2,7 +2,7 @@
 //! for workers (registration, heartbeats). Both translate at this edge: requests become
 //! `trove-core` scenes and jobs, failures become typed `Failure`s in gRPC statuses.
 //!
-//! A job is validated ([`plan`]) before it is accepted, then waits for its turn and runs
+//! A job is validated (`plan.rs`) before it is accepted, then waits for its turn and runs
 //! on a task of its own. Jobs a restarted coordinator finds unfinished in its state store
 //! ([`resume`]) are queued again in submission order and validated again once the
 //! workers are back: a dataset not held yet is waited for, a while, before the job fails.

@@ -79,7 +79,7 @@ fn long(s: &Segment) -> bool {
 /// first so a thread can reuse them for every ray.
 ///
 /// Segments that lie apart are their own pieces, found by sorting their starts
-/// ([`PieceScratch::sort_apart`]). Otherwise the end points are swept once in order with
+/// (`PieceScratch::sort_apart`). Otherwise the end points are swept once in order with
 /// the set of segments covering the window kept as it changes. Either way a ray of k
 /// segments costs O(k log k) plus its cover, rather than a pass over every segment per
 /// piece (k = 4096 disjoint objects on one ray would cost 2k² tests per ray that way).

@@ -109,7 +109,7 @@ impl Band {
 }
 
 /// Hands the lists of intersections that are no longer needed (their region is
-/// composited) to later intersections and schedulers ([`kept`]), which then write them
+/// composited) to later intersections and schedulers (`kept.rs`), which then write them
 /// without the kernel's page faults of fresh memory.
 pub fn recycle(region: Intersections) {
     kept::keep(region.tasks);

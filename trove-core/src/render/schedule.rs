@@ -268,7 +268,7 @@ impl Scheduler {
 
     /// The region's intersections, given back (to [`super::intersection::recycle`] them
     /// once the region is composited); the scheduler's own lists are kept for the next
-    /// scheduler ([`super::kept`]).
+    /// scheduler (`kept.rs`).
     pub fn into_intersections(self) -> Intersections {
         kept::keep(self.known);
         kept::keep(self.status);

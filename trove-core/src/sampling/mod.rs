@@ -50,18 +50,20 @@
 //!   sample before compositing it, exact distorted walks sample by sample. Many lit pieces
 //!   at a time take the f32 packet loop compiled lit (a constant parameter of the loop, so
 //!   the unlit one is unchanged), where the object is one it casts and its box is affine:
-//!   the gradient's six values as six more trilinear gathers, Blinn–Phong in lanes
-//!   (`shade.rs`'s `LaneShading`), within 1e-5 per piece of the f64 lit loop on every
-//!   path. The AVX2 f64 lanes serve unlit objects only.
+//!   the gradient from the neighbours of the sample's cell (six trilinear values near the
+//!   grid's faces), Blinn–Phong in lanes (`shade.rs`'s `LaneShading`), within 1e-5 per
+//!   piece of the f64 lit loop on every path. Only the lanes that use them read voxels
+//!   (`Simd::gather_in`): a lane leaping over empty cells or idle gathers no corners, a
+//!   lane whose sample is clear no gradient. The AVX2 f64 lanes serve unlit objects only.
 //! * `skip.rs` jumps over empty macrocells: walking cells, or, where cells were classified
 //!   at bind, leaping out of a cube of empty ones by each cell's distance to the nearest
 //!   non-empty cell; its margins keep every jump from passing a sample that is not empty.
 //!
 //! On the AVX2 and AVX-512 paths single pieces ([`ObjectCaster::cast`]) go through
 //! `lanes.rs`; on the scalar and NEON paths, and for other combinations, through the
-//! generic loop. The packet loop runs on every path. The NEON implementation is compiled
-//! (`cargo check --target aarch64-unknown-linux-gnu`) but has not been run: no ARM machine
-//! was at hand.
+//! generic loop. The packet loop runs on every path. The NEON implementation has passed
+//! the sampler's tests under emulation (`qemu-aarch64`, BENCHMARKS.md) but has never run on
+//! ARM hardware: its speed there is unmeasured.
 
 mod bind;
 mod kernel;

@@ -100,7 +100,7 @@ fn fine_dims(dims: [u32; 3]) -> [u64; 3] {
 }
 
 /// Box coordinates of point `index` (x fastest) of the lattice [`REFINE`] times finer than a
-/// lattice of `dims` points ([`Transmittance::fine_points`]).
+/// lattice of `dims` points ([`Refinement::points`] lists the ones a pass computes).
 pub fn fine_point(dims: [u32; 3], index: u64) -> DVec3 {
     let [fx, fy, _] = fine_dims(dims);
     let p = [index % fx, (index / fx) % fy, index / (fx * fy)];

@@ -1,23 +1,24 @@
-//! One job, driven to its end: the farm's driver of `trove-core`'s [`Scheduler`].
+//! One job, driven to its end: the farm's driver of `trove-core`'s
+//! [`Scheduler`](trove_core::render::Scheduler).
 //!
 //! The image is worked through in *bands* of rows (`trove_core::render::bands`, the shape
 //! local mode shares; the image, `trove_core`'s `Raster` as in local mode, fills up band
-//! by band from [`raster`]): the coordinator holds only
+//! by band from `raster.rs`): the coordinator holds only
 //! the pieces of the bands in flight, as many as [`DriverConfig::memory_bound`] and
 //! [`DriverConfig::max_bands`] admit, started in an order spread over the image so that
 //! many datasets are busy at once. For each band the driver runs the intersection phase
 //! (from dataset headers only — it never reads a voxel), hands the scheduler's ready
-//! batches to the workers that hold each dataset ([`dispatch`], under the policy of
+//! batches to the workers that hold each dataset (`dispatch.rs`, under the policy of
 //! `trove_core::render::dispatch`) over one `Cast` stream per worker and dataset, records
 //! the results as they come back in any order, and composites the band into the image with
 //! the same code as local mode. Datasets stay resident on their workers from band to band.
 //!
-//! Each band in flight has a thread of its own ([`band`]) that owns the band's scheduler
+//! Each band in flight has a thread of its own (`band.rs`) that owns the band's scheduler
 //! and does every per-task step: intersection and planning, the fronts and culls of each
 //! batch it hands out and their encoding, decoding and recording answers, composition. The
 //! job's one task — its event loop — does only per-batch work: everything that happens to
-//! the job arrives on one channel of [`Event`]s (news from a band, an answer, a stream opened
-//! or ended), the loop keeps per dataset the batches bands handed out ([`Stock`]), sends them
+//! the job arrives on one channel of `Event`s (news from a band, an answer, a stream opened
+//! or ended), the loop keeps per dataset the batches bands handed out (`Stock`), sends them
 //! to workers with room, asks bands for more where there is room, and hands each answer to
 //! its band. So a job's per-task work runs on as many cores as it has bands in flight, and
 //! its state still needs no locks: the loop owns what is per job, each band's thread what
