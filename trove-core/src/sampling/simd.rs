@@ -258,3 +258,15 @@ pub(super) trait Simd: Copy + Send + Sync + 'static {
     fn and_m(self, a: Self::M, b: Self::M) -> Self::M;
     fn or_m(self, a: Self::M, b: Self::M) -> Self::M;
 }
+
+/// One lane of [`Simd::gather`] read as plain memory: the four bytes at `base + SCALE·i`, a
+/// little-endian i32. The paths without a gather instruction (scalar, NEON) read each lane
+/// with it.
+///
+/// # Safety
+/// The four bytes must lie inside one allocation that `base` points into.
+#[inline(always)]
+pub(super) unsafe fn word<const SCALE: i32>(base: *const u8, i: i32) -> i32 {
+    // SAFETY: the caller's promise.
+    i32::from_le(unsafe { base.offset(SCALE as isize * i as isize).cast::<i32>().read_unaligned() })
+}

@@ -22,7 +22,7 @@ impl Neon {
 mod imp {
     use std::arch::aarch64::*;
 
-    use super::super::Simd;
+    use super::super::{word, Simd};
 
     /// The token: the processor has NEON.
     #[derive(Clone, Copy, Debug)]
@@ -199,7 +199,7 @@ mod imp {
             let mut lanes = [0i32; 4];
             vst1q_s32(lanes.as_mut_ptr(), i);
             for l in &mut lanes {
-                *l = i32::from_le(base.offset(SCALE as isize * *l as isize).cast::<i32>().read_unaligned());
+                *l = word::<SCALE>(base, *l);
             }
             vld1q_s32(lanes.as_ptr())
         }
@@ -209,11 +209,7 @@ mod imp {
             vst1q_s32(lanes.as_mut_ptr(), i);
             vst1q_u32(wanted.as_mut_ptr(), m);
             for (l, &w) in lanes.iter_mut().zip(&wanted) {
-                *l = if w != 0 {
-                    i32::from_le(base.offset(SCALE as isize * *l as isize).cast::<i32>().read_unaligned())
-                } else {
-                    0
-                };
+                *l = if w != 0 { word::<SCALE>(base, *l) } else { 0 };
             }
             vld1q_s32(lanes.as_ptr())
         }

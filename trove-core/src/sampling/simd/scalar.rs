@@ -5,7 +5,7 @@
 //! computed by adding and subtracting 2²³ rather than by `f32::floor`, which is a library
 //! call without SSE4.1.
 
-use super::Simd;
+use super::{word, Simd};
 
 /// Lanes per "register": four, the width of an SSE2 or NEON register, so that where the
 /// compiler vectorises an array's lanes they fill one register (eight were 7–15% slower on
@@ -276,18 +276,12 @@ impl Simd for Scalar {
     #[inline(always)]
     unsafe fn gather<const SCALE: i32>(self, base: *const u8, i: I) -> I {
         // SAFETY: the caller's promise.
-        i.map(|i| i32::from_le(unsafe { base.offset(SCALE as isize * i as isize).cast::<i32>().read_unaligned() }))
+        i.map(|i| unsafe { word::<SCALE>(base, i) })
     }
     #[inline(always)]
     unsafe fn gather_in<const SCALE: i32>(self, base: *const u8, i: I, m: M) -> I {
         // SAFETY: the caller's promise, for the lanes read.
-        std::array::from_fn(|l| {
-            if m[l] != 0 {
-                i32::from_le(unsafe { base.offset(SCALE as isize * i[l] as isize).cast::<i32>().read_unaligned() })
-            } else {
-                0
-            }
-        })
+        std::array::from_fn(|l| if m[l] != 0 { unsafe { word::<SCALE>(base, i[l]) } } else { 0 })
     }
     #[inline(always)]
     fn lookup(self, table: &[f32; 32], _used: usize, i: I) -> F {
