@@ -717,6 +717,50 @@ fn jump_case(dims: [u64; 3], extent: Extent, rarity: u64, seed: u64) {
 }
 
 #[test]
+fn cells_classified_at_bind_are_those_classified_on_entry() {
+    // Bind packs every cell's answer into words of 64 bits, then leaps read them: axes here
+    // that are neither multiples of a cell nor of 64 cells, at both levels.
+    for (dims, seed) in [([99u64, 91, 79], 6u64), ([13, 9, 17], 7)] {
+        let dims = Dims::new(dims).unwrap();
+        let vol = volume(dims, vec![(ChannelName::Voxel, Channel::from_f32(&sparse(dims, seed, 17), dims).unwrap())]);
+        let cells = vol.macrocells(ChannelName::Voxel).unwrap();
+        for interp in [Interpolation::Trilinear, Interpolation::Cubic] {
+            let o = object(colour_ramp(), opacity_ramp(), interp, affine(1.0, DVec3::ZERO), Extent::FULL, dims);
+            let on_entry = Skipper::new(cells, ChannelName::Voxel, o.opacity().zero_set(), false).unwrap();
+            let at_bind = Skipper::new(cells, ChannelName::Voxel, o.opacity().zero_set(), false).unwrap();
+            let (mut empty, mut not) = (0, 0);
+            let mut check = |classify: &dyn Fn(Level, [u32; 3]) -> bool, entry: &dyn Fn(Level, [u32; 3]) -> bool| {
+                for level in [Level::Fine, Level::Coarse] {
+                    let [nx, ny, nz] = cells.cells(level);
+                    for c in (0..nz).flat_map(|z| (0..ny).flat_map(move |y| (0..nx).map(move |x| [x, y, z]))) {
+                        let e = entry(level, c);
+                        assert_eq!(classify(level, c), e, "{interp:?}, {level:?} cell {c:?} of {dims:?}");
+                        if e {
+                            empty += 1;
+                        } else {
+                            not += 1;
+                        }
+                    }
+                }
+            };
+            match interp {
+                Interpolation::Cubic => {
+                    let i = Cubic::new(dims);
+                    let at_bind = at_bind.classified(&i);
+                    check(&|l, c| at_bind.is_empty(&i, l, c), &|l, c| on_entry.is_empty(&i, l, c));
+                }
+                _ => {
+                    let i = Linear::new(dims, Identity);
+                    let at_bind = at_bind.classified(&i);
+                    check(&|l, c| at_bind.is_empty(&i, l, c), &|l, c| on_entry.is_empty(&i, l, c));
+                }
+            }
+            assert!(empty > 0 && not > 0, "{interp:?}: {empty} empty, {not} not");
+        }
+    }
+}
+
+#[test]
 fn jumps_pass_only_empty_samples_at_dataset_borders() {
     // Axes that are not multiples of the cell (a last cell of one voxel: 13 = 3·4 + 1), a
     // single-voxel axis, and data only in the outermost voxels.
