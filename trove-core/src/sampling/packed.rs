@@ -319,9 +319,9 @@ impl Grid<'_> {
             inside = s.and_m(inside, inner);
         }
         if lit & s.bits(inside) == 0 {
-            return self.gradient_at_points(s, packed, u);
+            return self.gradient_at_points(s, packed, u, lit);
         }
-        let near = (lit & !s.bits(inside) != 0).then(|| self.gradient_at_points(s, packed, u));
+        let near = (lit & !s.bits(inside) != 0).then(|| self.gradient_at_points(s, packed, u, lit));
         // Lanes nearer a face (whose gradient, where lit, is `near`'s) read the corner
         // (1, 1, 1) here instead, so that every gather stays inside the channel: some lit
         // lane is inside, so the grid has at least four voxels along every axis.
@@ -329,7 +329,7 @@ impl Grid<'_> {
         let index = packed.index(s, x0, self.nx, self.ny);
         // Only the lit lanes read voxels (so that lanes whose samples are clear bring no
         // cache line in).
-        let m = Some(s.mask(lit));
+        let m = s.mask(lit);
         let [_, oy, oz] = self.offsets;
         let rows = [0, oy, oz, oz + oy];
         // Per row (y₀, z₀), (y₀ + 1, z₀), (y₀, z₀ + 1), (y₀ + 1, z₀ + 1) of the cell: the
@@ -381,23 +381,23 @@ impl Grid<'_> {
 
     /// The four voxels from `at` on along x, as f32, in the lanes of `m` (0 in the others).
     #[inline(always)]
-    fn four<S: Simd>(&self, s: S, at: S::I, m: Option<S::M>) -> [S::F; 4] {
+    fn four<S: Simd>(&self, s: S, at: S::I, m: S::M) -> [S::F; 4] {
         let base = self.voxels.bytes().as_ptr();
         if self.voxels.is_float() {
             // SAFETY: [`Grid::gradient`] reads only voxels inside the channel, and an f32
             // gather reads exactly its voxel's four bytes.
-            let voxel = |k: i32| unsafe { s.bits_to_f32(fetch::<S, 4>(s, base, s.add_i(at, s.splat_i(k)), m)) };
+            let voxel = |k: i32| unsafe { s.bits_to_f32(s.gather_in::<4>(base, s.add_i(at, s.splat_i(k)), m)) };
             [voxel(0), voxel(1), voxel(2), voxel(3)]
         } else if self.voxels.is_wide() {
             // SAFETY: [`Grid::gradient`] reads only voxels inside the channel.
             let (a, b) =
-                unsafe { (fetch::<S, 2>(s, base, at, m), fetch::<S, 2>(s, base, s.add_i(at, s.splat_i(2)), m)) };
+                unsafe { (s.gather_in::<2>(base, at, m), s.gather_in::<2>(base, s.add_i(at, s.splat_i(2)), m)) };
             let mask = s.splat_i(0xffff);
             let part = |w: S::I, shift: u32| s.to_f32(s.and_i(s.shr_i(w, shift), mask));
             [part(a, 0), part(a, 16), part(b, 0), part(b, 16)]
         } else {
             // SAFETY: as above: the four bytes are four voxels inside the channel.
-            let w = unsafe { fetch::<S, 1>(s, base, at, m) };
+            let w = unsafe { s.gather_in::<1>(base, at, m) };
             let mask = s.splat_i(0xff);
             let part = |shift: u32| s.to_f32(s.and_i(s.shr_i(w, shift), mask));
             [part(0), part(8), part(16), part(24)]
@@ -406,11 +406,11 @@ impl Grid<'_> {
 
     /// The two voxels from `at` on along x, as f32, in the lanes of `m` (0 in the others).
     #[inline(always)]
-    fn two<S: Simd>(&self, s: S, at: S::I, m: Option<S::M>) -> [S::F; 2] {
+    fn two<S: Simd>(&self, s: S, at: S::I, m: S::M) -> [S::F; 2] {
         let base = self.voxels.bytes().as_ptr();
         if self.voxels.is_float() {
             // SAFETY: as for `four`: the two voxels lie inside the channel.
-            let voxel = |k: i32| unsafe { s.bits_to_f32(fetch::<S, 4>(s, base, s.add_i(at, s.splat_i(k)), m)) };
+            let voxel = |k: i32| unsafe { s.bits_to_f32(s.gather_in::<4>(base, s.add_i(at, s.splat_i(k)), m)) };
             return [voxel(0), voxel(1)];
         }
         let wide = self.voxels.is_wide();
@@ -418,9 +418,9 @@ impl Grid<'_> {
         // whose four bytes reach two voxels past the pair) nor outside it.
         let w = unsafe {
             if wide {
-                fetch::<S, 2>(s, base, at, m)
+                s.gather_in::<2>(base, at, m)
             } else {
-                fetch::<S, 1>(s, base, at, m)
+                s.gather_in::<1>(base, at, m)
             }
         };
         let (mask, shift) = if wide { (s.splat_i(0xffff), 16) } else { (s.splat_i(0xff), 8) };
@@ -428,37 +428,26 @@ impl Grid<'_> {
     }
 
     /// [`Grid::gradient`] from the six values at u ± eₐ themselves, each point clamped as a
-    /// sample's is: six more trilinear values, near the grid's faces.
+    /// sample's is: six more trilinear values, near the grid's faces, read in the lanes
+    /// `lit` only.
     #[inline(always)]
-    fn gradient_at_points<S: Simd>(&self, s: S, packed: &Packed, u: [S::F; 3]) -> [S::F; 3] {
+    fn gradient_at_points<S: Simd>(&self, s: S, packed: &Packed, u: [S::F; 3], lit: u32) -> [S::F; 3] {
         let (one, half) = (s.splat(1.0), s.splat(0.5));
         let mut g = [one; 3];
         for (a, g) in g.iter_mut().enumerate() {
             let (mut hi, mut lo) = (u, u);
             hi[a] = s.add(u[a], one);
             lo[a] = s.sub(u[a], one);
-            *g = s.mul(s.sub(self.value_at(s, packed, hi), self.value_at(s, packed, lo)), half);
+            *g = s.mul(s.sub(self.value_at(s, packed, hi, lit), self.value_at(s, packed, lo, lit)), half);
         }
         g
     }
 
-    /// The trilinear value at positions `u`, located as a sample is.
+    /// The trilinear value at positions `u`, located as a sample is, in the lanes `lit`.
     #[inline(always)]
-    fn value_at<S: Simd>(&self, s: S, packed: &Packed, u: [S::F; 3]) -> S::F {
+    fn value_at<S: Simd>(&self, s: S, packed: &Packed, u: [S::F; 3], lit: u32) -> S::F {
         let (x0, h) = packed.cells(s, u);
-        self.trilinear(s, packed.index(s, x0, self.nx, self.ny), h, None)
-    }
-}
-
-/// [`Simd::gather`] in the lanes of `m`, or in every lane.
-///
-/// # Safety
-/// As [`Simd::gather`], for the lanes gathered.
-#[inline(always)]
-unsafe fn fetch<S: Simd, const SCALE: i32>(s: S, base: *const u8, at: S::I, m: Option<S::M>) -> S::I {
-    match m {
-        Some(m) => s.gather_in::<SCALE>(base, at, m),
-        None => s.gather::<SCALE>(base, at),
+        self.trilinear(s, packed.index(s, x0, self.nx, self.ny), h, lit)
     }
 }
 
@@ -471,19 +460,19 @@ fn lerp<S: Simd>(s: S, v0: S::F, v1: S::F, h: S::F) -> S::F {
 impl Grid<'_> {
     /// The trilinear value at lower corners `index` with weights `h`, in f32:
     /// `Linear::apply`'s lerps in its order, each v0 − h·(v0 − v1). `wanted`: the lanes
-    /// (as bits) whose values are used, where some are not (a sample in empty space, an
-    /// idle lane): the others read no voxel, so that they bring no cache line in, and their
-    /// values are not the field's; `None`: every lane.
+    /// (as bits) whose values are used (not a sample in empty space, an idle lane or a clear
+    /// one): the others read no voxel, so that they bring no cache line in, and their
+    /// values are not the field's.
     #[inline(always)]
-    pub(super) fn trilinear<S: Simd>(&self, s: S, index: S::I, h: [S::F; 3], wanted: Option<u32>) -> S::F {
+    pub(super) fn trilinear<S: Simd>(&self, s: S, index: S::I, h: [S::F; 3], wanted: u32) -> S::F {
         let [ox, oy, oz] = self.offsets;
         let rows = [0, oy, oz, oz + oy];
         let wide = self.voxels.is_wide();
         let mut pairs = [[s.splat(0.0); 2]; 4];
-        let m = wanted.map(|bits| s.mask(bits));
+        let m = s.mask(wanted);
         // Whether every wanted lane's gathers stay inside the channel
         // ([`Stored::safe_corner`]).
-        let inside = s.bits(s.gt_i(index, s.splat_i(self.safe))) & wanted.unwrap_or(u32::MAX) == 0;
+        let inside = s.bits(s.gt_i(index, s.splat_i(self.safe))) & wanted == 0;
         if inside && self.voxels.is_float() {
             // One gather per voxel: a corner's and the one `ox` past it, their bits as f32.
             let base = self.voxels.bytes().as_ptr();
@@ -492,7 +481,7 @@ impl Grid<'_> {
                 // SAFETY: every wanted lane's corner is at most `safe`, so its row's voxel
                 // and the one `ox` past it lie inside the channel ([`Stored::safe_corner`]).
                 let (v0, v1) =
-                    unsafe { (fetch::<S, 4>(s, base, at, m), fetch::<S, 4>(s, base, s.add_i(at, s.splat_i(ox)), m)) };
+                    unsafe { (s.gather_in::<4>(base, at, m), s.gather_in::<4>(base, s.add_i(at, s.splat_i(ox)), m)) };
                 *pair = [s.bits_to_f32(v0), s.bits_to_f32(v1)];
             }
         } else if inside {
@@ -505,9 +494,9 @@ impl Grid<'_> {
                 // bytes lie inside the channel.
                 let words = unsafe {
                     if wide {
-                        fetch::<S, 2>(s, base, at, m)
+                        s.gather_in::<2>(base, at, m)
                     } else {
-                        fetch::<S, 1>(s, base, at, m)
+                        s.gather_in::<1>(base, at, m)
                     }
                 };
                 let v0 = s.and_i(words, mask);

@@ -706,7 +706,7 @@ impl Cast<'_, '_, '_> {
         let mut value = [one; HALVES];
         for (h, value) in value.iter_mut().enumerate() {
             let index = packed.index(s, x0[h], grid.nx, grid.ny);
-            *value = grid.trilinear(s, index, weights[h], Some(half(live, h, S::LANES)));
+            *value = grid.trilinear(s, index, weights[h], half(live, h, S::LANES));
         }
         Looked { value, live, next_k }
     }
