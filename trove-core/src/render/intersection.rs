@@ -4,7 +4,9 @@
 //!
 //! The result is flat, so that it can be sliced into batches and shipped: `tasks` holds the
 //! work units ray by ray, pieces front to back, a shared piece's objects in scene order;
-//! `piece_start` and `ray_start` delimit pieces and rays. A task's index in `tasks` is also
+//! `piece_start` and `ray_start` delimit pieces and rays (as u32: a band holds at most
+//! [`super::limits::MAX_TASKS_PER_RENDER`] tasks, and pieces are never more than tasks, so
+//! half the bytes of `usize` that every later stage reads). A task's index in `tasks` is also
 //! its result's index, so the composition phase finds every ray's ordered piece slots
 //! without any ids travelling with the work.
 //!
@@ -38,9 +40,9 @@ pub struct Intersections {
     /// One task per (piece, covering object), ray by ray, front to back.
     pub tasks: Vec<PieceTask>,
     /// Piece `p`'s tasks are `tasks[piece_start[p]..piece_start[p + 1]]`.
-    pub piece_start: Vec<usize>,
+    pub piece_start: Vec<u32>,
     /// Ray `r`'s pieces are `ray_start[r]..ray_start[r + 1]` (rays row-major).
-    pub ray_start: Vec<usize>,
+    pub ray_start: Vec<u32>,
     /// Ray–object segments of non-zero length.
     pub segments: u64,
 }
@@ -63,24 +65,24 @@ impl Intersections {
 
     /// The pieces of ray `r`, as indices into `piece_start`.
     pub fn pieces_of(&self, r: usize) -> std::ops::Range<usize> {
-        self.ray_start[r]..self.ray_start[r + 1]
+        self.ray_start[r] as usize..self.ray_start[r + 1] as usize
     }
 
     /// The tasks of piece `p`, as indices into `tasks`.
     pub fn tasks_of(&self, p: usize) -> std::ops::Range<usize> {
-        self.piece_start[p]..self.piece_start[p + 1]
+        self.piece_start[p] as usize..self.piece_start[p + 1] as usize
     }
 
     /// Bytes of its three lists.
     pub fn heap_bytes(&self) -> u64 {
-        (self.tasks.len() * std::mem::size_of::<PieceTask>() + (self.piece_start.len() + self.ray_start.len()) * 8)
+        (self.tasks.len() * std::mem::size_of::<PieceTask>() + (self.piece_start.len() + self.ray_start.len()) * 4)
             as u64
     }
 
     /// The piece that task `t` belongs to (binary search within its ray).
     pub fn piece_of(&self, t: usize) -> usize {
         let pieces = self.pieces_of(self.local_ray(self.tasks[t].ray));
-        pieces.start + self.piece_start[pieces.clone()].partition_point(|&s| s <= t) - 1
+        pieces.start + self.piece_start[pieces.clone()].partition_point(|&s| s as usize <= t) - 1
     }
 }
 
@@ -323,10 +325,11 @@ impl<'s> RowCounter<'s> {
 
 /// Intersects every ray of image rows `rows` of `scene` with every object (the scene
 /// guarantees at most [`crate::scene::MAX_OBJECTS`] objects, so an object index fits the
-/// task's 16 bits). It holds every task of the rows: a driver that must stay within a
-/// memory bound calls [`intersect_within`].
+/// task's 16 bits). It holds every task of the rows, which must be at most
+/// [`super::limits::MAX_TASKS_PER_RENDER`] (what [`super::limits::Work`] checks before any
+/// render): a driver that must stay within a memory bound calls [`intersect_within`].
 pub fn intersect(scene: &Scene, rows: std::ops::Range<u32>) -> Intersections {
-    intersect_within(scene, rows, u64::MAX, u64::MAX).expect("no limit")
+    intersect_within(scene, rows, u64::MAX, u64::MAX).expect("rows within a render's tasks, as counted")
 }
 
 /// As [`intersect`], refusing rows that make more than `max_tasks` tasks (what
@@ -343,6 +346,8 @@ pub fn intersect_within(
 ) -> Result<Intersections, LimitError> {
     let (w, h) = (scene.image().width, scene.image().height);
     let rows = rows.start.min(h)..rows.end.min(h);
+    // The lists index tasks and pieces in u32: no band holds more than a render may.
+    let max_tasks = max_tasks.min(super::limits::MAX_TASKS_PER_RENDER);
     let reach = Reach::new(scene);
     let (total, over) = (AtomicU64::new(0), AtomicBool::new(false));
     let bands: Vec<Band> = (rows.start as usize..rows.end as usize)
@@ -411,12 +416,12 @@ pub fn intersect_within(
         out.tasks.extend_from_slice(&band.tasks);
         let mut last = *out.piece_start.last().expect("starts with 0");
         out.piece_start.extend(band.tasks_per_piece.iter().map(|&n| {
-            last += n as usize;
+            last += n;
             last
         }));
         let mut last = *out.ray_start.last().expect("starts with 0");
         out.ray_start.extend(band.pieces_per_ray.iter().map(|&n| {
-            last += n as usize;
+            last += n;
             last
         }));
     }

@@ -30,15 +30,15 @@ pub const MAX_RAY_OBJECT_TESTS: u64 = 1 << 36;
 
 /// Bytes one piece task of a band takes at its peak, for sizing the per-band cap: the task
 /// as intersected and again in the band's flat list (24 + 24), then its status, result,
-/// wave entry and share of the piece index in the scheduler (1 + 16 + 4 + 8). (Planning
+/// wave entry and share of the piece index in the scheduler (1 + 16 + 4 + 4). (Planning
 /// holds a 4-byte key a task for a moment too, once the intersection's second copy is
 /// gone, so the peak stays the intersection's.)
-pub const BYTES_PER_BAND_TASK: u64 = 24 + 24 + 1 + 16 + 4 + 8;
+pub const BYTES_PER_BAND_TASK: u64 = 24 + 24 + 1 + 16 + 4 + 4;
 
 /// Bytes one ray of a band takes at its peak, whatever its tasks: its entry in the
-/// intersection's ray index (8) and the piece count it is built from (4), and its known
+/// intersection's ray index (4) and the piece count it is built from (4), and its known
 /// front in the scheduler (a piece count and an opacity, 16 with padding).
-pub const BYTES_PER_BAND_RAY: u64 = 8 + 4 + 16;
+pub const BYTES_PER_BAND_RAY: u64 = 4 + 4 + 16;
 
 /// Tasks a band may always hold, however small the band memory: one row of any everyday
 /// scene (about 80 MiB of bookkeeping), so that a tiny band memory means one-row bands
@@ -47,7 +47,7 @@ pub const MIN_BAND_TASKS: u64 = 1 << 20;
 
 /// Bytes a kept band ([`Work::count_keeping`]) takes per task at most: the task, and its
 /// piece's and its ray's index entries.
-pub const KEPT_BYTES_PER_TASK: u64 = 24 + 8 + 8;
+pub const KEPT_BYTES_PER_TASK: u64 = 24 + 4 + 4;
 
 /// Most pixels of an image written as a PFM: 4096² (192 MiB of floats, and as much again
 /// for the file's bytes). A PNG may take the scene's largest side, 16384² (768 MiB of RGB
@@ -212,11 +212,11 @@ impl Work {
             // What the rest of `keep` holds, at the bytes a kept task takes at most (its
             // piece and its ray each own a slot only once, so this over-counts).
             // Its rays' index is held whatever its tasks.
-            held += (rows.len() as u64 * width as u64 + 2) * 8;
+            held += (rows.len() as u64 * width as u64 + 2) * 4;
             let room = keep.saturating_sub(held) / KEPT_BYTES_PER_TASK;
             match intersect_within(scene, rows.clone(), room, keep).ok().filter(|_| held <= keep) {
                 Some(inter) => {
-                    held += inter.heap_bytes() - (inter.ray_start.len() as u64 * 8);
+                    held += inter.heap_bytes() - (inter.ray_start.len() as u64 * 4);
                     kept.push(inter);
                 }
                 None => return Work::count(scene).map(|work| (work, Vec::new())),
@@ -227,8 +227,8 @@ impl Work {
         for inter in &kept {
             let w = width as usize;
             for r in 0..inter.rays() / w.max(1) {
-                let (first, last) = (inter.ray_start[r * w], inter.ray_start[(r + 1) * w]);
-                tasks_per_row.push((inter.piece_start[last] - inter.piece_start[first]) as u64);
+                let (first, last) = (inter.ray_start[r * w] as usize, inter.ray_start[(r + 1) * w] as usize);
+                tasks_per_row.push(u64::from(inter.piece_start[last] - inter.piece_start[first]));
             }
             pieces += inter.pieces() as u64;
         }

@@ -293,7 +293,7 @@ impl Scheduler {
     pub fn heap_bytes(&self) -> u64 {
         use std::mem::size_of;
         let inter = self.inter.tasks.capacity() * size_of::<PieceTask>()
-            + (self.inter.piece_start.capacity() + self.inter.ray_start.capacity()) * size_of::<usize>();
+            + (self.inter.piece_start.capacity() + self.inter.ray_start.capacity()) * size_of::<u32>();
         let per_task = self.status.capacity() * size_of::<Status>() + self.results.capacity() * size_of::<[f32; 4]>();
         let waves: usize =
             (self.queue.capacity() + self.lanes.iter().map(|l| l.waves.capacity()).sum::<usize>()) * size_of::<u32>();
@@ -581,7 +581,7 @@ impl Scheduler {
         }
         let task = &self.inter.tasks[t];
         let r = self.inter.local_ray(task.ray);
-        let ray_start = self.inter.ray_start[r];
+        let ray_start = self.inter.ray_start[r] as usize;
         let cull_at = self.termination + CULL_MARGIN;
         // The wholly cast pieces in front, from where the last decision on this ray left
         // them (no piece of the known prefix holds a pending task, so `t` lies behind it);
@@ -589,8 +589,8 @@ impl Scheduler {
         // of `t` when its tasks end at or before `t`.
         let KnownFront { pieces, mut alpha } = self.known[r];
         let mut p = ray_start + pieces as usize;
-        let in_front = |p: usize| self.inter.piece_start[p + 1] <= t;
-        debug_assert!(self.inter.piece_start[p] <= t, "a pending task's piece lies behind the known pieces");
+        let in_front = |p: usize| self.inter.piece_start[p + 1] as usize <= t;
+        debug_assert!(self.inter.piece_start[p] as usize <= t, "a pending task's piece lies behind the known pieces");
         while alpha < cull_at && in_front(p) && self.piece_is_cast(p) {
             alpha = over_alpha(alpha, self.piece_alpha(p).expect("a cast piece has an opacity"));
             p += 1;
@@ -699,7 +699,8 @@ fn plan(inter: &Intersections, dataset_of_object: &[u32], datasets: usize) -> Pl
     let mut rest = keys.as_mut_slice();
     for first in (0..rays).step_by(RAYS_PER_SURVEY) {
         let chunk = first..(first + RAYS_PER_SURVEY).min(rays);
-        let tasks = inter.piece_start[inter.ray_start[chunk.end]] - inter.piece_start[inter.ray_start[chunk.start]];
+        let task_of_ray = |r: usize| inter.piece_start[inter.ray_start[r] as usize] as usize;
+        let tasks = task_of_ray(chunk.end) - task_of_ray(chunk.start);
         let (head, tail) = std::mem::take(&mut rest).split_at_mut(tasks);
         chunks.push((chunk, head));
         rest = tail;
@@ -813,7 +814,7 @@ impl Survey {
         keys: &mut [u32],
     ) -> Survey {
         let mut survey = Survey::empty(datasets);
-        let first_task = inter.piece_start[inter.ray_start[rays.start]];
+        let first_task = inter.piece_start[inter.ray_start[rays.start] as usize] as usize;
         // Per ray: (dataset, pieces of it so far, last piece) — a handful of datasets per ray,
         // in the order the ray first meets them.
         let mut seen: Vec<(usize, usize, usize)> = Vec::new();

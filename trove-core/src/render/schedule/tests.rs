@@ -261,7 +261,7 @@ fn datasets_go_front_to_back_and_waves_follow_each_ray() {
             let t = q.task();
             let task = inter.tasks[t as usize];
             assert_eq!(task.object, [0, 2][k], "wave {k}");
-            assert_eq!(inter.piece_of(t as usize), inter.ray_start[task.ray as usize] + k + 1);
+            assert_eq!(inter.piece_of(t as usize), inter.ray_start[task.ray as usize] as usize + k + 1);
         }
     }
 }
