@@ -73,7 +73,13 @@ fn shuffled(scene: &Scene, seed: u64) -> Image {
         while !s.is_complete() {
             if in_flight.is_empty() || rng.below(3) == 0 {
                 let d = datasets[rng.below(datasets.len())];
-                in_flight.extend(s.next_batch(d));
+                // Now and then a wave's tasks cut smaller, as the local driver cuts a wave's
+                // last ones.
+                in_flight.extend(if rng.below(4) == 0 {
+                    s.next_batch_of(d, 1 + rng.below(8))
+                } else {
+                    s.next_batch(d)
+                });
                 continue;
             }
             let batch = in_flight.swap_remove(rng.below(in_flight.len()));

@@ -33,6 +33,9 @@ use crate::scene::Scene;
 /// two threads over uneven pieces (256 and 2048 were both slower on the peers' scenes).
 const BATCH_TASKS: usize = 1024;
 
+/// The smallest batch a wave's last tasks are cut into ([`cast_turn`]).
+const MIN_SHARED_BATCH: usize = 64;
+
 /// Renders with Algorithm 2, in bands of rows whose bookkeeping stays within
 /// `band_memory` bytes ([`Bands`], the shape the farm's driver shares): one band, and so
 /// each dataset loaded once, for any image whose pieces fit; more for larger images, which
@@ -114,12 +117,18 @@ pub(super) fn render<C: Canvas>(
     Ok(Rendered { image: canvas, stats })
 }
 
-/// Casts dataset `d`'s batches until its turn is done, on as many threads as rayon has;
-/// returns the samples evaluated, and adds the samples shaded per object to `shaded`. Each thread takes a batch from the scheduler, casts it
-/// and records it, so the scheduler's own work (the fronts it decides when it hands a
-/// batch out, recording results) overlaps the other threads' casting instead of holding
-/// all of them at the end of each wave. A thread that finds no batch ready (the wave is
-/// handed out, and the next one waits for its results) sleeps until a result is recorded.
+/// Casts dataset `d`'s batches until its turn is done, on rayon's threads (one task each,
+/// so no turn waits for new threads to be started and spread over the processors);
+/// returns the samples evaluated, and adds the samples shaded per object to `shaded`. Each
+/// thread takes a batch from the scheduler, casts it and records it, so the scheduler's own
+/// work (the fronts it decides when it hands a batch out, recording results) overlaps the
+/// other threads' casting instead of holding all of them at the end of each wave. A wave's
+/// last tasks are cut into even shares ([`Scheduler::wave_left`]), so that the threads end
+/// it together: on a scene of many small datasets, whose waves are a few batches each, one
+/// thread otherwise cast a wave's last batch while the others waited. A thread that finds
+/// no batch ready (the wave is handed out, and the next one waits for its results) sleeps
+/// until a result is recorded; it never waits on a task that is not running, since a batch
+/// is out only while a thread casts it. The cast itself never uses rayon.
 fn cast_turn(
     scheduler: &mut Scheduler,
     caster: &BatchCaster<'_>,
@@ -136,6 +145,7 @@ fn cast_turn(
     let objects = shaded.len();
     let turn = Mutex::new(Turn { scheduler, samples: 0, shaded, error: None });
     let recorded = Condvar::new();
+    let threads = rayon::current_num_threads().max(1);
     let work = || {
         let mut batch_shaded = vec![0; objects];
         let mut t = turn.lock().unwrap_or_else(PoisonError::into_inner);
@@ -143,7 +153,11 @@ fn cast_turn(
             if t.error.is_some() || t.scheduler.is_dataset_done(d) {
                 return;
             }
-            let Some(batch) = t.scheduler.next_batch(d) else {
+            // A wave's last tasks are shared out: no batch larger than an even share of
+            // what is left of the wave, down to a floor below which a batch's set-up would
+            // cost more than the threads' waiting.
+            let share = t.scheduler.wave_left(d).div_ceil(threads).max(MIN_SHARED_BATCH);
+            let Some(batch) = t.scheduler.next_batch_of(d, share) else {
                 // Either the turn is done (its last tasks were culled), or batches are out,
                 // whose recording wakes this thread.
                 if !t.scheduler.is_dataset_done(d) {
@@ -177,13 +191,12 @@ fn cast_turn(
             recorded.notify_all();
         }
     };
-    let threads = rayon::current_num_threads().max(1);
     if threads == 1 {
         work();
     } else {
-        std::thread::scope(|s| {
+        rayon::scope(|s| {
             for _ in 0..threads {
-                s.spawn(work);
+                s.spawn(|_| work());
             }
         });
     }

@@ -321,9 +321,24 @@ impl Scheduler {
     /// unanswered (the next wave needs their results). Tasks whose ray is known to be opaque
     /// in front are culled here and never handed out.
     pub fn next_batch(&mut self, d: usize) -> Option<Batch> {
+        self.next_batch_of(d, self.batch_tasks)
+    }
+
+    /// [`Scheduler::next_batch`] with at most `max` candidate tasks (and at most the
+    /// scheduler's batch size): a driver that casts the waves itself can cut a wave's last
+    /// tasks into smaller batches ([`Scheduler::wave_left`]), so that its threads end the
+    /// wave together instead of one casting a whole batch while the others wait. Which tasks
+    /// go together never changes a result.
+    pub fn next_batch_of(&mut self, d: usize, max: usize) -> Option<Batch> {
         let mut tasks = Vec::new();
-        let (id, attempt) = self.hand_out(d, &mut tasks)?;
+        let (id, attempt) = self.hand_out(d, &mut tasks, max.clamp(1, self.batch_tasks))?;
         Some(Batch { id, dataset: d, attempt, tasks })
+    }
+
+    /// The tasks of dataset `d`'s current wave not handed out yet (retried batches left
+    /// out): what a driver splits among its threads before the wave ends.
+    pub fn wave_left(&self, d: usize) -> usize {
+        self.lanes.get(d).filter(|l| l.wave < l.wave_count()).map_or(0, |l| l.end_of(l.wave).saturating_sub(l.cursor))
     }
 
     /// [`Scheduler::next_batch`] with its tasks written straight into their wire form
@@ -331,12 +346,13 @@ impl Scheduler {
     /// tasks: the same batch, the same bytes. `writer` is cleared first.
     pub fn next_batch_encoded(&mut self, d: usize, writer: &mut TaskWriter) -> Option<EncodedBatch> {
         writer.clear();
-        let (id, attempt) = self.hand_out(d, writer)?;
+        let (id, attempt) = self.hand_out(d, writer, self.batch_tasks)?;
         Some(EncodedBatch { id, dataset: d, attempt, tasks: writer.len() })
     }
 
-    /// The next batch of dataset `d`, its tasks given to `sink`: its id and attempt.
-    fn hand_out(&mut self, d: usize, sink: &mut impl TaskSink) -> Option<(u64, u32)> {
+    /// The next batch of dataset `d`, of at most `max` candidates, its tasks given to
+    /// `sink`: its id and attempt.
+    fn hand_out(&mut self, d: usize, sink: &mut impl TaskSink, max: usize) -> Option<(u64, u32)> {
         loop {
             let lane = self.lanes.get_mut(d)?;
             if lane.wave >= lane.wave_count() {
@@ -362,7 +378,7 @@ impl Scheduler {
             let queue = std::mem::take(&mut self.queue);
             let chunk: &[Queued] = match &retry {
                 Some(_) => &[],
-                None => &queue[lane.cursor..(lane.cursor + self.batch_tasks).min(end)],
+                None => &queue[lane.cursor..(lane.cursor + max).min(end)],
             };
             lane.cursor += chunk.len();
             let n = retry.as_ref().map_or(chunk.len(), Vec::len);

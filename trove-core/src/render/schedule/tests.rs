@@ -222,6 +222,29 @@ fn batches_hold_at_most_the_batch_size() {
 }
 
 #[test]
+fn a_wave_s_last_tasks_can_be_cut_smaller_and_are_counted_down() {
+    let s = scene(&[("near", 0.0)]);
+    let mut sched = Scheduler::new(&s, intersect(&s, 0..4), 5).unwrap();
+    assert_eq!(sched.wave_left(0), 16);
+    // A smaller cap cuts the batch; a larger one than the batch size does not widen it.
+    let a = sched.next_batch_of(0, 3).unwrap();
+    let b = sched.next_batch_of(0, 100).unwrap();
+    assert_eq!((a.tasks.len(), b.tasks.len(), sched.wave_left(0)), (3, 5, 8));
+    let rest: Vec<usize> = std::iter::from_fn(|| sched.next_batch_of(0, 2)).map(|b| b.tasks.len()).collect();
+    assert_eq!((rest, sched.wave_left(0)), (vec![2, 2, 2, 2], 0));
+    // The same tasks as whole batches hand out, in the same order.
+    let mut whole = Scheduler::new(&s, intersect(&s, 0..4), 5).unwrap();
+    let all: Vec<PieceTask> = drain(&mut whole, 0).into_iter().flat_map(|b| b.tasks).collect();
+    let mut cut = Scheduler::new(&s, intersect(&s, 0..4), 5).unwrap();
+    let mut pieces = Vec::new();
+    for max in [1, 4, 2, 7, 3, 9] {
+        pieces.extend(cut.next_batch_of(0, max).map(|b| b.tasks).unwrap_or_default());
+    }
+    assert_eq!(pieces, all);
+    assert_eq!(cut.wave_left(7), 0, "a dataset the scene does not have");
+}
+
+#[test]
 fn greedy_order_is_topological_on_an_acyclic_graph() {
     // A → B on one ray, B → C on a hundred: a net-score order would put B first.
     let votes = HashMap::from([((0, 1), 1), ((1, 2), 100)]);
