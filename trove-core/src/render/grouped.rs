@@ -117,8 +117,9 @@ pub(super) fn render<C: Canvas>(
     Ok(Rendered { image: canvas, stats })
 }
 
-/// Casts dataset `d`'s batches until its turn is done, on rayon's threads (one task each,
-/// so no turn waits for new threads to be started and spread over the processors);
+/// Casts dataset `d`'s batches until its turn is done, on the calling thread and as many
+/// more of rayon's as make rayon's number (no turn waits for new threads to be started and
+/// spread over the processors, nor for a thread to wake while the caller sleeps);
 /// returns the samples evaluated, and adds the samples shaded per object to `shaded`. Each
 /// thread takes a batch from the scheduler, casts it and records it, so the scheduler's own
 /// work (the fronts it decides when it hands a batch out, recording results) overlaps the
@@ -195,9 +196,10 @@ fn cast_turn(
         work();
     } else {
         rayon::scope(|s| {
-            for _ in 0..threads {
+            for _ in 1..threads {
                 s.spawn(|_| work());
             }
+            work();
         });
     }
     let turn = turn.into_inner().unwrap_or_else(PoisonError::into_inner);
