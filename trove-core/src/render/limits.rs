@@ -286,11 +286,11 @@ impl Work {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
 
     /// `n` nested cubes over one 2³ dataset, the outermost filling the view, at `step`.
-    fn nested_boxes(n: usize, size: u32, step: &str) -> Scene {
+    pub(in crate::render) fn nested_boxes(n: usize, size: u32, step: &str) -> Scene {
         Scene::parse(&nested_text(n, size, step), "nested.toml").unwrap_or_else(|e| panic!("{e}"))
     }
 
