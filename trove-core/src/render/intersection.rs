@@ -75,7 +75,8 @@ impl Intersections {
 
     /// Bytes of its three lists.
     pub fn heap_bytes(&self) -> u64 {
-        (self.tasks.len() * std::mem::size_of::<PieceTask>() + (self.piece_start.len() + self.ray_start.len()) * 4)
+        let index = std::mem::size_of::<u32>();
+        (self.tasks.len() * std::mem::size_of::<PieceTask>() + (self.piece_start.len() + self.ray_start.len()) * index)
             as u64
     }
 
@@ -408,15 +409,9 @@ pub fn intersect_within(
 /// faults (about 2 µs each in a VM) made the serial copy a tenth of the CT head's frame
 /// before casting.
 fn merge(bands: Vec<Band>, first_ray: u32) -> Intersections {
-    // Where each band's tasks, pieces and rays start in the region's lists.
-    let mut starts = Vec::with_capacity(bands.len());
-    let (mut tasks, mut pieces, mut rays) = (0usize, 0usize, 0usize);
-    for band in &bands {
-        starts.push((tasks, pieces));
-        tasks += band.tasks.len();
-        pieces += band.tasks_per_piece.len();
-        rays += band.pieces_per_ray.len();
-    }
+    let tasks = bands.iter().map(|b| b.tasks.len()).sum();
+    let pieces = bands.iter().map(|b| b.tasks_per_piece.len()).sum::<usize>();
+    let rays = bands.iter().map(|b| b.pieces_per_ray.len()).sum::<usize>();
     let mut out = Intersections {
         first_ray,
         tasks: kept::with_room(tasks),
@@ -429,15 +424,19 @@ fn merge(bands: Vec<Band>, first_ray: u32) -> Intersections {
     {
         let mut task_slots = &mut out.tasks.spare_capacity_mut()[..tasks];
         let (mut piece_slots, mut ray_slots) = (&mut out.piece_start[1..], &mut out.ray_start[1..]);
+        // Each band's share of the lists, and where its tasks and pieces start in them.
         let mut parts = Vec::with_capacity(bands.len());
-        for (band, &start) in bands.iter().zip(&starts) {
+        let (mut first_task, mut first_piece) = (0, 0);
+        for band in &bands {
             let t;
             (t, task_slots) = std::mem::take(&mut task_slots).split_at_mut(band.tasks.len());
             let p;
             (p, piece_slots) = std::mem::take(&mut piece_slots).split_at_mut(band.tasks_per_piece.len());
             let r;
             (r, ray_slots) = std::mem::take(&mut ray_slots).split_at_mut(band.pieces_per_ray.len());
-            parts.push((band, start, t, p, r));
+            parts.push((band, (first_task, first_piece), t, p, r));
+            first_task += band.tasks.len();
+            first_piece += band.tasks_per_piece.len();
         }
         parts.into_par_iter().for_each(|(band, (first_task, first_piece), t, p, r)| {
             for (slot, task) in t.iter_mut().zip(&band.tasks) {
@@ -546,8 +545,6 @@ mod tests {
         assert_eq!(reach.0[3], PixelRect::whole(w, h));
     }
 
-    /// Intersections written into kept buffers are those written into fresh ones: whatever
-    /// a recycled region or band held (more, fewer, other rows), none of it shows.
     /// The region's lists, merged from bands of rows cast on different threads, delimit each
     /// ray's pieces and each piece's tasks in order: every task of ray r's pieces names
     /// pixel `first_ray + r`, and the starts rise to exactly the lists' ends.
@@ -575,6 +572,8 @@ mod tests {
         }
     }
 
+    /// Intersections written into kept buffers are those written into fresh ones: whatever
+    /// a recycled region or band held (more, fewer, other rows), none of it shows.
     #[test]
     fn kept_buffers_change_nothing() {
         let text = |size: u32| {

@@ -28,6 +28,10 @@ pub const MAX_TASKS_PER_RENDER: u64 = 1 << 29;
 /// one core at most), and refuses 4096 objects at 16384² (16 times that).
 pub const MAX_RAY_OBJECT_TESTS: u64 = 1 << 36;
 
+/// Bytes of an entry of the intersection's piece and ray indices (`Intersections::piece_start`,
+/// `ray_start`).
+const INDEX_BYTES: u64 = std::mem::size_of::<u32>() as u64;
+
 /// Bytes one piece task of a band takes at its peak, for sizing the per-band cap: the task
 /// as intersected and again in the band's flat list (24 + 24), then its status, result,
 /// wave entry and share of the piece index in the scheduler (1 + 16 + 4 + 4). (Planning
@@ -212,11 +216,11 @@ impl Work {
             // What the rest of `keep` holds, at the bytes a kept task takes at most (its
             // piece and its ray each own a slot only once, so this over-counts).
             // Its rays' index is held whatever its tasks.
-            held += (rows.len() as u64 * width as u64 + 2) * 4;
+            held += (rows.len() as u64 * width as u64 + 2) * INDEX_BYTES;
             let room = keep.saturating_sub(held) / KEPT_BYTES_PER_TASK;
             match intersect_within(scene, rows.clone(), room, keep).ok().filter(|_| held <= keep) {
                 Some(inter) => {
-                    held += inter.heap_bytes() - (inter.ray_start.len() as u64 * 4);
+                    held += inter.heap_bytes() - (inter.ray_start.len() as u64 * INDEX_BYTES);
                     kept.push(inter);
                 }
                 None => return Work::count(scene).map(|work| (work, Vec::new())),
