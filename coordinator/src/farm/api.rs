@@ -20,7 +20,7 @@ use trove_proto::v1 as pb;
 
 use super::drain::Drain;
 use super::driver::{self, DriverConfig, JobPlan};
-use super::jobs::{is_final, Admission, Job, Jobs};
+use super::jobs::{forward_statuses, is_final, Admission, Job, Jobs};
 use super::registry::{RegisterError, Registry};
 use super::state::StateError;
 
@@ -299,22 +299,8 @@ impl pb::coordinator_server::Coordinator for CoordinatorService {
     async fn watch_job(&self, request: Request<pb::WatchJobRequest>) -> Result<Response<Self::WatchJobStream>, Status> {
         let id = request.into_inner().job_id;
         let job = self.0.jobs.get(&id).ok_or_else(|| not_found(&id))?;
-        let mut updates = job.watch();
         let (tx, rx) = mpsc::channel(16);
-        tokio::spawn(async move {
-            loop {
-                let status = updates.borrow_and_update().clone();
-                let done = is_final(status.state());
-                if tx.send(Ok(status)).await.is_err() || done {
-                    return;
-                }
-                if updates.changed().await.is_err() {
-                    return;
-                }
-                // Coalesce bursts: a watcher needs the latest state, not every step.
-                tokio::time::sleep(Duration::from_millis(20)).await;
-            }
-        });
+        tokio::spawn(forward_statuses(job.watch(), tx, Ok));
         Ok(Response::new(ReceiverStream::new(rx)))
     }
 

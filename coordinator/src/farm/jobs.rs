@@ -17,7 +17,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
-use tokio::sync::{watch, Notify};
+use tokio::sync::{mpsc, watch, Notify};
 use trove_proto::v1 as pb;
 
 use super::state::{now_unix_ms, JobRecord, StateError, StateStore};
@@ -133,6 +133,45 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 /// Whether a job in `state` has ended.
 pub fn is_final(state: pb::JobState) -> bool {
     matches!(state, pb::JobState::Succeeded | pb::JobState::Failed | pb::JobState::Cancelled)
+}
+
+/// The shortest time between two statuses that [`forward_statuses`] sends one watcher
+/// while a job runs.
+pub const WATCH_INTERVAL: Duration = Duration::from_millis(20);
+
+/// Sends a job's statuses from `updates` to one watcher (`tx`, each status wrapped by
+/// `wrap`) until the job ends or the watcher leaves: the status now, then each change.
+/// Progress arrives in bursts (every batch moves it), and a watcher needs the latest state,
+/// not every step, so changes within [`WATCH_INTERVAL`] of the last status sent are
+/// coalesced into one. The job's end is never held back: a client waits for it, and on a
+/// short job a coalescing sleep was a fifth of the time a user waited.
+pub async fn forward_statuses<T>(
+    mut updates: watch::Receiver<pb::JobStatus>,
+    tx: mpsc::Sender<T>,
+    wrap: impl Fn(pb::JobStatus) -> T,
+) {
+    loop {
+        let status = updates.borrow_and_update().clone();
+        let done = is_final(status.state());
+        if tx.send(wrap(status)).await.is_err() || done {
+            return;
+        }
+        let next = tokio::time::Instant::now() + WATCH_INTERVAL;
+        if updates.changed().await.is_err() {
+            return;
+        }
+        while !is_final(updates.borrow().state()) {
+            tokio::select! {
+                _ = tokio::time::sleep_until(next) => break,
+                changed = updates.changed() => {
+                    if changed.is_err() {
+                        // The job is gone: what it said last is still sent.
+                        break;
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// `n` in base 36 (digits, then lower-case letters): short, sortable within one length.
@@ -505,6 +544,38 @@ mod tests {
         assert_eq!(jobs.sweep(Duration::from_millis(1)).unwrap(), ids.len());
         assert!(jobs.get(&first_id).is_none());
         assert_eq!(jobs.get(&next.id).expect("a queued job is kept").status().state(), pb::JobState::Queued);
+    }
+
+    /// On a paused clock: bursts of progress reach a watcher as one status, no sooner than
+    /// [`WATCH_INTERVAL`] after the last, but the job's end arrives the moment it is set,
+    /// even while the watcher waits out that interval.
+    #[tokio::test(start_paused = true)]
+    async fn a_watcher_gets_progress_coalesced_and_the_end_at_once() {
+        let job = Jobs::default().create("s.toml");
+        let (tx, mut rx) = mpsc::channel(16);
+        let watcher = tokio::spawn(forward_statuses(job.watch(), tx, |s| s));
+        assert_eq!(rx.recv().await.unwrap().state(), pb::JobState::Queued);
+        let first_sent = tokio::time::Instant::now();
+        job.update(|s| {
+            s.state = pb::JobState::Running as i32;
+            s.pieces_done = 1;
+        });
+        job.update(|s| s.pieces_done = 2);
+        let progress = rx.recv().await.unwrap();
+        assert_eq!(progress.pieces_done, 2, "the burst arrives as its latest state");
+        assert_eq!(tokio::time::Instant::now() - first_sent, WATCH_INTERVAL);
+        job.update(|s| s.pieces_done = 3);
+        // Let the watcher start waiting out its interval before the job ends.
+        for _ in 0..8 {
+            tokio::task::yield_now().await;
+        }
+        let ended = tokio::time::Instant::now();
+        job.update(|s| s.state = pb::JobState::Succeeded as i32);
+        let last = rx.recv().await.unwrap();
+        assert_eq!((last.state(), last.pieces_done), (pb::JobState::Succeeded, 3));
+        assert_eq!(tokio::time::Instant::now(), ended, "the end is not held back");
+        assert!(rx.recv().await.is_none(), "nothing follows the end");
+        watcher.await.unwrap();
     }
 
     #[test]
