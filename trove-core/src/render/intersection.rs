@@ -32,6 +32,10 @@ use glam::DVec3;
 /// Rows per parallel work item.
 const BAND_ROWS: usize = 4;
 
+/// Bytes of an entry of [`Intersections::piece_start`] and [`Intersections::ray_start`],
+/// for the memory counts that size bands (`limits.rs`, `Scheduler::heap_bytes`).
+pub(crate) const INDEX_BYTES: u64 = std::mem::size_of::<u32>() as u64;
+
 /// Every ray's pieces and the work units they make, for a band of image rows.
 #[derive(Clone, Debug, Default)]
 pub struct Intersections {
@@ -73,11 +77,17 @@ impl Intersections {
         self.piece_start[p] as usize..self.piece_start[p + 1] as usize
     }
 
+    /// The tasks of rays `rays` (local indices), as indices into `tasks`: rays own
+    /// consecutive runs of tasks.
+    pub fn tasks_of_rays(&self, rays: std::ops::Range<usize>) -> std::ops::Range<usize> {
+        let first_task = |r: usize| self.piece_start[self.ray_start[r] as usize] as usize;
+        first_task(rays.start)..first_task(rays.end)
+    }
+
     /// Bytes of its three lists.
     pub fn heap_bytes(&self) -> u64 {
-        let index = std::mem::size_of::<u32>();
-        (self.tasks.len() * std::mem::size_of::<PieceTask>() + (self.piece_start.len() + self.ray_start.len()) * index)
-            as u64
+        let index = (self.piece_start.len() + self.ray_start.len()) as u64 * INDEX_BYTES;
+        (self.tasks.len() * std::mem::size_of::<PieceTask>()) as u64 + index
     }
 
     /// The piece that task `t` belongs to (binary search within its ray).

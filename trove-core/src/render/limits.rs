@@ -13,7 +13,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use rayon::prelude::*;
 use thiserror::Error;
 
-use super::intersection::{intersect_within, Intersections, RowCounter};
+use super::intersection::{intersect_within, Intersections, RowCounter, INDEX_BYTES};
 use crate::scene::Scene;
 
 /// Most piece tasks (one per object per piece of a ray) in one render. 2²⁹ ≈ 5.4·10⁸ admits
@@ -27,10 +27,6 @@ pub const MAX_TASKS_PER_RENDER: u64 = 1 << 29;
 /// sampling distance; 2³⁶ admits 4096 objects at 4096² or 256 at 16384² (about a minute of
 /// one core at most), and refuses 4096 objects at 16384² (16 times that).
 pub const MAX_RAY_OBJECT_TESTS: u64 = 1 << 36;
-
-/// Bytes of an entry of the intersection's piece and ray indices (`Intersections::piece_start`,
-/// `ray_start`).
-const INDEX_BYTES: u64 = std::mem::size_of::<u32>() as u64;
 
 /// Bytes one piece task of a band takes at its peak, for sizing the per-band cap: the task
 /// as intersected and again in the band's flat list (24 + 24), then its status, result,
@@ -231,8 +227,7 @@ impl Work {
         for inter in &kept {
             let w = width as usize;
             for r in 0..inter.rays() / w.max(1) {
-                let (first, last) = (inter.ray_start[r * w] as usize, inter.ray_start[(r + 1) * w] as usize);
-                tasks_per_row.push(u64::from(inter.piece_start[last] - inter.piece_start[first]));
+                tasks_per_row.push(inter.tasks_of_rays(r * w..(r + 1) * w).len() as u64);
             }
             pieces += inter.pieces() as u64;
         }

@@ -41,7 +41,7 @@
 use std::collections::HashMap;
 
 use super::error::ScheduleError;
-use super::intersection::Intersections;
+use super::intersection::{Intersections, INDEX_BYTES};
 use super::kept;
 use super::wire::TaskWriter;
 use super::workunit::{PieceRgba, PieceTask};
@@ -293,7 +293,7 @@ impl Scheduler {
     pub fn heap_bytes(&self) -> u64 {
         use std::mem::size_of;
         let inter = self.inter.tasks.capacity() * size_of::<PieceTask>()
-            + (self.inter.piece_start.capacity() + self.inter.ray_start.capacity()) * size_of::<u32>();
+            + (self.inter.piece_start.capacity() + self.inter.ray_start.capacity()) * INDEX_BYTES as usize;
         let per_task = self.status.capacity() * size_of::<Status>() + self.results.capacity() * size_of::<[f32; 4]>();
         let waves: usize =
             (self.queue.capacity() + self.lanes.iter().map(|l| l.waves.capacity()).sum::<usize>()) * size_of::<u32>();
@@ -715,8 +715,7 @@ fn plan(inter: &Intersections, dataset_of_object: &[u32], datasets: usize) -> Pl
     let mut rest = keys.as_mut_slice();
     for first in (0..rays).step_by(RAYS_PER_SURVEY) {
         let chunk = first..(first + RAYS_PER_SURVEY).min(rays);
-        let task_of_ray = |r: usize| inter.piece_start[inter.ray_start[r] as usize] as usize;
-        let tasks = task_of_ray(chunk.end) - task_of_ray(chunk.start);
+        let tasks = inter.tasks_of_rays(chunk.clone()).len();
         let (head, tail) = std::mem::take(&mut rest).split_at_mut(tasks);
         chunks.push((chunk, head));
         rest = tail;
@@ -830,7 +829,7 @@ impl Survey {
         keys: &mut [u32],
     ) -> Survey {
         let mut survey = Survey::empty(datasets);
-        let first_task = inter.piece_start[inter.ray_start[rays.start] as usize] as usize;
+        let first_task = inter.tasks_of_rays(rays.clone()).start;
         // Per ray: (dataset, pieces of it so far, last piece) — a handful of datasets per ray,
         // in the order the ray first meets them.
         let mut seen: Vec<(usize, usize, usize)> = Vec::new();
