@@ -211,21 +211,40 @@ pub struct Scheduler {
     /// only move from pending to done or culled, so this prefix only grows, and the bound a
     /// task's cull test needs starts from it instead of from the ray's first piece: the
     /// same `over` operations in the same order, so the same bound to the bit.
-    known: Vec<KnownFront>,
+    ///
+    /// Held packed ([`KnownFront::pack`]), zero the clear front: a new list is then
+    /// allocated zeroed, and its pages are faulted in only for the rays it is written for.
+    /// Only a task that does not lead its ray reads or writes it, so on a scene where each
+    /// ray meets one object (the CT head) none is; as `KnownFront`s, filling the list
+    /// faulted in 16 bytes a ray on the planning thread (a thousand faults at 512², about
+    /// 4 ms on a VM that takes 4 µs a fault; BENCHMARKS.md).
+    known: Vec<u128>,
 }
 
 /// A ray's leading pieces that are wholly cast: how many, and their composite's opacity.
 /// Opacity is all that culling and in-piece fronts read, and compositing computes it
 /// without the colour (`Rgba::over`, `Rgba::colocated`: the same operations on the
 /// opacities alone), so the colour is not kept: 16 bytes a ray instead of 40.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 struct KnownFront {
     pieces: u32,
     alpha: f64,
 }
 
+impl KnownFront {
+    /// The front in 16 bytes, all zero for the clear front (no piece, opacity `+0.0`).
+    fn pack(self) -> u128 {
+        u128::from(self.pieces) | u128::from(self.alpha.to_bits()) << 64
+    }
+
+    /// The front [`KnownFront::pack`] packed, bit for bit.
+    fn unpack(bits: u128) -> KnownFront {
+        KnownFront { pieces: bits as u32, alpha: f64::from_bits((bits >> 64) as u64) }
+    }
+}
+
 /// [`super::limits::BYTES_PER_BAND_RAY`] counts a known front as 16 bytes.
-const _: () = assert!(std::mem::size_of::<KnownFront>() == 16);
+const _: () = assert!(std::mem::size_of::<u128>() == 16);
 
 impl Scheduler {
     /// A scheduler for the tasks of `inter` (a region of `scene`'s image), handing out
@@ -244,7 +263,7 @@ impl Scheduler {
             .map(|waves| Lane { cursor: waves.first().map_or(0, |&s| s as usize), waves, ..Lane::default() })
             .collect();
         Ok(Scheduler {
-            known: kept::filled(inter.rays(), KnownFront::default()),
+            known: kept::filled(inter.rays(), KnownFront::default().pack()),
             status: kept::filled(n, Status::Pending),
             results: kept::for_overwrite(n),
             progress: Progress { total: n as u64, ..Progress::default() },
@@ -297,7 +316,7 @@ impl Scheduler {
         let per_task = self.status.capacity() * size_of::<Status>() + self.results.capacity() * size_of::<[f32; 4]>();
         let waves: usize =
             (self.queue.capacity() + self.lanes.iter().map(|l| l.waves.capacity()).sum::<usize>()) * size_of::<u32>();
-        (inter + per_task + waves + self.known.capacity() * size_of::<KnownFront>()) as u64
+        (inter + per_task + waves + self.known.capacity() * size_of::<u128>()) as u64
     }
 
     /// Whether every task is recorded or culled.
@@ -603,7 +622,7 @@ impl Scheduler {
         // them (no piece of the known prefix holds a pending task, so `t` lies behind it);
         // then the rest of the bound as `front_to_back` would go on. A piece lies in front
         // of `t` when its tasks end at or before `t`.
-        let KnownFront { pieces, mut alpha } = self.known[r];
+        let KnownFront { pieces, mut alpha } = KnownFront::unpack(self.known[r]);
         let mut p = ray_start + pieces as usize;
         let in_front = |p: usize| self.inter.piece_start[p + 1] as usize <= t;
         debug_assert!(self.inter.piece_start[p] as usize <= t, "a pending task's piece lies behind the known pieces");
@@ -612,7 +631,7 @@ impl Scheduler {
             p += 1;
         }
         if p > ray_start + pieces as usize {
-            self.known[r] = KnownFront { pieces: (p - ray_start) as u32, alpha };
+            self.known[r] = KnownFront { pieces: (p - ray_start) as u32, alpha }.pack();
         }
         while in_front(p) {
             if alpha >= cull_at {

@@ -580,8 +580,24 @@ fn kept_lists_come_back_refilled_whole() {
         assert!(filled(n, Status::Pending).iter().all(|&s| s == Status::Pending));
         keep(vec![[1.0f32; 4]; len]);
         assert_eq!(filled(n, [0.0f32; 4]), vec![[0.0; 4]; n]);
-        keep(vec![KnownFront { pieces: 3, alpha: 0.5 }; len]);
-        let known = filled(n, KnownFront::default());
-        assert!(known.len() == n && known.iter().all(|k| k.pieces == 0 && k.alpha == 0.0));
+        keep(vec![KnownFront { pieces: 3, alpha: 0.5 }.pack(); len]);
+        let known = filled(n, KnownFront::default().pack());
+        assert!(known.len() == n && known.iter().all(|&k| KnownFront::unpack(k) == KnownFront::default()));
+    }
+}
+
+/// A known front comes back from its packed form bit for bit, and the clear front packs to
+/// zero, which a new list of them is allocated as.
+#[test]
+fn known_fronts_pack_bit_for_bit_and_the_clear_front_is_zero() {
+    assert_eq!(KnownFront::default().pack(), 0);
+    for front in [
+        KnownFront { pieces: 0, alpha: 0.0 },
+        KnownFront { pieces: 1, alpha: 0.25 },
+        KnownFront { pieces: u32::MAX, alpha: 1.0 - f64::EPSILON },
+        KnownFront { pieces: 7, alpha: f64::MIN_POSITIVE / 2.0 },
+    ] {
+        let back = KnownFront::unpack(front.pack());
+        assert_eq!((back.pieces, back.alpha.to_bits()), (front.pieces, front.alpha.to_bits()));
     }
 }
