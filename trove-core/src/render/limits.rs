@@ -37,7 +37,7 @@ pub const BYTES_PER_BAND_TASK: u64 = 24 + 24 + 1 + 16 + 4 + 4;
 
 /// Bytes one ray of a band takes at its peak, whatever its tasks: its entry in the
 /// intersection's ray index (4) and the piece count it is built from (4), and its known
-/// front in the scheduler (a piece count and an opacity, 16 with padding).
+/// front in the scheduler (a piece count and an opacity, packed in 16).
 pub const BYTES_PER_BAND_RAY: u64 = 4 + 4 + 16;
 
 /// Tasks a band may always hold, however small the band memory: one row of any everyday

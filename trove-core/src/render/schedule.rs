@@ -218,7 +218,7 @@ pub struct Scheduler {
     /// ray meets one object (the CT head) none is; as `KnownFront`s, filling the list
     /// faulted in 16 bytes a ray on the planning thread (a thousand faults at 512², about
     /// 4 ms on a VM that takes 4 µs a fault; BENCHMARKS.md).
-    known: Vec<u128>,
+    known: Vec<PackedFront>,
 }
 
 /// A ray's leading pieces that are wholly cast: how many, and their composite's opacity.
@@ -233,18 +233,22 @@ struct KnownFront {
 
 impl KnownFront {
     /// The front in 16 bytes, all zero for the clear front (no piece, opacity `+0.0`).
-    fn pack(self) -> u128 {
+    fn pack(self) -> PackedFront {
         u128::from(self.pieces) | u128::from(self.alpha.to_bits()) << 64
     }
 
     /// The front [`KnownFront::pack`] packed, bit for bit.
-    fn unpack(bits: u128) -> KnownFront {
+    fn unpack(bits: PackedFront) -> KnownFront {
         KnownFront { pieces: bits as u32, alpha: f64::from_bits((bits >> 64) as u64) }
     }
 }
 
+/// A [`KnownFront`] as the scheduler holds it: the piece count in the low 32 bits, the
+/// opacity's bits in the high 64. An integer, so that a new list of them is allocated zeroed.
+type PackedFront = u128;
+
 /// [`super::limits::BYTES_PER_BAND_RAY`] counts a known front as 16 bytes.
-const _: () = assert!(std::mem::size_of::<u128>() == 16);
+const _: () = assert!(std::mem::size_of::<PackedFront>() == 16);
 
 impl Scheduler {
     /// A scheduler for the tasks of `inter` (a region of `scene`'s image), handing out
@@ -316,7 +320,7 @@ impl Scheduler {
         let per_task = self.status.capacity() * size_of::<Status>() + self.results.capacity() * size_of::<[f32; 4]>();
         let waves: usize =
             (self.queue.capacity() + self.lanes.iter().map(|l| l.waves.capacity()).sum::<usize>()) * size_of::<u32>();
-        (inter + per_task + waves + self.known.capacity() * size_of::<u128>()) as u64
+        (inter + per_task + waves + self.known.capacity() * size_of::<PackedFront>()) as u64
     }
 
     /// Whether every task is recorded or culled.
