@@ -419,9 +419,9 @@ pub fn intersect_within(
 /// faults (about 2 µs each in a VM) made the serial copy a tenth of the CT head's frame
 /// before casting.
 fn merge(bands: Vec<Band>, first_ray: u32) -> Intersections {
-    let tasks = bands.iter().map(|b| b.tasks.len()).sum();
-    let pieces = bands.iter().map(|b| b.tasks_per_piece.len()).sum::<usize>();
-    let rays = bands.iter().map(|b| b.pieces_per_ray.len()).sum::<usize>();
+    let tasks: usize = bands.iter().map(|b| b.tasks.len()).sum();
+    let pieces: usize = bands.iter().map(|b| b.tasks_per_piece.len()).sum();
+    let rays: usize = bands.iter().map(|b| b.pieces_per_ray.len()).sum();
     let mut out = Intersections {
         first_ray,
         tasks: kept::with_room(tasks),

@@ -30,15 +30,15 @@ pub const MAX_RAY_OBJECT_TESTS: u64 = 1 << 36;
 
 /// Bytes one piece task of a band takes at its peak, for sizing the per-band cap: the task
 /// as intersected and again in the band's flat list (24 + 24), then its status, result,
-/// wave entry and share of the piece index in the scheduler (1 + 16 + 4 + 4). (Planning
-/// holds a 4-byte key a task for a moment too, once the intersection's second copy is
-/// gone, so the peak stays the intersection's.)
-pub const BYTES_PER_BAND_TASK: u64 = 24 + 24 + 1 + 16 + 4 + 4;
+/// wave entry and share of the piece index in the scheduler (1 + 16 + 4 + `INDEX_BYTES`,
+/// 4). (Planning holds a 4-byte key a task for a moment too, once the intersection's second
+/// copy is gone, so the peak stays the intersection's.)
+pub const BYTES_PER_BAND_TASK: u64 = 24 + 24 + 1 + 16 + 4 + INDEX_BYTES;
 
 /// Bytes one ray of a band takes at its peak, whatever its tasks: its entry in the
-/// intersection's ray index (4) and the piece count it is built from (4), and its known
-/// front in the scheduler (a piece count and an opacity, packed in 16).
-pub const BYTES_PER_BAND_RAY: u64 = 4 + 4 + 16;
+/// intersection's ray index (`INDEX_BYTES`, 4) and the piece count it is built from (4),
+/// and its known front in the scheduler (a piece count and an opacity, packed in 16).
+pub const BYTES_PER_BAND_RAY: u64 = INDEX_BYTES + 4 + 16;
 
 /// Tasks a band may always hold, however small the band memory: one row of any everyday
 /// scene (about 80 MiB of bookkeeping), so that a tiny band memory means one-row bands
