@@ -9,6 +9,13 @@
 //! grows with its cores. The band tells the loop what changed as [`News`], on the job's one
 //! event channel.
 //!
+//! An answer recorded needs no reply: the loop counts the dataset as possibly ready again
+//! as it hands the answer over, and the band takes its messages in order, so a `Produce`
+//! sent after an `Answer` finds it recorded, often on the same wake-up. The band's progress
+//! and the time its answers took ride on its next `Produced`, or on `Composited`. (A reply
+//! per answer cost each batch two more wake-ups, one of the band's thread and one of the
+//! loop: 15% of the coordinator's context switches, BENCHMARKS.md.)
+//!
 //! A band's thread is a blocking thread of the runtime. It ends when the band is
 //! composited, when a step fails (the job then fails: [`News`] never carries a panic out,
 //! [`super::unwinding`] turns it into the job's error), or when the job's loop drops its
@@ -69,13 +76,12 @@ pub(super) enum News {
     /// Batches of `dataset` asked for with [`ToBand::Produce`]: as many as were ready, up to
     /// the number asked; `more` when that many were, so that another may be.
     Produced { dataset: usize, asked: usize, batches: Vec<Ready>, more: bool, progress: Progress, seconds: Seconds },
-    /// An answer recorded: `dataset` may have batches ready again.
-    Recorded { dataset: usize, progress: Progress, seconds: Seconds },
     /// An answer that did not decode or record (the batch was given back): the worker that
     /// sent it is not trusted with more of the job.
     Refused { id: u64, dataset: usize, stream: StreamKey, why: String },
-    /// Every task is cast or culled, and the band's pixels are composited.
-    Composited { part: Box<Composited>, progress: Progress },
+    /// Every task is cast or culled, and the band's pixels are composited; `seconds`: what
+    /// recording the last answers took, not told before.
+    Composited { part: Box<Composited>, progress: Progress, seconds: Seconds },
 }
 
 /// A band's own time by step, in seconds, for the job's statistics.
@@ -145,9 +151,11 @@ fn run(start: Start, mut inbox: mpsc::UnboundedReceiver<ToBand>, events: &mpsc::
     if !tell(intersected) {
         return Ok(());
     }
+    // Time spent on answers, told with the next news.
+    let mut untold = Seconds::default();
     while !scheduler.is_complete() {
         let Some(message) = inbox.blocking_recv() else { return Ok(()) };
-        let news = unwinding("casting", || step(&mut scheduler, band, message))?;
+        let news = unwinding("casting", || step(&mut scheduler, band, message, &mut untold))?;
         if let Some(news) = news {
             if !tell(news) {
                 return Ok(());
@@ -162,15 +170,16 @@ fn run(start: Start, mut inbox: mpsc::UnboundedReceiver<ToBand>, events: &mpsc::
     // Its buffers go to the next band's intersection, which then writes memory that is
     // already paged in.
     recycle(scheduler.into_intersections());
-    tell(News::Composited { part: Box::new(part), progress });
+    tell(News::Composited { part: Box::new(part), progress, seconds: untold });
     Ok(())
 }
 
-/// Handles one message of the job's loop; returns what to tell it.
-fn step(scheduler: &mut Scheduler, band: usize, message: ToBand) -> Option<News> {
+/// Handles one message of the job's loop; returns what to tell it. Time spent on an answer
+/// recorded is added to `untold`, and told with the next batches produced.
+fn step(scheduler: &mut Scheduler, band: usize, message: ToBand, untold: &mut Seconds) -> Option<News> {
     match message {
         ToBand::Produce { dataset, n } => {
-            let mut seconds = Seconds::default();
+            let mut seconds = std::mem::take(untold);
             let mut batches = Vec::with_capacity(n);
             while batches.len() < n {
                 let asked = Instant::now();
@@ -198,18 +207,15 @@ fn step(scheduler: &mut Scheduler, band: usize, message: ToBand) -> Option<News>
                 Ok(results) => scheduler.record(id, &results).map_err(|e| e.to_string()),
                 Err(e) => Err(format!("undecodable results: {e}")),
             };
-            let seconds = Seconds {
-                decoding: (recording - decoding).as_secs_f64(),
-                recording: recording.elapsed().as_secs_f64(),
-                ..Seconds::default()
-            };
-            Some(match recorded {
-                Ok(()) => News::Recorded { dataset, progress: scheduler.progress(), seconds },
+            untold.decoding += (recording - decoding).as_secs_f64();
+            untold.recording += recording.elapsed().as_secs_f64();
+            match recorded {
+                Ok(()) => None,
                 Err(why) => {
                     let _ = scheduler.abandon(id);
-                    News::Refused { id, dataset, stream, why }
+                    Some(News::Refused { id, dataset, stream, why })
                 }
-            })
+            }
         }
         ToBand::Abandon { ids } => {
             for id in ids {
@@ -254,11 +260,12 @@ mod tests {
 
     #[test]
     fn a_band_hands_out_at_most_what_it_is_asked_and_says_when_it_may_have_more() {
+        let mut untold = Seconds::default();
         let (_, mut scheduler) = ball();
         let total = scheduler.progress().total;
         assert!(total > 30, "the test needs several batches: {total} tasks");
         let Some(News::Produced { batches, more, asked, .. }) =
-            step(&mut scheduler, 3, ToBand::Produce { dataset: 0, n: 2 })
+            step(&mut scheduler, 3, ToBand::Produce { dataset: 0, n: 2 }, &mut untold)
         else {
             panic!("a produce request is answered with batches")
         };
@@ -267,7 +274,7 @@ mod tests {
         assert_eq!(decode_tasks(&batches[0].encoded).unwrap().len(), 10, "the tasks go encoded for the wire");
         // Asked for more than the wave holds: all of it, and no more to come until answers.
         let Some(News::Produced { batches: rest, more, .. }) =
-            step(&mut scheduler, 3, ToBand::Produce { dataset: 0, n: 1000 })
+            step(&mut scheduler, 3, ToBand::Produce { dataset: 0, n: 1000 }, &mut untold)
         else {
             panic!()
         };
@@ -278,33 +285,44 @@ mod tests {
 
     #[test]
     fn answers_are_recorded_until_the_band_is_complete_and_nonsense_is_refused_and_given_back() {
+        let mut untold = Seconds::default();
         let (scene, mut scheduler) = ball();
         let mut rounds = 0;
         while !scheduler.is_complete() {
             rounds += 1;
             assert!(rounds < 100, "the band never completes");
-            let Some(News::Produced { batches, .. }) = step(&mut scheduler, 0, ToBand::Produce { dataset: 0, n: 1000 })
+            let Some(News::Produced { batches, .. }) =
+                step(&mut scheduler, 0, ToBand::Produce { dataset: 0, n: 1000 }, &mut untold)
             else {
                 panic!()
             };
+            let mut answered = false;
             for (i, ready) in batches.iter().enumerate() {
                 if i == 0 && rounds == 1 {
                     // A worker answering with bytes that do not decode: the band gives the
                     // batch back and names the stream, and it is handed out again.
-                    let refused = step(
-                        &mut scheduler,
-                        0,
-                        ToBand::Answer { id: ready.id, dataset: 0, stream: stream(), results: vec![7] },
-                    );
+                    let answer = ToBand::Answer { id: ready.id, dataset: 0, stream: stream(), results: vec![7] };
+                    let refused = step(&mut scheduler, 0, answer, &mut untold);
                     assert!(
                         matches!(refused, Some(News::Refused { id, stream: s, .. }) if id == ready.id && s == stream())
                     );
                     continue;
                 }
                 let results = cast(&scene, ready);
-                let news =
-                    step(&mut scheduler, 0, ToBand::Answer { id: ready.id, dataset: 0, stream: stream(), results });
-                assert!(matches!(news, Some(News::Recorded { dataset: 0, .. })));
+                let answer = ToBand::Answer { id: ready.id, dataset: 0, stream: stream(), results };
+                let news = step(&mut scheduler, 0, answer, &mut untold);
+                assert!(news.is_none(), "an answer recorded needs no reply");
+                answered = true;
+            }
+            if answered && !scheduler.is_complete() {
+                // The time the answers took rides on the next batches handed out.
+                let Some(News::Produced { seconds, .. }) =
+                    step(&mut scheduler, 0, ToBand::Produce { dataset: 0, n: 0 }, &mut untold)
+                else {
+                    panic!()
+                };
+                assert!(seconds.recording > 0.0 && seconds.decoding > 0.0, "{seconds:?}");
+                assert_eq!(untold.recording, 0.0, "told once");
             }
         }
         assert!(rounds >= 2, "the refused batch was handed out again");
@@ -314,13 +332,17 @@ mod tests {
 
     #[test]
     fn abandoned_batches_are_handed_out_again_as_a_later_attempt() {
+        let mut untold = Seconds::default();
         let (_, mut scheduler) = ball();
-        let Some(News::Produced { batches, .. }) = step(&mut scheduler, 0, ToBand::Produce { dataset: 0, n: 2 }) else {
+        let Some(News::Produced { batches, .. }) =
+            step(&mut scheduler, 0, ToBand::Produce { dataset: 0, n: 2 }, &mut untold)
+        else {
             panic!()
         };
         let ids: Vec<u64> = batches.iter().map(|b| b.id).collect();
-        assert!(step(&mut scheduler, 0, ToBand::Abandon { ids: ids.clone() }).is_none());
-        let Some(News::Produced { batches: again, .. }) = step(&mut scheduler, 0, ToBand::Produce { dataset: 0, n: 2 })
+        assert!(step(&mut scheduler, 0, ToBand::Abandon { ids: ids.clone() }, &mut untold).is_none());
+        let Some(News::Produced { batches: again, .. }) =
+            step(&mut scheduler, 0, ToBand::Produce { dataset: 0, n: 2 }, &mut untold)
         else {
             panic!()
         };

@@ -605,10 +605,6 @@ impl Driver {
                     self.wake(band, dataset);
                 }
             }
-            News::Recorded { dataset, progress, seconds } => {
-                self.progressed(band, progress, seconds);
-                self.wake(band, dataset);
-            }
             News::Refused { id, dataset, stream, why } => {
                 // A worker that answers nonsense is not trusted with more of this job. The
                 // band gave the batch back; the loop forgot it when it took the answer.
@@ -616,10 +612,8 @@ impl Driver {
                 self.wake(band, dataset);
                 self.lose_stream(&stream, Rest::Job);
             }
-            News::Composited { part, progress } => {
-                if let Some((_, state)) = self.bands.casting(band) {
-                    state.progress = progress;
-                }
+            News::Composited { part, progress, seconds } => {
+                self.progressed(band, progress, seconds);
                 self.band_tx.remove(&band);
                 for stock in &mut self.stock {
                     stock.asked.remove(&band);
@@ -670,7 +664,12 @@ impl Driver {
         self.tally.answered(&stream.0, batch.tasks, batch.sent.elapsed(), &result);
         if let Some(tx) = self.band_tx.get(&batch.band) {
             let (id, dataset, stream, results) = (batch.id, batch.dataset, stream.clone(), result.results);
-            let _ = tx.send(ToBand::Answer { id, dataset, stream, results });
+            if tx.send(ToBand::Answer { id, dataset, stream, results }).is_ok() {
+                // Once recorded, the answer may let the band hand out more of the dataset:
+                // asked from now on, the band finds it recorded (it takes its messages in
+                // order), so it says nothing back.
+                self.wake(batch.band, batch.dataset);
+            }
         }
     }
 
