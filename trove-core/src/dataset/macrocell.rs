@@ -90,13 +90,13 @@ impl Macrocells {
     pub fn compute(channel: &Channel, dims: Dims) -> Macrocells {
         let reader = channel.reader();
         if let Some(v) = U8Voxels::of(reader) {
-            scan(v, dims)
+            scan_widest(v, dims)
         } else if let Some(v) = U16LeVoxels::of(reader) {
-            scan(v, dims)
+            scan_widest(v, dims)
         } else if let Some(v) = F32LeVoxels::of(reader) {
-            scan(v, dims)
+            scan_widest(v, dims)
         } else if let Some(v) = BitVoxels::of(reader) {
-            scan(v, dims)
+            scan_widest(v, dims)
         } else {
             scan::<ChannelReader<'_>>(reader, dims)
         }
@@ -146,7 +146,7 @@ impl Macrocells {
 }
 
 /// `acc[i] = min(acc[i], x[i])` (no NaN: sentinels stand for non-finite values).
-#[inline]
+#[inline(always)]
 fn fold_min(acc: &mut [f32], x: &[f32]) {
     for (a, &x) in acc.iter_mut().zip(x) {
         *a = if x < *a { x } else { *a };
@@ -154,7 +154,7 @@ fn fold_min(acc: &mut [f32], x: &[f32]) {
 }
 
 /// `acc[i] = max(acc[i], x[i])`.
-#[inline]
+#[inline(always)]
 fn fold_max(acc: &mut [f32], x: &[f32]) {
     for (a, &x) in acc.iter_mut().zip(x) {
         *a = if x > *a { x } else { *a };
@@ -174,11 +174,39 @@ fn window(c: u32, n: u32) -> (usize, usize) {
     (lo as usize, (lo + MACROCELL).min(n - 1) as usize)
 }
 
+/// [`scan`], compiled for AVX2 where the processor has it. The scan is element-wise
+/// conversions, minima and maxima over whole planes, which the baseline x86-64 target
+/// compiles to four-lane SSE2; eight lanes halve its instructions, and it was a fifth of the
+/// instructions of a one-shot render of the 15-volume scene (BENCHMARKS.md, issue 19). The
+/// ranges are the same to the bit on every path: a conversion, a minimum and a maximum are
+/// exact whatever the width. (The sampler's `TROVE_SIMD` does not govern this: there is no
+/// rounding here for a path to change.)
+fn scan_widest<V: Voxels>(v: V, dims: Dims) -> Macrocells {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the processor has AVX2.
+        return unsafe { scan_avx2(v, dims) };
+    }
+    scan(v, dims)
+}
+
+/// [`scan`] with AVX2 enabled for the body inlined into it.
+///
+/// # Safety
+/// The processor must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn scan_avx2<V: Voxels>(v: V, dims: Dims) -> Macrocells {
+    scan(v, dims)
+}
+
 /// Separable min/max, z first: for each layer of cells along z, the slices of its window
 /// are decoded (non-finite values replaced by sentinels that min and max pass over) and
 /// folded element-wise into one plane; its rows are folded the same way over each y
 /// window; and only those few rows are reduced along x, cell by cell. Element-wise minima
 /// over whole planes vectorise, so the scan costs about what copying the channel costs.
+/// Always inlined, so that [`scan_avx2`]'s instructions reach its loops.
+#[inline(always)]
 fn scan<V: Voxels>(v: V, dims: Dims) -> Macrocells {
     let [nx, ny, nz] = dims.as_array();
     let cells = Macrocells::cells_of(dims, Level::Fine);
@@ -195,21 +223,23 @@ fn scan<V: Voxels>(v: V, dims: Dims) -> Macrocells {
         // z: fold the slices of layer k's window into (lo, hi).
         let (z0, z1) = window(k as u32, nz);
         for z in z0..=z1 {
-            v.decode(z * plane, &mut slice);
-            if !V::ALWAYS_FINITE {
-                for (l, h) in slice.iter_mut().zip(slice_hi.iter_mut()) {
+            // The window's first slice is decoded straight into the planes it starts.
+            let (low, high) = if z == z0 { (&mut lo, &mut hi) } else { (&mut slice, &mut slice_hi) };
+            v.decode(z * plane, low);
+            if V::ALWAYS_FINITE {
+                if z == z0 {
+                    high.copy_from_slice(low);
+                }
+            } else {
+                for (l, h) in low.iter_mut().zip(high.iter_mut()) {
                     let finite = l.is_finite();
                     *h = if finite { *l } else { f32::NEG_INFINITY };
                     *l = if finite { *l } else { f32::INFINITY };
                 }
             }
-            let high = if V::ALWAYS_FINITE { &slice } else { &slice_hi };
-            if z == z0 {
-                lo.copy_from_slice(&slice);
-                hi.copy_from_slice(high);
-            } else {
+            if z != z0 {
                 fold_min(&mut lo, &slice);
-                fold_max(&mut hi, high);
+                fold_max(&mut hi, if V::ALWAYS_FINITE { &slice } else { &slice_hi });
             }
         }
         for j in 0..cy {
@@ -361,6 +391,8 @@ mod tests {
         assert_eq!(m.range(Level::Fine, [2, 0, 0]), [-1.0, -1.0]);
     }
 
+    /// Each typed scan (AVX2-compiled where the processor has it, [`scan_widest`]) gives the
+    /// generic reader's plain scan to the bit, non-finite f32 voxels included.
     #[test]
     fn typed_scans_agree_with_the_generic_reader() {
         let dims = Dims::new([19, 10, 11]).unwrap();
@@ -373,7 +405,13 @@ mod tests {
         )
         .unwrap();
         let u8_ch = Channel::from_u8(bytes[..dims.voxel_count() as usize].to_vec(), dims).unwrap();
-        for ch in [&u16_le, &u8_ch] {
+        let f32_ch = channel(dims, |i, j, k| match (i * 3 + j * 5 + k * 7) % 11 {
+            0 => f32::NAN,
+            1 => f32::INFINITY,
+            2 => f32::NEG_INFINITY,
+            n => n as f32 * 0.75 - 4.0,
+        });
+        for ch in [&u16_le, &u8_ch, &f32_ch] {
             assert_eq!(Macrocells::compute(ch, dims), scan::<ChannelReader<'_>>(ch.reader(), dims));
         }
     }
