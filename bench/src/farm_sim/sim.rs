@@ -219,11 +219,6 @@ enum LoopEvent {
         batches: Vec<Made>,
         more: bool,
     },
-    /// An answer of `dataset` is recorded by its band.
-    Recorded {
-        band: usize,
-        dataset: usize,
-    },
     Composited(usize),
     Opened(usize, usize),
     Answer(usize),
@@ -650,7 +645,6 @@ impl Sim<'_> {
                     self.wake(s, band, dataset);
                 }
             }
-            LoopEvent::Recorded { band, dataset } => self.wake(s, band, dataset),
             LoopEvent::Composited(b) => {
                 let pieces = self.work.bands[b].pieces as f64;
                 self.charge(s, &mut clock, Part::Other, pieces * self.inputs.cost(At::Composite, RunsOn::EventLoop));
@@ -741,8 +735,9 @@ impl Sim<'_> {
         }
     }
 
-    /// The driver's `answered`: the batch's worker has room again, and the answer goes to
-    /// its band's thread.
+    /// The driver's `answered`: the batch's worker has room again, the answer goes to its
+    /// band's thread, and the band's dataset may have batches again once it is recorded
+    /// (the band takes its messages in order, so a `Produce` after it finds it recorded).
     fn answered(&mut self, s: usize, id: usize, clock: &mut f64) {
         let (band, lane, worker, tasks) = {
             let b = &self.batches[id];
@@ -756,6 +751,7 @@ impl Sim<'_> {
         let d = self.work.bands[band].lanes[lane].dataset;
         self.shards[s].datasets.insert(d);
         self.tell_band(s, band, BandStep::Answer(id), *clock);
+        self.wake(s, band, d);
     }
 
     /// The driver's `advance`: start bands while admission allows, then `dispatch_ready`.
@@ -982,10 +978,11 @@ impl Sim<'_> {
                         thread.inbox = VecDeque::from([BandStep::Composite, BandStep::CompositeOne]);
                     }
                 }
+                // An answer recorded needs no reply: the loop woke the dataset as it handed
+                // the answer over.
                 let seconds = tasks as f64 * own(At::Answer);
                 shard.band_answer += seconds;
-                let dataset = band.lanes[lane].dataset;
-                (seconds, 1.0, Some(LoopEvent::Recorded { band: b, dataset }))
+                (seconds, 1.0, None)
             }
             BandStep::Composite => {
                 shard.band_other += pieces * i.cost(At::Composite, RunsOn::Parallel);
