@@ -24,6 +24,7 @@ pub(crate) mod sampling;
 pub mod scene;
 #[cfg(test)]
 mod testing;
+pub(crate) mod width;
 
 // The sampler's and compositor's internals stay inside the crate; these are what callers
 // (the farm, the tests that hold the sampler to closed forms) need of them.

@@ -21,6 +21,7 @@
 //! cells through its own opacity map when it casts (see `sampling`).
 
 use super::{BitVoxels, Channel, ChannelName, ChannelReader, Dims, F32LeVoxels, U16LeVoxels, U8Voxels, Voxels};
+use crate::width::VectorWidth;
 
 /// The channels that get ranges: those an opacity map reads (`voxel` for LUTs, ramps and
 /// polynomials, `alpha` for raw opacity, SPEC §3.2). Only opacity decides whether a sample
@@ -88,15 +89,20 @@ impl Macrocells {
 
     /// Scans `channel` (of `dims`) once and returns its ranges.
     pub fn compute(channel: &Channel, dims: Dims) -> Macrocells {
+        Macrocells::compute_at(channel, dims, VectorWidth::detect(VectorWidth::Avx512))
+    }
+
+    /// [`Macrocells::compute`], the scan at most `width` wide (the same ranges at any width).
+    pub(crate) fn compute_at(channel: &Channel, dims: Dims, width: VectorWidth) -> Macrocells {
         let reader = channel.reader();
         if let Some(v) = U8Voxels::of(reader) {
-            scan_widest(v, dims)
+            scan_at(v, dims, width)
         } else if let Some(v) = U16LeVoxels::of(reader) {
-            scan_widest(v, dims)
+            scan_at(v, dims, width)
         } else if let Some(v) = F32LeVoxels::of(reader) {
-            scan_widest(v, dims)
+            scan_at(v, dims, width)
         } else if let Some(v) = BitVoxels::of(reader) {
-            scan_widest(v, dims)
+            scan_at(v, dims, width)
         } else {
             scan::<ChannelReader<'_>>(reader, dims)
         }
@@ -174,20 +180,22 @@ fn window(c: u32, n: u32) -> (usize, usize) {
     (lo as usize, (lo + MACROCELL).min(n - 1) as usize)
 }
 
-/// [`scan`], compiled for AVX2 where the processor has it. The scan is element-wise
-/// conversions, minima and maxima over whole planes, which the baseline x86-64 target
-/// compiles to four-lane SSE2; eight lanes halve its instructions, and it was a fifth of the
-/// instructions of a one-shot render of the 15-volume scene (BENCHMARKS.md, issue 19). The
-/// ranges are the same to the bit on every path: a conversion, a minimum and a maximum are
-/// exact whatever the width. (The sampler's `TROVE_SIMD` does not govern this: there is no
-/// rounding here for a path to change.)
-fn scan_widest<V: Voxels>(v: V, dims: Dims) -> Macrocells {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the processor has AVX2.
-        return unsafe { scan_avx2(v, dims) };
+/// [`scan`], compiled for AVX2 where `width` allows it (AVX-512 adds nothing here). The
+/// scan is element-wise conversions, minima and maxima over whole planes, which the
+/// baseline x86-64 target compiles to four-lane SSE2; eight lanes halve its instructions,
+/// and it was a fifth of the instructions of a one-shot render of the 15-volume scene
+/// (BENCHMARKS.md, issue 19). The ranges are the same to the bit at every width: a
+/// conversion, a minimum and a maximum are exact.
+fn scan_at<V: Voxels>(v: V, dims: Dims, width: VectorWidth) -> Macrocells {
+    match width {
+        #[cfg(target_arch = "x86_64")]
+        VectorWidth::Avx2 | VectorWidth::Avx512 => {
+            // SAFETY: `VectorWidth::detect` gives these widths only where the processor has
+            // AVX2.
+            unsafe { scan_avx2(v, dims) }
+        }
+        _ => scan(v, dims),
     }
-    scan(v, dims)
 }
 
 /// [`scan`] with AVX2 enabled for the body inlined into it.
@@ -391,8 +399,8 @@ mod tests {
         assert_eq!(m.range(Level::Fine, [2, 0, 0]), [-1.0, -1.0]);
     }
 
-    /// Each typed scan (AVX2-compiled where the processor has it, [`scan_widest`]) gives the
-    /// generic reader's plain scan to the bit, non-finite f32 voxels included.
+    /// Each typed scan, at every width the processor has ([`scan_at`]), gives the generic
+    /// reader's plain scan to the bit, non-finite f32 voxels included.
     #[test]
     fn typed_scans_agree_with_the_generic_reader() {
         let dims = Dims::new([19, 10, 11]).unwrap();
@@ -412,7 +420,10 @@ mod tests {
             n => n as f32 * 0.75 - 4.0,
         });
         for ch in [&u16_le, &u8_ch, &f32_ch] {
-            assert_eq!(Macrocells::compute(ch, dims), scan::<ChannelReader<'_>>(ch.reader(), dims));
+            let plain = scan::<ChannelReader<'_>>(ch.reader(), dims);
+            for width in [VectorWidth::Baseline, VectorWidth::Avx2] {
+                assert_eq!(Macrocells::compute_at(ch, dims, VectorWidth::detect(width)), plain, "{width:?}");
+            }
         }
     }
 

@@ -8,6 +8,7 @@ use super::generator::Generator;
 use super::macrocell::{Macrocells, RANGED_CHANNELS};
 use super::raw::StoredType;
 use super::{Channel, ChannelName, DataFile, Dims, Endian, Volume, VoxelType};
+use crate::width::VectorWidth;
 
 /// How a file region is encoded.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -158,11 +159,17 @@ impl DatasetInfo {
 
     /// Loads every channel.
     pub fn load(&self) -> Result<Arc<Volume>, DatasetError> {
+        self.load_at(VectorWidth::detect(VectorWidth::Avx512))
+    }
+
+    /// [`DatasetInfo::load`], its macrocells scanned at most `width` wide (a render's
+    /// configured width: the same ranges at any width).
+    pub(crate) fn load_at(&self, width: VectorWidth) -> Result<Arc<Volume>, DatasetError> {
         let mut channels = BTreeMap::new();
         for (name, (_, source)) in &self.channels {
             channels.insert(*name, source.load(self.dims)?);
         }
-        Ok(Arc::new(Volume::new(self.dims, channels)))
+        Ok(Arc::new(Volume::at_width(self.dims, channels, width)))
     }
 }
 

@@ -8,6 +8,7 @@ use thiserror::Error;
 
 use super::macrocell::{Macrocells, RANGED_CHANNELS};
 use super::{Channel, ChannelName};
+use crate::width::VectorWidth;
 
 /// Why [`Dims::new`] refused three sizes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Error)]
@@ -98,9 +99,15 @@ impl Volume {
     /// Assembles a volume and scans its `voxel` and `alpha` channels for macrocell ranges;
     /// each channel was already checked against `dims` by [`Channel::new`].
     pub fn new(dims: Dims, channels: BTreeMap<ChannelName, Channel>) -> Volume {
+        Volume::at_width(dims, channels, VectorWidth::detect(VectorWidth::Avx512))
+    }
+
+    /// [`Volume::new`], its macrocells scanned at most `width` wide (the same ranges at any
+    /// width).
+    pub(crate) fn at_width(dims: Dims, channels: BTreeMap<ChannelName, Channel>, width: VectorWidth) -> Volume {
         let macrocells = RANGED_CHANNELS
             .iter()
-            .filter_map(|name| channels.get(name).map(|ch| (*name, Arc::new(Macrocells::compute(ch, dims)))))
+            .filter_map(|name| channels.get(name).map(|ch| (*name, Arc::new(Macrocells::compute_at(ch, dims, width)))))
             .collect();
         Volume { dims, channels, macrocells }
     }

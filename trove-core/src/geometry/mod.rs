@@ -16,4 +16,4 @@ pub use placement::{
     sample_count, BoxOrigin, Extent, GradientToWorld, InversionPrecisionError, LineSamples, Placement, SampleWalk,
     Shape, VcLine, WorldPoints,
 };
-pub(crate) use slab::{Crossing, Crossings, RowDirections, VectorWidth};
+pub(crate) use slab::{Crossing, Crossings, RowDirections};

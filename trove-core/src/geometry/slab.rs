@@ -20,18 +20,7 @@ use glam::DVec3;
 use super::camera::PixelRays;
 use super::placement::BoxOrigin;
 use super::Ray;
-
-/// How wide the loops below may run: which instructions they are compiled for, narrowest
-/// first. Every width gives the same bits.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
-pub(crate) enum VectorWidth {
-    /// The target's baseline (two f64 lanes on x86-64's SSE2).
-    Baseline,
-    /// x86-64 AVX2: four f64 lanes.
-    Avx2,
-    /// x86-64 AVX-512 F: eight f64 lanes.
-    Avx512,
-}
+use crate::width::VectorWidth;
 
 /// The unit directions of a row's rays, one array per component, indexed by column.
 #[derive(Clone, Debug, Default)]
@@ -147,29 +136,6 @@ impl BoxOrigin {
                 unsafe { cross_avx2(self, x, y, z, near, far) }
             }
             _ => cross_body(self, x, y, z, near, far),
-        }
-    }
-}
-
-impl VectorWidth {
-    /// The widest this processor runs, narrowed to at most `cap` (the sampler's configured
-    /// path, so that `TROVE_SIMD=scalar` keeps the whole render on the baseline).
-    pub(crate) fn detect(cap: VectorWidth) -> VectorWidth {
-        #[cfg(target_arch = "x86_64")]
-        {
-            let best = if std::arch::is_x86_feature_detected!("avx512f") {
-                VectorWidth::Avx512
-            } else if std::arch::is_x86_feature_detected!("avx2") {
-                VectorWidth::Avx2
-            } else {
-                VectorWidth::Baseline
-            };
-            best.min(cap)
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        {
-            let _ = cap;
-            VectorWidth::Baseline
         }
     }
 }

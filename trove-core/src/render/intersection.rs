@@ -23,10 +23,10 @@ use super::limits::LimitError;
 use super::workunit::PieceTask;
 use crate::geometry::{
     count_pieces, split_into_pieces, BoxOrigin, Crossing, Crossings, Piece, PieceScratch, PixelRays, PixelRect, Ray,
-    RowDirections, Segment, VectorWidth,
+    RowDirections, Segment,
 };
-use crate::sampling::SimdPath;
 use crate::scene::Scene;
+use crate::width::VectorWidth;
 use glam::DVec3;
 
 /// Rows per parallel work item.
@@ -148,21 +148,9 @@ impl Reach {
             // Every ray starts at the eye: its part of each slab test is worked out once.
             scene.objects().iter().map(|o| o.placement().box_origin(rays.eye())).collect(),
             rays,
-            slab_width(),
+            super::vector_width(),
         )
     }
-}
-
-/// The width of the intersection's vector loops: the widest the processor has, but no wider
-/// than the sampler's configured path, so `TROVE_SIMD=scalar` keeps a whole render on the
-/// baseline. Every width gives the same bits.
-fn slab_width() -> VectorWidth {
-    let cap = match SimdPath::configured() {
-        Ok(SimdPath::Avx512) => VectorWidth::Avx512,
-        Ok(SimdPath::Avx2) => VectorWidth::Avx2,
-        _ => VectorWidth::Baseline,
-    };
-    VectorWidth::detect(cap)
 }
 
 impl Reach {

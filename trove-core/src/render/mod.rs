@@ -49,8 +49,23 @@ pub use stats::{ObjectEffects, RenderStats, Seconds};
 pub use store::{Pinned, StoreStats, VolumeStore};
 pub use workunit::{BatchCaster, BindTarget, PieceRgba, PieceTask};
 
+use crate::sampling::SimdPath;
 use crate::scene::Scene;
+use crate::width::VectorWidth;
 use raster::Canvas;
+
+/// The width of a render's loops that give the same bits at any width (the intersection's
+/// slab tests, the macrocell scan when a dataset loads): the widest the processor has, but
+/// no wider than the sampler's configured path, so `TROVE_SIMD=scalar` keeps a whole render
+/// on the baseline.
+pub(crate) fn vector_width() -> VectorWidth {
+    let cap = match SimdPath::configured() {
+        Ok(SimdPath::Avx512) => VectorWidth::Avx512,
+        Ok(SimdPath::Avx2) => VectorWidth::Avx2,
+        _ => VectorWidth::Baseline,
+    };
+    VectorWidth::detect(cap)
+}
 
 /// Which ray-casting algorithm renders the scene.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]

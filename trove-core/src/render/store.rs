@@ -351,7 +351,9 @@ impl VolumeStore {
         drop(state);
 
         let started = Instant::now();
-        let loaded = info.load().map(|v| if inner.budget.is_some() { Arc::new(v.owned_copy()) } else { v });
+        let loaded =
+            info.load_at(super::vector_width())
+                .map(|v| if inner.budget.is_some() { Arc::new(v.owned_copy()) } else { v });
         inner.loading_nanos.fetch_add(started.elapsed().as_nanos() as u64, Ordering::Relaxed);
 
         let mut state = lock(&inner.state);
